@@ -1,0 +1,233 @@
+"""The one parameter table: ROS parameter descriptors, config/*.yaml and the CLI all come from it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import yaml
+
+from .errors import ConfigError
+
+NODE_NAME = "pothole_detector"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: name, Python type, default, inclusive range or choices, description."""
+
+    name: str
+    type: type
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] | None = None
+    group: str = "pipeline"
+
+    def validate(self, value: Any) -> Any:
+        """Return ``value`` converted to this parameter's type, or raise ConfigError."""
+        if self.type is bool:
+            if not isinstance(value, bool):
+                raise ConfigError(f"{self.name} must be true or false, got {value!r}")
+            return value
+        if self.type is int:
+            if isinstance(value, bool) or not isinstance(value, int):
+                if isinstance(value, float) and value.is_integer():
+                    value = int(value)
+                else:
+                    raise ConfigError(f"{self.name} must be an integer, got {value!r}")
+        elif self.type is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{self.name} must be a number, got {value!r}")
+            value = float(value)
+            if value != value:
+                raise ConfigError(f"{self.name} must be a number, got NaN")
+        elif self.type is str:
+            if not isinstance(value, str):
+                raise ConfigError(f"{self.name} must be a string, got {value!r}")
+            if self.choices is not None and value not in self.choices:
+                raise ConfigError(
+                    f"{self.name} must be one of {', '.join(self.choices)}, got {value!r}"
+                )
+            return value
+        if self.low is not None and value < self.low:
+            raise ConfigError(f"{self.name} must be >= {self.low}, got {value}")
+        if self.high is not None and value > self.high:
+            raise ConfigError(f"{self.name} must be <= {self.high}, got {value}")
+        return value
+
+
+PARAMETERS: tuple[Param, ...] = (
+    # seed pass and perspective transformation
+    Param("max_disparity_px", int, 384,
+          "Largest disparity (px, full resolution) searched by the coarse seed pass and by "
+          "matching when GPT is off.", 16, 2048),
+    Param("coarse_scale", int, 4,
+          "Downscale factor of the coarse full-range pass that seeds the road model.", 1, 8),
+    Param("gpt_enabled", bool, True,
+          "Match the perspective-transformed pair in a narrow band (true) or the raw pair over "
+          "the full range (false)."),
+    Param("gpt_margin_below_px", float, 40.0,
+          "delta_PT: band margin below the road (px); bounds the deepest pothole seen.", 0, 512),
+    Param("gpt_margin_above_px", float, 16.0,
+          "Band margin above the road's highest disparity in a row (px), for bumps and noise.",
+          0, 512),
+    # matching
+    Param("sgm_block_size", int, 5, "Matching block size (px, odd).", 1, 11),
+    Param("sgm_p1", int, 8, "SGM penalty for |dd| = 1, per block pixel (OpenCV: x block area).",
+          0, 1000),
+    Param("sgm_p2", int, 32, "SGM penalty for |dd| > 1, per block pixel (> sgm_p1).", 1, 4000),
+    Param("sgm_mode", str, "3way", "OpenCV SGBM path mode on the CPU: 3way, sgbm (5 paths) or "
+          "hh (8 paths, more memory).", choices=("3way", "sgbm", "hh")),
+    Param("sgm_uniqueness_percent", int, 5,
+          "Winner must beat the runner-up cost by this margin (%), else invalid.", 0, 100),
+    Param("lr_max_diff_px", int, 1,
+          "Left-right consistency tolerance (px); -1 turns the check off.", -1, 64),
+    Param("speckle_window_px", int, 100,
+          "Blobs of at most this many pixels that differ from their surround are removed "
+          "(0 = off).", 0, 10000),
+    Param("speckle_range_px", int, 2, "Disparity variation (px) allowed inside one blob.", 0, 64),
+    Param("median_filter", bool, True, "3x3 median on the disparity map after matching."),
+    Param("min_valid_fraction", float, 0.05,
+          "Fewer valid disparities than this fraction of the image means no texture: an error.",
+          0, 1),
+    # road model and disparity transformation
+    Param("road_model", str, "auto",
+          "planar (paper), quadratic in the rotated row, or auto (quadratic only where it "
+          "lowers the inlier residual by road_quadratic_gain).",
+          choices=("auto", "planar", "quadratic")),
+    Param("road_quadratic_gain", float, 0.1,
+          "Relative residual drop that auto needs to pick the quadratic model.", 0, 1),
+    Param("road_fit_stride", int, 2, "Fit the road on every n-th pixel in each axis.", 1, 16),
+    Param("road_fit_rounds", int, 3, "Robust refit rounds after the first fit.", 0, 10),
+    Param("road_outlier_k", float, 2.5,
+          "Pixels whose residual exceeds k robust sigmas are dropped before the next round.",
+          0.5, 20),
+    Param("min_road_inlier_fraction", float, 0.3,
+          "Below this fraction of valid pixels on the road, report no road and no potholes.",
+          0, 1),
+    Param("delta_dt_px", float, 32.0, "delta_DT: value of the road in the transformed map (px).",
+          0, 1024),
+    # superpixels
+    Param("slic_region_size_px", int, 24, "SLIC grid step S (px of the SLIC image).", 4, 512),
+    Param("slic_compactness", float, 2.0,
+          "SLIC m: a spatial distance of S weighs like m px of transformed disparity.", 0.01, 100),
+    Param("slic_iterations", int, 6, "Fixed number of SLIC k-means iterations.", 1, 50),
+    Param("slic_downsample", int, 2,
+          "SLIC runs on the transformed map reduced by this factor; labels are scaled back.", 1, 8),
+    # threshold and selection
+    Param("histogram_bin_px", float, 0.25, "Bin width of the 2D histogram (px).", 0.01, 10),
+    Param("threshold_reference", str, "road_mean",
+          "What delta_PD is subtracted from: the mean D2 of the road cluster (the paper's text) "
+          "or the k-means split t_r itself.", choices=("road_mean", "split")),
+    Param("threshold_mode", str, "pixels",
+          "Pothole tolerance delta_PD given in pixels or as a metric depth in metres.",
+          choices=("pixels", "metres")),
+    Param("delta_pd_px", float, 2.36, "delta_PD in pixels (paper: 2.36).", 0, 100),
+    Param("delta_pd_m", float, 0.008,
+          "delta_PD as a depth below the road (m), converted per superpixel.", 0, 1),
+    Param("superpixel_min_valid_fraction", float, 0.5,
+          "A superpixel needs this fraction of valid disparities to be selectable.", 0, 1),
+    # components
+    Param("corner_fraction", float, 0.1,
+          "Components touching a corner square of this fraction of the short side are dropped.",
+          0, 0.5),
+    Param("min_pothole_superpixels", int, 2, "Components of fewer superpixels are dropped.",
+          1, 1000),
+    Param("min_pothole_area_m2", float, 0.0005, "Components smaller on the road are dropped.",
+          0, 100),
+)
+
+PARAMETER_BY_NAME: dict[str, Param] = {p.name: p for p in PARAMETERS}
+
+
+class Config:
+    """Validated parameter values, read as attributes (``config.sgm_p1``)."""
+
+    __slots__ = ("_values",)
+
+    def __init__(self, values: Mapping[str, Any] | None = None, group: str | None = None):
+        table = [p for p in PARAMETERS if group is None or p.group == group]
+        merged = {p.name: p.default for p in table}
+        for name, value in (values or {}).items():
+            if name not in merged:
+                raise ConfigError(f"unknown parameter {name!r}; see config/{NODE_NAME}.yaml")
+            merged[name] = PARAMETER_BY_NAME[name].validate(value)
+        if merged.get("sgm_p2", 1) <= merged.get("sgm_p1", 0):
+            raise ConfigError("sgm_p2 must be larger than sgm_p1")
+        object.__setattr__(self, "_values", merged)
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self._values[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("Config is immutable: use replace()")
+
+    def replace(self, **changes: Any) -> "Config":
+        """A copy with ``changes`` applied and validated."""
+        return Config({**self._values, **changes})
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self._values)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Config) and other._values == self._values
+
+    def __repr__(self) -> str:
+        return f"Config({self._values!r})"
+
+
+def parameters(group: str | None = None) -> Iterable[Param]:
+    """The table rows, optionally of one group (pipeline or node)."""
+    return (p for p in PARAMETERS if group is None or p.group == group)
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Parameter values from a ROS parameter file (``node: ros__parameters: {...}``) or a flat
+    mapping. Raises ConfigError when the file is missing or malformed."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping of parameter names")
+    for value in data.values():
+        if isinstance(value, dict) and "ros__parameters" in value:
+            return dict(value["ros__parameters"] or {})
+    if "ros__parameters" in data:
+        return dict(data["ros__parameters"] or {})
+    return data
+
+
+def default_yaml() -> str:
+    """The text of config/pothole_detector.yaml, generated from the table."""
+    lines = [
+        "# Generated from pothole_detector/params.py (python -m pothole_detector.params).",
+        "# Every parameter with its default; ranges and meaning in the comments.",
+        f"{NODE_NAME}:",
+        "  ros__parameters:",
+    ]
+    for param in PARAMETERS:
+        if param.choices:
+            allowed = "one of " + ", ".join(param.choices)
+        elif param.type is bool:
+            allowed = "true or false"
+        else:
+            allowed = f"{param.low} .. {param.high}"
+        lines.append(f"    # {param.description} ({allowed})")
+        lines.append(f"    {param.name}: {yaml.safe_dump(param.default).splitlines()[0]}")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    print(default_yaml(), end="")

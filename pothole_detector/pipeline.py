@@ -1,0 +1,232 @@
+"""The detection pipeline: runs the stages in order on one backend. Knows nothing of ROS."""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Iterator
+
+import numpy as np
+
+from .backend import CPU, Backend
+from .calibration import StereoCalibration
+from .errors import InputError, NoRoadError, NoTextureError
+from .params import Config
+from .stages import components, matching, measure, perspective, road_model, superpixels
+from .stages import threshold as thresholding
+from .stages.transform import transform_disparity
+
+
+@dataclass
+class PipelineResult:
+    """Everything one stereo pair produced. Arrays live on the pipeline's backend.
+
+    ``disparity`` (D1) and ``transformed`` (D2) are float32 HxW px, NaN where invalid;
+    ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW.
+    """
+
+    disparity: Any
+    transformed: Any
+    labels: Any
+    superpixels: Any
+    road: road_model.RoadModel
+    threshold_px: float
+    band: tuple[int, int]
+    potholes: list[measure.Pothole]
+    backend: str
+    seeded: bool
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class Pipeline:
+    """Stereo pair in, potholes out.
+
+    The road model of one frame seeds the perspective transformation of the next (the rig is
+    fixed to the vehicle); the first frame, frames after :meth:`reset` and frames after a poor
+    road fit are seeded by a coarse full-range pass.
+    """
+
+    def __init__(self, config: Config, calibration: StereoCalibration,
+                 backend: Backend = CPU) -> None:
+        self.config = config
+        self.calibration = calibration
+        self.backend = backend
+        self._road: road_model.RoadModel | None = None
+
+    def reset(self) -> None:
+        """Forget the previous frame's road model; the next frame runs the seed pass."""
+        self._road = None
+
+    def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:
+        """Detect potholes in a rectified pair of host images (HxW mono or HxWx3 RGB, uint8 or
+        uint16). Raises InputError, NoTextureError or NoRoadError with a message saying why."""
+        config, backend = self.config, self.backend
+        xp = backend.xp
+        timings: dict[str, float] = {}
+        left_gray, right_gray = _validate_pair(left, right)
+        height, width = left_gray.shape
+
+        with _timed(timings, "seed", backend):
+            seeded = self._road is None or not config.gpt_enabled
+            if seeded and config.gpt_enabled:
+                self._road = self._seed(left_gray, right_gray)
+        with _timed(timings, "gpt", backend):
+            left_dev = backend.upload(left_gray)
+            right_dev = backend.upload(right_gray)
+            if config.gpt_enabled:
+                assert self._road is not None
+                kappa = perspective.row_shifts(xp, self._road, height, width,
+                                               config.gpt_margin_below_px)
+                levels = perspective.band_levels(xp, self._road, kappa, height, width,
+                                                 config.gpt_margin_above_px,
+                                                 config.max_disparity_px)
+                right_dev = perspective.shift_rows(xp, right_dev, kappa)
+            else:
+                kappa = xp.zeros(height, dtype=xp.int32)
+                levels = perspective.round_up_levels(config.max_disparity_px)
+        with _timed(timings, "sgm", backend):
+            disparity = matching.match(backend, left_dev, right_dev, levels, config)
+            disparity += kappa[:, None].astype(xp.float32)
+            outside = xp.arange(width, dtype=xp.float32)[None, :] - disparity < 0
+            disparity[outside] = xp.nan
+        valid_fraction = float(xp.isfinite(disparity).mean())
+        if valid_fraction < config.min_valid_fraction:
+            self.reset()
+            raise NoTextureError(
+                f"only {valid_fraction:.1%} of pixels got a disparity (need "
+                f"{config.min_valid_fraction:.0%}): the images lack texture, are not a "
+                "rectified pair, or the road is outside max_disparity_px"
+            )
+        with _timed(timings, "road", backend):
+            road = self._fit(disparity, stride=config.road_fit_stride)
+            if road.inlier_fraction < config.min_road_inlier_fraction:
+                self.reset()
+                raise NoRoadError(
+                    f"no road plane: only {road.inlier_fraction:.0%} of the valid disparities "
+                    f"fit one (need {config.min_road_inlier_fraction:.0%}); is the camera "
+                    "looking at the road?"
+                )
+            self._road = road
+        with _timed(timings, "dt", backend):
+            transformed = transform_disparity(xp, disparity, road, config.delta_dt_px)
+        with _timed(timings, "slic", backend):
+            sp_labels, n_sp = superpixels.superpixels(
+                xp, transformed, config.slic_region_size_px, config.slic_compactness,
+                config.slic_iterations, config.slic_downsample)
+            sp_means, sp_valid = superpixels.superpixel_means(xp, transformed, sp_labels, n_sp)
+        with _timed(timings, "threshold", backend):
+            t_r, road_mean = thresholding.histogram_threshold(
+                xp, transformed, config.histogram_bin_px, config.delta_dt_px)
+            reference = road_mean if config.threshold_reference == "road_mean" else t_r
+            selected = self._select(sp_labels, n_sp, sp_means, sp_valid, reference, road)
+        with _timed(timings, "components", backend):
+            labels, count = components.pothole_components(
+                backend, selected[sp_labels], xp.isfinite(disparity), sp_labels, n_sp,
+                config.corner_fraction,
+                config.min_pothole_superpixels)
+        with _timed(timings, "measure", backend):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                potholes = measure.measure_potholes(backend, labels, count, disparity, road,
+                                                    self.calibration)
+            keep = [p.area_m2 >= config.min_pothole_area_m2 for p in potholes]
+            if not all(keep):
+                labels, count = components.relabel(
+                    xp, labels, xp.asarray(np.array([False] + keep)))
+                potholes = [measure.Pothole(**{**p.__dict__, "label": i})
+                            for i, p in enumerate((p for p, k in zip(potholes, keep) if k), 1)]
+        timings["total"] = sum(timings.values())
+        return PipelineResult(
+            disparity=disparity, transformed=transformed, labels=labels,
+            superpixels=sp_labels, road=road, threshold_px=reference,
+            band=(int(kappa.min()) if height else 0, int(levels)), potholes=potholes,
+            backend=backend.name, seeded=seeded, timings_ms=timings,
+        )
+
+    def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
+        config = self.config
+        return road_model.fit_road(
+            self.backend.xp, disparity, stride=stride, rounds=config.road_fit_rounds,
+            outlier_k=config.road_outlier_k, kind=config.road_model,
+            quadratic_gain=config.road_quadratic_gain, coordinate_scale=scale,
+            coordinate_offset=(scale - 1.0) / 2.0)
+
+    def _seed(self, left: np.ndarray, right: np.ndarray) -> road_model.RoadModel:
+        """Road model from a full-range match of the pair reduced by coarse_scale."""
+        config = self.config
+        scale = config.coarse_scale
+        small_left = matching.downsample(left, scale)
+        small_right = matching.downsample(right, scale)
+        levels = perspective.round_up_levels(config.max_disparity_px / scale)
+        if levels >= small_left.shape[1]:
+            levels = max(16, (small_left.shape[1] - 1) // 16 * 16)
+        coarse = matching.sgm_disparity(small_left, small_right, levels, config,
+                                        block_size=min(config.sgm_block_size, 5))
+        if np.isfinite(coarse).mean() < config.min_valid_fraction:
+            raise NoTextureError(
+                "the coarse seed pass found almost no disparities: the images lack texture, "
+                "are not a rectified pair, or the road is beyond max_disparity_px"
+            )
+        return self._fit(self.backend.upload(coarse), stride=1, scale=float(scale))
+
+    def _select(self, sp_labels: Any, n_sp: int, means: Any, valid_fraction: Any,
+                t_r: float, road: road_model.RoadModel) -> Any:
+        """Bool (n,) of pothole superpixels: D3 < t_s with t_s = t_r - delta_PD (px, or a
+        metric depth converted per superpixel with the road model and calibration); ``t_r`` is
+        the threshold reference (road mean or split)."""
+        xp, config = self.backend.xp, self.config
+        if not math.isfinite(t_r):
+            return xp.zeros(n_sp, dtype=bool)
+        if config.threshold_mode == "pixels":
+            t_s = t_r - config.delta_pd_px
+        else:
+            height, width = sp_labels.shape
+            flat = sp_labels.ravel()
+            count = xp.maximum(xp.bincount(flat, minlength=n_sp), 1)
+            rows = xp.broadcast_to(xp.arange(height, dtype=xp.float64)[:, None], sp_labels.shape)
+            cols = xp.broadcast_to(xp.arange(width, dtype=xp.float64)[None, :], sp_labels.shape)
+            v = xp.bincount(flat, weights=rows.ravel(), minlength=n_sp) / count
+            u = xp.bincount(flat, weights=cols.ravel(), minlength=n_sp) / count
+            t_s = t_r - metric_tolerance_px(xp, u, v, road, self.calibration, config.delta_pd_m)
+        return thresholding.select_superpixels(xp, means, valid_fraction, t_s,
+                                               config.superpixel_min_valid_fraction)
+
+
+def metric_tolerance_px(xp: Any, u: Any, v: Any, road: road_model.RoadModel,
+                        calibration: StereoCalibration, depth_m: float) -> Any:
+    """Disparity drop (px) of a point ``depth_m`` below the road at pixels (u, v)."""
+    normal = measure.road_normal(road, calibration)
+    f = calibration.f
+    incidence = normal[0] * (u - calibration.cx) / f + normal[1] * (v - calibration.cy) / f \
+        + normal[2]
+    road_d = road.at(xp, u, v)
+    return road_d - calibration.fb / (calibration.fb / road_d + depth_m / incidence)
+
+
+def _validate_pair(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    for name, image in (("left", left), ("right", right)):
+        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
+            raise InputError(f"{name} image must be a non-empty HxW or HxWxC array")
+        if image.ndim == 3 and image.shape[2] not in (3, 4):
+            raise InputError(f"{name} image has {image.shape[2]} channels; use mono, RGB or RGBA")
+        if image.dtype not in (np.uint8, np.uint16):
+            raise InputError(f"{name} image is {image.dtype}; use 8- or 16-bit images")
+    if left.shape[:2] != right.shape[:2]:
+        raise InputError(
+            f"left image is {left.shape[1]}x{left.shape[0]} but right is "
+            f"{right.shape[1]}x{right.shape[0]}: a rectified pair has equal sizes"
+        )
+    if min(left.shape[:2]) < 16:
+        raise InputError(f"images of {left.shape[1]}x{left.shape[0]} are too small (min 16x16)")
+    return matching.to_gray8(left), matching.to_gray8(right)
+
+
+@contextmanager
+def _timed(timings: dict[str, float], stage: str, backend: Backend) -> Iterator[None]:
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        backend.synchronize()
+        timings[stage] = (time.perf_counter() - start) * 1e3

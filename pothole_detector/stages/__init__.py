@@ -1,0 +1,1 @@
+"""The pipeline's stages, one module each; none of them knows about ROS."""

@@ -1,0 +1,86 @@
+"""Dense matching: semi-global matching with subpixel refinement and left-right check.
+
+The CPU path runs OpenCV's StereoSGBM (Birchfield-Tomasi cost on Sobel-prefiltered images,
+path aggregation with P1/P2, parabola subpixel, left-right check, speckle filter); a 3x3 median
+follows. Disparities are float32 pixels with NaN where invalid.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..backend import Backend, to_host
+from ..params import Config
+
+_SGBM_MODES = {
+    "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+    "hh": cv2.STEREO_SGBM_MODE_HH,
+}
+
+
+@lru_cache(maxsize=16)
+def _sgbm(levels: int, block: int, p1: int, p2: int, mode: str, uniqueness: int,
+          lr_max_diff: int, speckle_window: int, speckle_range: int) -> Any:
+    area = block * block
+    return cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=levels, blockSize=block, P1=p1 * area, P2=p2 * area,
+        disp12MaxDiff=lr_max_diff, uniquenessRatio=uniqueness,
+        speckleWindowSize=speckle_window, speckleRange=speckle_range, mode=_SGBM_MODES[mode],
+    )
+
+
+def to_gray8(image: np.ndarray) -> np.ndarray:
+    """uint8 grey image (HxW) from mono8/mono16 (HxW) or RGB (HxWx3) host arrays.
+
+    16-bit images are scaled so their largest value maps to 255; colour is averaged with the
+    usual luma weights (input is assumed RGB).
+    """
+    if image.ndim == 3:
+        if image.shape[2] == 4:
+            image = image[:, :, :3]
+        image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    if image.dtype == np.uint8:
+        return np.ascontiguousarray(image)
+    peak = float(image.max()) if image.size else 0.0
+    scale = 255.0 / peak if peak > 0 else 1.0
+    return cv2.convertScaleAbs(image.astype(np.float32), alpha=scale)
+
+
+def sgm_disparity(left: np.ndarray, right: np.ndarray, levels: int, config: Config,
+                  block_size: int | None = None) -> np.ndarray:
+    """SGM disparity of two rectified uint8 HxW images over [0, levels) px.
+
+    ``levels`` must be a positive multiple of 16. Returns float32 HxW, NaN where invalid
+    (outside the search range, failed uniqueness or left-right check, speckles, border).
+    """
+    matcher = _sgbm(levels, block_size or config.sgm_block_size, config.sgm_p1, config.sgm_p2,
+                    config.sgm_mode, config.sgm_uniqueness_percent, config.lr_max_diff_px,
+                    config.speckle_window_px, config.speckle_range_px * 16)
+    fixed = matcher.compute(left, right)
+    disparity = fixed.astype(np.float32) * np.float32(1.0 / 16.0)
+    disparity[fixed < 0] = -1.0
+    if config.median_filter:
+        disparity = cv2.medianBlur(disparity, 3)
+    disparity[disparity < 0] = np.nan
+    return disparity
+
+
+def match(backend: Backend, left: Any, right: Any, levels: int, config: Config,
+          block_size: int | None = None) -> Any:
+    """SGM on the backend's arrays; returns float32 HxW of the same kind (NaN = invalid)."""
+    disparity = sgm_disparity(to_host(left), to_host(right), levels, config, block_size)
+    return backend.upload(disparity)
+
+
+def downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """Area-averaged reduction of a uint8 image by an integer factor (H//factor x W//factor)."""
+    if factor == 1:
+        return image
+    height, width = image.shape[0] // factor, image.shape[1] // factor
+    return cv2.resize(image[: height * factor, : width * factor], (width, height),
+                      interpolation=cv2.INTER_AREA)

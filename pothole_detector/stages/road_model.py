@@ -1,0 +1,209 @@
+"""Road model: v-disparity with roll, fitted from nine moments with robust refit rounds.
+
+Road disparity is ``f(u, v) = a0 + a1 t + q(u, v)`` with the rotated row
+``t = v cos(phi) - u sin(phi)``. The paper's planar model has ``q = 0``; the quadratic model
+adds a second-order correction ``q`` in (u, v) (road crown, camber, a change of grade), fitted to
+the planar model's inliers.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from ..backend import to_host
+from ..errors import NoRoadError
+
+MOMENT_NAMES = ("n", "Su", "Sv", "Sd", "Suu", "Svv", "Suv", "Sud", "Svd")
+# Coordinates of the quadratic correction are divided by this (px), for conditioning.
+CURVATURE_SCALE_PX = 1000.0
+
+
+@dataclass(frozen=True)
+class RoadModel:
+    """Road disparity model in full-resolution pixel coordinates of the left image.
+
+    ``curvature`` holds (c0, c1, c2, c3, c4, c5) of
+    ``q = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2`` with x = u / 1000, y = v / 1000.
+    """
+
+    a0: float
+    a1: float
+    roll_rad: float
+    curvature: tuple[float, ...] = (0.0,) * 6
+    inlier_fraction: float = 1.0
+    sigma_px: float = 0.0
+    kind: str = "planar"
+
+    @property
+    def roll_deg(self) -> float:
+        return math.degrees(self.roll_rad)
+
+    def rotated_row(self, xp: Any, u: Any, v: Any) -> Any:
+        """t = v cos(phi) - u sin(phi) (px) for coordinate arrays u, v."""
+        return v * math.cos(self.roll_rad) - u * math.sin(self.roll_rad)
+
+    def at(self, xp: Any, u: Any, v: Any) -> Any:
+        """Road disparity f(u, v) (px) at coordinate arrays u, v (broadcast)."""
+        planar = self.a0 + self.a1 * self.rotated_row(xp, u, v)
+        if self.kind == "planar":
+            return planar
+        return planar + _poly(self.curvature, u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX)
+
+    def disparity(self, xp: Any, height: int, width: int, dtype: Any = np.float32) -> Any:
+        """Road disparity f(u, v) over an HxW grid (px), as ``dtype``."""
+        v = xp.arange(height, dtype=xp.float64)[:, None]
+        u = xp.arange(width, dtype=xp.float64)[None, :]
+        return self.at(xp, u, v).astype(dtype)
+
+    def row_extremes(self, xp: Any, height: int, width: int) -> tuple[Any, Any]:
+        """Per-row minimum and maximum of f over u in [0, width-1]; two float64 arrays (H,).
+
+        Along a row f is quadratic in u, so the extremes lie at the ends or the vertex."""
+        v = xp.arange(height, dtype=xp.float64)
+        ends = [self.at(xp, 0.0, v), self.at(xp, float(width - 1), v)]
+        c3 = self.curvature[3] if self.kind != "planar" else 0.0
+        if c3 != 0.0:
+            c1, c4 = self.curvature[1], self.curvature[4]
+            slope = -self.a1 * math.sin(self.roll_rad) * CURVATURE_SCALE_PX + c1
+            x_vertex = -(slope + c4 * v / CURVATURE_SCALE_PX) / (2.0 * c3)
+            u_vertex = xp.clip(x_vertex * CURVATURE_SCALE_PX, 0.0, float(width - 1))
+            ends.append(self.at(xp, u_vertex, v))
+        stacked = xp.stack(ends)
+        return stacked.min(axis=0), stacked.max(axis=0)
+
+    def as_dict(self) -> dict:
+        return {"a0": self.a0, "a1": self.a1, "roll_deg": self.roll_deg,
+                "inlier_fraction": self.inlier_fraction, "sigma_px": self.sigma_px,
+                "model": self.kind, "curvature": list(self.curvature)}
+
+
+def _poly(c: tuple[float, ...], x: Any, y: Any) -> Any:
+    return c[0] + x * (c[1] + c[3] * x + c[4] * y) + y * (c[2] + c[5] * y)
+
+
+def moments(xp: Any, disparity: Any, mask: Any, u: Any, v: Any) -> np.ndarray:
+    """The nine moments (n, Su, Sv, Sd, Suu, Svv, Suv, Sud, Svd) of the masked pixels.
+
+    ``disparity`` and ``mask`` are HxW, ``u`` (1xW) and ``v`` (Hx1) the pixel coordinates.
+    One reduction; returns a float64 host array of 9 numbers (the only readback).
+    """
+    w = mask.astype(xp.float64)
+    d = xp.where(mask, disparity, 0).astype(xp.float64)
+    wu, wv = w * u, w * v
+    sums = xp.stack([
+        w.sum(), wu.sum(), wv.sum(), d.sum(), (wu * u).sum(), (wv * v).sum(),
+        (wu * v).sum(), (d * u).sum(), (d * v).sum(),
+    ])
+    return to_host(sums).astype(np.float64)
+
+
+def solve_roll(m: np.ndarray) -> tuple[float, float, float, float]:
+    """Least-squares (a0, a1, phi, residual) of d = a0 + a1 (v cos phi - u sin phi) from the
+    nine moments. dE/dphi = 0 has two roots (the maximiser of the explained variance and its
+    orthogonal); the one with the smaller residual is kept. The residual leaves out the sum of
+    d^2, which is the same for both."""
+    n, su, sv, sd, suu, svv, suv, sud, svd = (float(x) for x in m)
+    if n < 3:
+        raise NoRoadError("fewer than 3 valid disparities: no road to fit")
+    mu, mv, md = su / n, sv / n, sd / n
+    cuu, cvv, cuv = suu - n * mu * mu, svv - n * mv * mv, suv - n * mu * mv
+    cud, cvd = sud - n * mu * md, svd - n * mv * md
+    a = np.array([[cvv, cuv], [cuv, cuu]])
+    b = np.array([cvd, cud])
+    if abs(np.linalg.det(a)) <= 1e-9 * max(cuu * cvv, 1e-300):
+        raise NoRoadError("valid disparities lie on a line: the road plane is undetermined")
+    w_max = np.linalg.solve(a, b)
+    w_orth = np.array([-b[1], b[0]]) if np.any(b) else np.array([1.0, 0.0])
+    best = None
+    for w in (w_max, w_orth):
+        norm = math.hypot(w[0], w[1])
+        if norm == 0:
+            continue
+        c, s = w[0] / norm, -w[1] / norm
+        if c < 0:
+            c, s = -c, -s
+        var_t = c * c * cvv - 2 * c * s * cuv + s * s * cuu
+        cov_td = c * cvd - s * cud
+        a1 = cov_td / var_t if var_t > 0 else 0.0
+        residual = -a1 * cov_td
+        if best is None or residual < best[3]:
+            a0 = md - a1 * (c * mv - s * mu)
+            best = (a0, a1, math.atan2(s, c), residual)
+    assert best is not None
+    return best
+
+
+def _fit_curvature(xp: Any, residual: Any, mask: Any, u: Any, v: Any) -> tuple[float, ...]:
+    """Least-squares quadratic q(u, v) of the planar residual over the masked pixels."""
+    x = xp.broadcast_to(u / CURVATURE_SCALE_PX, residual.shape)[mask]
+    y = xp.broadcast_to(v / CURVATURE_SCALE_PX, residual.shape)[mask]
+    design = xp.stack([xp.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    normal = to_host(design.T @ design)
+    rhs = to_host(design.T @ residual[mask])
+    return tuple(float(c) for c in np.linalg.lstsq(normal, rhs, rcond=None)[0])
+
+
+def _robust_sigma(xp: Any, residual: Any, mask: Any) -> float:
+    """1.4826 x median absolute residual of the masked pixels (px)."""
+    values = xp.abs(residual[mask])
+    if values.size == 0:
+        return 0.0
+    return 1.4826 * float(xp.median(values))
+
+
+def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
+             outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
+             coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
+    """Fit the road model to an HxW disparity map (px, NaN = invalid).
+
+    The first fit uses every valid pixel of the ``stride`` grid; each of ``rounds`` refits drops
+    pixels whose residual exceeds ``outlier_k`` robust sigmas. ``kind`` is planar, quadratic or
+    auto (quadratic where it lowers the inlier sigma by the fraction ``quadratic_gain``).
+    Pixel (i, j) of the map sits at full-resolution coordinates
+    ``coordinate_scale * (j, i) + coordinate_offset`` and its disparity is scaled likewise, so
+    the model is always in full-resolution pixels. Raises NoRoadError when nothing valid
+    remains.
+    """
+    sub = disparity[::stride, ::stride]
+    height, width = sub.shape
+    step = stride * coordinate_scale
+    u = xp.arange(width, dtype=xp.float64)[None, :] * step + coordinate_offset
+    v = xp.arange(height, dtype=xp.float64)[:, None] * step + coordinate_offset
+    d = sub.astype(xp.float64) * coordinate_scale
+    valid = xp.isfinite(d)
+    n_valid = int(valid.sum())
+    if n_valid < 3:
+        raise NoRoadError("no valid disparities to fit a road to")
+
+    def robust_rounds(model: RoadModel, refit: Any) -> RoadModel:
+        mask = valid
+        for round_index in range(rounds + 1):
+            model = refit(model, mask)
+            residual = d - model.at(xp, u, v)
+            sigma = _robust_sigma(xp, residual, mask)
+            mask = valid & (xp.abs(residual) <= outlier_k * max(sigma, 1e-3))
+            if round_index == rounds:
+                return replace(model, inlier_fraction=int(mask.sum()) / n_valid, sigma_px=sigma)
+        raise AssertionError("unreachable")
+
+    def refit_planar(model: RoadModel, mask: Any) -> RoadModel:
+        a0, a1, phi, _ = solve_roll(moments(xp, d, mask, u, v))
+        return RoadModel(a0, a1, phi)
+
+    planar = robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
+    if kind == "planar":
+        return planar
+
+    def refit_quadratic(model: RoadModel, mask: Any) -> RoadModel:
+        residual = d - planar.at(xp, u, v)
+        return replace(planar, curvature=_fit_curvature(xp, residual, mask, u, v),
+                       kind="quadratic")
+
+    quadratic = robust_rounds(planar, refit_quadratic)
+    if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
+        return planar
+    return quadratic

@@ -1,0 +1,158 @@
+"""SLIC superpixels on the transformed disparity map.
+
+Pixels are clustered on (D2 value, u, v). The image is cut into S x S cells; a centre starts at
+each cell's middle, moved to the lowest gradient of its 3x3 neighbourhood, and each k-means
+iteration compares every pixel with the centres of its own and the eight surrounding cells
+(those whose 2S x 2S windows can cover it). The comparison is written as broadcasts over a
+(cells_y, S, cells_x, S) view, so one body runs on NumPy and CuPy. Invalid pixels (NaN) join
+the spatially nearest centre and do not move centre values.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
+    """Valid-pixel mean of ``factor`` x ``factor`` blocks, and blocks at least half valid."""
+    height, width = image.shape[0] // factor, image.shape[1] // factor
+    crop = (slice(0, height * factor), slice(0, width * factor))
+    values = xp.where(valid, image, 0)[crop].reshape(height, factor, width, factor)
+    counts = valid[crop].reshape(height, factor, width, factor).sum(axis=(1, 3))
+    means = values.sum(axis=(1, 3)) / xp.maximum(counts, 1)
+    return means.astype(xp.float32), counts * 2 >= factor * factor
+
+
+def slic(xp: Any, image: Any, valid: Any, region_size: int, compactness: float,
+         iterations: int) -> tuple[Any, int]:
+    """SLIC labels of an HxW float32 map with HxW bool ``valid``.
+
+    ``region_size`` S (px) is the grid step, ``compactness`` m the weight of a spatial distance
+    of S in value units. Returns (int32 HxW labels in [0, n), n); label ``i * cells_x + j``
+    belongs to grid cell (i, j), and some labels may be empty.
+    """
+    height, width = image.shape
+    step = int(region_size)
+    cells_y, cells_x = -(-height // step), -(-width // step)
+    n_labels = cells_y * cells_x
+    pad_h, pad_w = cells_y * step - height, cells_x * step - width
+    filled = xp.where(valid, image, 0).astype(xp.float32)
+    padded = xp.pad(filled, ((0, pad_h), (0, pad_w)), mode="edge")
+    padded_valid = xp.pad(valid, ((0, pad_h), (0, pad_w)))
+    blocks = padded.reshape(cells_y, step, cells_x, step)
+    weight = padded_valid.reshape(blocks.shape).astype(xp.float32)
+    rows = xp.arange(cells_y * step, dtype=xp.float32).reshape(cells_y, step, 1, 1)
+    cols = xp.arange(cells_x * step, dtype=xp.float32).reshape(1, 1, cells_x, step)
+    spatial_weight = xp.float32((compactness / step) ** 2)
+
+    centre_v, centre_u = _initial_centres(xp, filled, valid, cells_y, cells_x, step)
+    centre_d = filled[centre_v.astype(xp.int32), centre_u.astype(xp.int32)]
+    inside = xp.zeros((cells_y * step, cells_x * step), dtype=bool)
+    inside[:height, :width] = True
+    inside_flat = inside.ravel()
+    v_flat = xp.broadcast_to(rows.reshape(-1, 1), inside.shape).ravel()
+    u_flat = xp.broadcast_to(cols.reshape(1, -1), inside.shape).ravel()
+    d_flat = padded.ravel()
+    w_flat = (padded_valid & inside).ravel().astype(xp.float32)
+    in_flat = inside_flat.astype(xp.float32)
+    cell_i = xp.arange(cells_y, dtype=xp.int32).reshape(cells_y, 1, 1, 1)
+    cell_j = xp.arange(cells_x, dtype=xp.int32).reshape(1, 1, cells_x, 1)
+    far = xp.float32(1e9)
+
+    labels = None
+    for _ in range(iterations):
+        grid_v = xp.pad(centre_v.reshape(cells_y, cells_x), 1, constant_values=far)
+        grid_u = xp.pad(centre_u.reshape(cells_y, cells_x), 1, constant_values=far)
+        grid_d = xp.pad(centre_d.reshape(cells_y, cells_x), 1)
+        best = xp.full(blocks.shape, xp.inf, dtype=xp.float32)
+        choice = xp.zeros(blocks.shape, dtype=xp.int8)
+        for k, (di, dj) in enumerate((a, b) for a in (-1, 0, 1) for b in (-1, 0, 1)):
+            window = (slice(1 + di, 1 + di + cells_y), slice(1 + dj, 1 + dj + cells_x))
+            cv = grid_v[window][:, None, :, None]
+            cu = grid_u[window][:, None, :, None]
+            cd = grid_d[window][:, None, :, None]
+            distance = blocks - cd
+            distance *= distance
+            distance *= weight
+            distance += spatial_weight * ((rows - cv) ** 2 + (cols - cu) ** 2)
+            closer = distance < best
+            xp.copyto(best, distance, where=closer)
+            xp.copyto(choice, xp.int8(k), where=closer)
+        label_i = cell_i + (choice // 3 - 1)
+        label_j = cell_j + (choice % 3 - 1)
+        labels = (label_i * cells_x + label_j).reshape(-1)
+        count = xp.bincount(labels, weights=in_flat, minlength=n_labels)
+        count_valid = xp.bincount(labels, weights=w_flat, minlength=n_labels)
+        sum_v = xp.bincount(labels, weights=v_flat * in_flat, minlength=n_labels)
+        sum_u = xp.bincount(labels, weights=u_flat * in_flat, minlength=n_labels)
+        sum_d = xp.bincount(labels, weights=d_flat * w_flat, minlength=n_labels)
+        occupied = count > 0
+        centre_v = xp.where(occupied, sum_v / xp.maximum(count, 1), centre_v).astype(xp.float32)
+        centre_u = xp.where(occupied, sum_u / xp.maximum(count, 1), centre_u).astype(xp.float32)
+        centre_d = xp.where(count_valid > 0, sum_d / xp.maximum(count_valid, 1),
+                            centre_d).astype(xp.float32)
+    assert labels is not None
+    return labels.reshape(inside.shape)[:height, :width].astype(xp.int32), n_labels
+
+
+def _initial_centres(xp: Any, filled: Any, valid: Any, cells_y: int, cells_x: int,
+                     step: int) -> tuple[Any, Any]:
+    """Cell-middle centres moved to the lowest gradient of their 3x3 neighbourhood;
+    float32 arrays (cells_y * cells_x,) of row and column."""
+    height, width = filled.shape
+    v0 = xp.minimum(xp.arange(cells_y) * step + step // 2, height - 1)
+    u0 = xp.minimum(xp.arange(cells_x) * step + step // 2, width - 1)
+    v0, u0 = xp.meshgrid(v0, u0, indexing="ij")
+    padded = xp.pad(filled, 2, mode="edge")
+    gradient = (padded[2:-2, 3:-1] - padded[2:-2, 1:-3]) ** 2 \
+        + (padded[3:-1, 2:-2] - padded[1:-3, 2:-2]) ** 2
+    gradient = xp.where(valid, gradient, xp.inf)
+    candidates_v = xp.stack([xp.clip(v0 + a, 0, height - 1) for a in (-1, 0, 1) for _ in range(3)])
+    candidates_u = xp.stack([xp.clip(u0 + b, 0, width - 1) for _ in range(3) for b in (-1, 0, 1)])
+    best = xp.argmin(gradient[candidates_v, candidates_u], axis=0)
+    v = xp.take_along_axis(candidates_v, best[None], axis=0)[0]
+    u = xp.take_along_axis(candidates_u, best[None], axis=0)[0]
+    return v.reshape(-1).astype(xp.float32), u.reshape(-1).astype(xp.float32)
+
+
+def superpixels(xp: Any, transformed: Any, region_size_px: int, compactness: float,
+                iterations: int, downsample: int = 1) -> tuple[Any, int]:
+    """SLIC on the transformed map D2 (HxW float32, NaN invalid), optionally on a reduced copy.
+
+    ``region_size_px`` is the superpixel grid step in full-resolution pixels. Returns
+    (int32 HxW labels, label count).
+    """
+    valid = xp.isfinite(transformed)
+    if downsample > 1:
+        image, image_valid = _block_mean(xp, transformed, valid, downsample)
+    else:
+        image, image_valid = transformed, valid
+    step = max(2, int(round(region_size_px / downsample)))
+    labels, n_labels = slic(xp, image, image_valid, step, compactness, iterations)
+    if downsample > 1:
+        labels = _upsample_labels(xp, labels, downsample, transformed.shape)
+    return labels, n_labels
+
+
+def _upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int]) -> Any:
+    """Nearest-neighbour enlargement to ``shape``; rows/columns past the reduced image repeat
+    the last one."""
+    height, width = shape
+    rows = xp.minimum(xp.arange(height) // factor, labels.shape[0] - 1)
+    cols = xp.minimum(xp.arange(width) // factor, labels.shape[1] - 1)
+    return labels[rows[:, None], cols[None, :]]
+
+
+def superpixel_means(xp: Any, transformed: Any, labels: Any, n_labels: int,
+                     ) -> tuple[Any, Any]:
+    """Per-superpixel mean of the valid D2 values (float32 (n,), NaN where none is valid) and
+    fraction of valid pixels (float32 (n,))."""
+    valid = xp.isfinite(transformed).ravel()
+    flat = labels.ravel()
+    count = xp.bincount(flat, minlength=n_labels).astype(xp.float64)
+    count_valid = xp.bincount(flat, weights=valid.astype(xp.float64), minlength=n_labels)
+    total = xp.bincount(flat, weights=xp.where(valid, transformed.ravel(), 0).astype(xp.float64),
+                        minlength=n_labels)
+    mean = xp.where(count_valid > 0, total / xp.maximum(count_valid, 1), xp.nan)
+    fraction = count_valid / xp.maximum(count, 1)
+    return mean.astype(xp.float32), fraction.astype(xp.float32)
