@@ -98,7 +98,7 @@ PARAMETERS: tuple[Param, ...] = (
           "planar (paper), quadratic in the rotated row, or auto (quadratic only where it "
           "lowers the inlier residual by road_quadratic_gain).",
           choices=("auto", "planar", "quadratic")),
-    Param("road_quadratic_gain", float, 0.1,
+    Param("road_quadratic_gain", float, 0.05,
           "Relative residual drop that auto needs to pick the quadratic model.", 0, 1),
     Param("road_fit_stride", int, 2, "Fit the road on every n-th pixel in each axis.", 1, 16),
     Param("road_fit_rounds", int, 3, "Robust refit rounds after the first fit.", 0, 10),
@@ -111,7 +111,9 @@ PARAMETERS: tuple[Param, ...] = (
     Param("delta_dt_px", float, 32.0, "delta_DT: value of the road in the transformed map (px).",
           0, 1024),
     # superpixels
-    Param("slic_region_size_px", int, 24, "SLIC grid step S (px of the SLIC image).", 4, 512),
+    Param("slic_region_size_px", int, 32,
+          "SLIC grid step S in full-resolution px (the SLIC image uses S / slic_downsample).",
+          4, 512),
     Param("slic_compactness", float, 2.0,
           "SLIC m: a spatial distance of S weighs like m px of transformed disparity.", 0.01, 100),
     Param("slic_iterations", int, 6, "Fixed number of SLIC k-means iterations.", 1, 50),
@@ -128,8 +130,9 @@ PARAMETERS: tuple[Param, ...] = (
     Param("delta_pd_px", float, 2.36, "delta_PD in pixels (paper: 2.36).", 0, 100),
     Param("delta_pd_m", float, 0.008,
           "delta_PD as a depth below the road (m), converted per superpixel.", 0, 1),
-    Param("superpixel_min_valid_fraction", float, 0.5,
-          "A superpixel needs this fraction of valid disparities to be selectable.", 0, 1),
+    Param("superpixel_min_valid_fraction", float, 0.0,
+          "A superpixel needs more than this fraction of valid disparities to be selectable "
+          "(occluded pothole walls are often invalid: keep it low).", 0, 1),
     # components
     Param("corner_fraction", float, 0.1,
           "Components touching a corner square of this fraction of the short side are dropped.",

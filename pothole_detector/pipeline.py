@@ -66,31 +66,10 @@ class Pipeline:
         xp = backend.xp
         timings: dict[str, float] = {}
         left_gray, right_gray = _validate_pair(left, right)
-        height, width = left_gray.shape
+        height = left_gray.shape[0]
 
-        with _timed(timings, "seed", backend):
-            seeded = self._road is None or not config.gpt_enabled
-            if seeded and config.gpt_enabled:
-                self._road = self._seed(left_gray, right_gray)
-        with _timed(timings, "gpt", backend):
-            left_dev = backend.upload(left_gray)
-            right_dev = backend.upload(right_gray)
-            if config.gpt_enabled:
-                assert self._road is not None
-                kappa = perspective.row_shifts(xp, self._road, height, width,
-                                               config.gpt_margin_below_px)
-                levels = perspective.band_levels(xp, self._road, kappa, height, width,
-                                                 config.gpt_margin_above_px,
-                                                 config.max_disparity_px)
-                right_dev = perspective.shift_rows(xp, right_dev, kappa)
-            else:
-                kappa = xp.zeros(height, dtype=xp.int32)
-                levels = perspective.round_up_levels(config.max_disparity_px)
-        with _timed(timings, "sgm", backend):
-            disparity = matching.match(backend, left_dev, right_dev, levels, config)
-            disparity += kappa[:, None].astype(xp.float32)
-            outside = xp.arange(width, dtype=xp.float32)[None, :] - disparity < 0
-            disparity[outside] = xp.nan
+        seeded = self._road is None or not config.gpt_enabled
+        disparity, kappa, levels = self._match(left_gray, right_gray, timings)
         valid_fraction = float(xp.isfinite(disparity).mean())
         if valid_fraction < config.min_valid_fraction:
             self.reset()
@@ -143,6 +122,53 @@ class Pipeline:
             band=(int(kappa.min()) if height else 0, int(levels)), potholes=potholes,
             backend=backend.name, seeded=seeded, timings_ms=timings,
         )
+
+    def match_pair(self, left: np.ndarray, right: np.ndarray) -> tuple[Any, int]:
+        """D1 of a host pair (float32 HxW px, NaN invalid, on the backend) and the number of
+        disparity levels searched; seeds and updates the road model like :meth:`run`."""
+        left_gray, right_gray = _validate_pair(left, right)
+        disparity, _, levels = self._match(left_gray, right_gray, {})
+        if self.config.gpt_enabled:
+            try:
+                self._road = self._fit(disparity, stride=self.config.road_fit_stride)
+            except NoRoadError:
+                self.reset()
+        return disparity, levels
+
+    def _match(self, left_gray: np.ndarray, right_gray: np.ndarray,
+               timings: dict[str, float]) -> tuple[Any, Any, int]:
+        """Seed (if needed), GPT and SGM: (D1, kappa (H,), levels)."""
+        config, backend = self.config, self.backend
+        xp = backend.xp
+        height, width = left_gray.shape
+        with _timed(timings, "seed", backend):
+            if config.gpt_enabled and self._road is None:
+                self._road = self._seed(left_gray, right_gray)
+        with _timed(timings, "gpt", backend):
+            left_dev = backend.upload(left_gray)
+            right_dev = backend.upload(right_gray)
+            if config.gpt_enabled:
+                assert self._road is not None
+                kappa = perspective.row_shifts(xp, self._road, height, width,
+                                               config.gpt_margin_below_px)
+                levels = perspective.band_levels(xp, self._road, kappa, height, width,
+                                                 config.gpt_margin_above_px,
+                                                 config.max_disparity_px)
+                right_dev = perspective.shift_rows(xp, right_dev, kappa)
+            else:
+                kappa = xp.zeros(height, dtype=xp.int32)
+                levels = perspective.round_up_levels(config.max_disparity_px)
+        with _timed(timings, "sgm", backend):
+            disparity = matching.match(backend, left_dev, right_dev, levels, config)
+            disparity += kappa[:, None].astype(xp.float32)
+            outside = xp.arange(width, dtype=xp.float32)[None, :] - disparity < 0
+            disparity[outside] = xp.nan
+            border = config.sgm_block_size // 2 + 1
+            disparity[:border] = xp.nan
+            disparity[-border:] = xp.nan
+            disparity[:, :border] = xp.nan
+            disparity[:, -border:] = xp.nan
+        return disparity, kappa, levels
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
         config = self.config

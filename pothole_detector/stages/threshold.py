@@ -76,5 +76,5 @@ def histogram_threshold(xp: Any, transformed: Any, bin_px: float,
 def select_superpixels(xp: Any, means: Any, valid_fraction: Any, threshold_px: Any,
                        min_valid_fraction: float) -> Any:
     """Bool (n,): superpixels whose mean D2 is below ``threshold_px`` (a scalar or (n,) array
-    of t_s values) with enough valid pixels."""
-    return xp.isfinite(means) & (means < threshold_px) & (valid_fraction >= min_valid_fraction)
+    of t_s values) with more than ``min_valid_fraction`` valid pixels."""
+    return xp.isfinite(means) & (means < threshold_px) & (valid_fraction > min_valid_fraction)

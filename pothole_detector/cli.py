@@ -1,0 +1,142 @@
+"""Command line: ``pothole-detector detect`` and ``pothole-detector evaluate``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from . import __version__
+from .backend import BACKEND_CHOICES, get_backend
+from .calibration import StereoCalibration, load_stereo_camera_info
+from .errors import InputError, PotholeError
+from .evaluation import evaluate
+from .imageio import overlay, read_image, write_labels, write_rgb
+from .params import Config, load_yaml
+from .pipeline import Pipeline, PipelineResult
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pothole-detector",
+        description="Stereo road pothole detection (GPT-SGM, disparity transformation, SLIC).")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    detect = commands.add_parser("detect", help="detect potholes in one rectified stereo pair")
+    detect.add_argument("--left", required=True, help="left rectified image")
+    detect.add_argument("--right", required=True, help="right rectified image")
+    detect.add_argument("--camera-info-left", help="left ROS calibration YAML")
+    detect.add_argument("--camera-info-right", help="right ROS calibration YAML")
+    detect.add_argument("--focal", type=float, help="focal length (px)")
+    detect.add_argument("--baseline", type=float, help="baseline (m)")
+    detect.add_argument("--cx", type=float, help="principal point x (px; default image centre)")
+    detect.add_argument("--cy", type=float, help="principal point y (px; default image centre)")
+    detect.add_argument("--out", required=True, help="output directory")
+    _common(detect)
+
+    evaluate_cmd = commands.add_parser(
+        "evaluate", help="the paper's metrics over a directory of pairs with ground truth")
+    evaluate_cmd.add_argument("directory", help="fan_potholes, KITTI or Middlebury folder")
+    evaluate_cmd.add_argument("--out", help="also write the report (Markdown) here")
+    _common(evaluate_cmd)
+    return parser
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="parameter YAML (config/pothole_detector.yaml format)")
+    parser.add_argument("--backend", choices=BACKEND_CHOICES, default="auto")
+
+
+def _config(path: str | None) -> Config:
+    return Config(load_yaml(path) if path else {})
+
+
+def _calibration(args: argparse.Namespace, width: int, height: int) -> StereoCalibration:
+    if args.camera_info_left or args.camera_info_right:
+        if not (args.camera_info_left and args.camera_info_right):
+            raise InputError("give both --camera-info-left and --camera-info-right")
+        calibration, size = load_stereo_camera_info(args.camera_info_left,
+                                                    args.camera_info_right)
+        if size != (width, height):
+            raise InputError(f"camera info is for {size[0]}x{size[1]} images but the images "
+                             f"are {width}x{height}")
+        return calibration
+    if args.focal is None or args.baseline is None:
+        raise InputError("give --camera-info-left/--camera-info-right or --focal and --baseline")
+    return StereoCalibration.from_focal_baseline(args.focal, args.baseline, width, height,
+                                                 args.cx, args.cy)
+
+
+def detection_json(result: PipelineResult) -> dict:
+    """The potholes.json document of one result."""
+    def clean(value: float) -> float | None:
+        return None if not math.isfinite(value) else value
+
+    return {
+        "road": {key: (clean(v) if isinstance(v, float) else v)
+                 for key, v in result.road.as_dict().items()},
+        "backend": result.backend,
+        "threshold_px": clean(result.threshold_px),
+        "band_px": {"min_shift": result.band[0], "levels": result.band[1]},
+        "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
+        "potholes": [{k: (clean(v) if isinstance(v, float) else v)
+                      for k, v in p.as_dict().items()} for p in result.potholes],
+    }
+
+
+def run_detect(args: argparse.Namespace) -> int:
+    left, right = read_image(args.left), read_image(args.right)
+    calibration = _calibration(args, left.shape[1], left.shape[0])
+    config = _config(args.config)
+    backend = get_backend(args.backend)
+    result = Pipeline(config, calibration, backend).run(left, right)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    labels = backend.to_host(result.labels)
+    np.save(out / "disparity.npy", backend.to_host(result.disparity).astype(np.float32))
+    np.save(out / "disparity_transformed.npy",
+            backend.to_host(result.transformed).astype(np.float32))
+    write_labels(out / "labels.png", labels)
+    (out / "potholes.json").write_text(json.dumps(detection_json(result), indent=2) + "\n")
+    write_rgb(out / "overlay.png", overlay(left, labels, result.potholes))
+    print(f"{len(result.potholes)} pothole(s); road roll {result.road.roll_deg:.2f} deg, "
+          f"inliers {result.road.inlier_fraction:.0%}; {result.timings_ms['total']:.0f} ms on "
+          f"{result.backend}; wrote {out}")
+    for pothole in result.potholes:
+        print(f"  #{pothole.label}: area {pothole.area_m2:.4f} m2, max depth "
+              f"{pothole.max_depth_m * 100:.1f} cm, volume {pothole.volume_m3 * 1e3:.2f} L")
+    return 0
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    report = evaluate(args.directory, _config(args.config), get_backend(args.backend))
+    text = report.markdown()
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``pothole-detector`` console script."""
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    args = _parser().parse_args(argv)
+    try:
+        return {"detect": run_detect, "evaluate": run_evaluate}[args.command](args)
+    except PotholeError as error:
+        print(f"pothole-detector: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"pothole-detector: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,70 @@
+"""Reading images and writing the detector's pictures (no ROS)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .stages.measure import Pothole
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An image file as HxW (mono) or HxWx3 RGB uint8/uint16. Raises InputError."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"image {path} does not exist")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{path} is not an image OpenCV can read (PNG, JPEG, PGM, ...)")
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB
+        image = cv2.cvtColor(image, code)
+    return image
+
+
+def write_labels(path: str | Path, labels: np.ndarray) -> None:
+    """Labels as a 16-bit PNG (0 = road, k = pothole k)."""
+    cv2.imwrite(str(path), labels.astype(np.uint16))
+
+
+PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48),
+                    (145, 30, 180), (70, 240, 240), (240, 50, 230)], dtype=np.uint8)
+
+
+def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole]) -> np.ndarray:
+    """RGB uint8 HxWx3: ``image`` with each pothole tinted and outlined, its id, maximum depth
+    (cm) and area (m^2) written beside it."""
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    if image.dtype != np.uint8:
+        image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
+    canvas = image.copy()
+    scale = max(0.5, min(image.shape[:2]) / 700.0)
+    thickness = max(1, int(round(2 * scale)))
+    for pothole in potholes:
+        colour = PALETTE[(pothole.label - 1) % len(PALETTE)]
+        mask = labels == pothole.label
+        canvas[mask] = (0.55 * canvas[mask] + 0.45 * colour).astype(np.uint8)
+        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                       cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
+        u0, v0, u1, _ = pothole.bbox_px
+        text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
+        x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))
+        y = int(min(max(v0 + th + 2, th + 2), image.shape[0] - 2))
+        cv2.rectangle(canvas, (x - 2, y - th - 4), (x + tw + 2, y + 4), (0, 0, 0), -1)
+        cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
+                    (255, 255, 255), thickness, cv2.LINE_AA)
+    return canvas
+
+
+def write_rgb(path: str | Path, image: np.ndarray) -> None:
+    """Write an RGB (or mono) uint8 image."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    if not cv2.imwrite(str(path), image):
+        raise InputError(f"could not write {path}")

@@ -1,0 +1,32 @@
+from setuptools import find_packages, setup
+
+package_name = "pothole_detector"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", ["config/pothole_detector.yaml"]),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "opencv-python-headless>=4.8",
+        "scipy>=1.10",
+        "PyYAML>=6.0",
+    ],
+    extras_require={"gpu": ["cupy-cuda12x>=13"], "test": ["pytest>=7"]},
+    zip_safe=True,
+    maintainer="pothole_detector developers",
+    maintainer_email="dev@pothole-detector.invalid",
+    description="Stereo road pothole detection (Fan et al., T-CYB) for ROS 2 and the command line",
+    license="MIT",
+    entry_points={
+        "console_scripts": [
+            "pothole-detector = pothole_detector.cli:main",
+        ],
+    },
+)
