@@ -100,7 +100,7 @@ PARAMETERS: tuple[Param, ...] = (
           choices=("auto", "planar", "quadratic")),
     Param("road_quadratic_gain", float, 0.05,
           "Relative residual drop that auto needs to pick the quadratic model.", 0, 1),
-    Param("road_fit_stride", int, 2, "Fit the road on every n-th pixel in each axis.", 1, 16),
+    Param("road_fit_stride", int, 4, "Fit the road on every n-th pixel in each axis.", 1, 16),
     Param("road_fit_rounds", int, 3, "Robust refit rounds after the first fit.", 0, 10),
     Param("road_outlier_k", float, 2.5,
           "Pixels whose residual exceeds k robust sigmas are dropped before the next round.",

@@ -163,11 +163,6 @@ class Pipeline:
             disparity += kappa[:, None].astype(xp.float32)
             outside = xp.arange(width, dtype=xp.float32)[None, :] - disparity < 0
             disparity[outside] = xp.nan
-            border = config.sgm_block_size // 2 + 1
-            disparity[:border] = xp.nan
-            disparity[-border:] = xp.nan
-            disparity[:, :border] = xp.nan
-            disparity[:, -border:] = xp.nan
         return disparity, kappa, levels
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:

@@ -1,0 +1,78 @@
+"""CPU speed of the whole pipeline, per stage, at 1280x720 (synthetic road) and on the real
+2079x1040 pothole frames (when ../shared/data is present). Prints a Markdown table.
+
+    python benchmarks/bench_cpu.py [--repeat N] [--threads T]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from datetime import date
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pothole_detector.calibration import StereoCalibration  # noqa: E402
+from pothole_detector.imageio import read_image  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.pipeline import Pipeline  # noqa: E402
+from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E402
+from pothole_detector.synthetic import demo_scene, render  # noqa: E402
+
+STAGES = ("seed", "gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure",
+          "total")
+
+
+def frames() -> list[tuple[str, np.ndarray, np.ndarray, StereoCalibration]]:
+    sample = render(demo_scene(1280, 720))
+    found = [("synthetic 1280x720", sample.left, sample.right, sample.calibration)]
+    real = ROOT.parent / "shared" / "data" / "fan_potholes"
+    for folder in sorted(real.glob("model1_0[1-3]")):
+        left, right = read_image(folder / "left.png"), read_image(folder / "right.png")
+        calibration = StereoCalibration.from_focal_baseline(1390, 0.1194, left.shape[1],
+                                                            left.shape[0])
+        found.append((f"real {folder.name} 2079x1040", left, right, calibration))
+    return found
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--repeat", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    cv2.setNumThreads(args.threads)
+    config = Config()
+    print(f"CPU benchmark, {date.today()}, {platform.processor() or platform.machine()}, "
+          f"{os.cpu_count()} cores, OpenCV {cv2.__version__} on {args.threads} threads, "
+          f"NumPy {np.__version__}; median ms over {args.repeat} runs after one warm-up "
+          "(a fresh pipeline each run, so 'seed' runs every time)\n")
+    print("| frame | " + " | ".join(STAGES) + " | SGBM full range alone |")
+    print("| --- |" + " --- |" * (len(STAGES) + 1))
+    for name, left, right, calibration in frames():
+        runs = []
+        for index in range(args.repeat + 1):
+            result = Pipeline(config, calibration).run(left, right)
+            if index:
+                runs.append(result.timings_ms)
+        gray_left, gray_right = to_gray8(left), to_gray8(right)
+        levels = 256 if left.shape[1] > 1500 else 128
+        plain = []
+        for _ in range(3):
+            start = time.perf_counter()
+            sgm_disparity(gray_left, gray_right, levels, config.replace(lr_max_diff_px=-1))
+            plain.append((time.perf_counter() - start) * 1e3)
+        medians = [np.median([r[s] for r in runs]) for s in STAGES]
+        print(f"| {name} | " + " | ".join(f"{m:.0f}" for m in medians)
+              + f" | {np.median(plain):.0f} ({levels} levels) |")
+
+
+if __name__ == "__main__":
+    main()

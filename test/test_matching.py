@@ -1,0 +1,44 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pothole_detector.backend import CPU
+from pothole_detector.params import Config
+from pothole_detector.stages.matching import downsample, match, to_gray8
+
+
+def test_sgm_on_a_rendered_road_is_subpixel_accurate(flat_sample):
+    disparity = match(CPU, flat_sample.left, flat_sample.right, 128, Config())
+    error = np.abs(disparity - flat_sample.disparity)
+    assert np.isfinite(disparity).mean() > 0.7
+    assert np.nanmedian(error) < 0.3
+    assert np.nanmean(error > 1.0) < 0.02
+
+
+def test_invalid_pixels_are_nan_never_zero(flat_sample):
+    disparity = match(CPU, flat_sample.left, flat_sample.right, 128, Config())
+    assert np.isnan(disparity[:, :60]).all()
+    assert not (disparity == 0).any()
+
+
+def test_left_right_check_can_be_turned_off(flat_sample):
+    with_check = match(CPU, flat_sample.left, flat_sample.right, 128, Config())
+    without = match(CPU, flat_sample.left, flat_sample.right, 128,
+                    Config({"lr_max_diff_px": -1, "speckle_window_px": 0}))
+    assert np.isfinite(without).sum() > np.isfinite(with_check).sum()
+
+
+@pytest.mark.parametrize("image", [
+    np.full((4, 5), 4095, np.uint16),
+    np.dstack([np.full((4, 5), 255, np.uint8)] * 3),
+    np.dstack([np.full((4, 5), 255, np.uint8)] * 4),
+])
+def test_to_gray8_accepts_mono16_rgb_rgba(image):
+    gray = to_gray8(image)
+    assert gray.dtype == np.uint8 and gray.shape == (4, 5) and gray.max() == 255
+
+
+def test_downsample_averages_blocks():
+    image = np.arange(16, dtype=np.uint8).reshape(4, 4) * 10
+    np.testing.assert_array_equal(downsample(image, 2), [[25, 45], [105, 125]])
