@@ -179,9 +179,8 @@ class Pipeline:
         scale = config.coarse_scale
         small_left = matching.downsample(left, scale)
         small_right = matching.downsample(right, scale)
-        levels = perspective.round_up_levels(config.max_disparity_px / scale)
-        if levels >= small_left.shape[1]:
-            levels = max(16, (small_left.shape[1] - 1) // 16 * 16)
+        half_width = small_left.shape[1] // 2
+        levels = perspective.round_up_levels(min(config.max_disparity_px / scale, half_width))
         coarse = matching.sgm_disparity(small_left, small_right, levels, config,
                                         block_size=min(config.sgm_block_size, 5))
         if np.isfinite(coarse).mean() < config.min_valid_fraction:

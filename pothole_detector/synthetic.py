@@ -238,7 +238,7 @@ def render(scene: Scene) -> StereoSample:
 def demo_scene(width: int = 640, height: int = 360, roll_deg: float = 1.5,
                camera_y_m: float = 0.0, seed: int = 7) -> Scene:
     """A rig like the real pothole data's (0.6 m above the road, pitched 55 deg down, focal
-    length 0.67 x width, 0.12 m baseline) over three potholes 3.5-6 cm deep; the view is the
+    length 0.67 x width, 0.12 m baseline) over three potholes 5-6 cm deep; the view is the
     same at any image size."""
     return Scene(
         width=width, height=height, focal_px=0.67 * width, camera_height_m=0.6,
@@ -246,6 +246,6 @@ def demo_scene(width: int = 640, height: int = 360, roll_deg: float = 1.5,
         potholes=(
             PotholeShape(-0.20, 0.55, 0.09, 0.07, 0.05, 20.0),
             PotholeShape(0.22, 0.75, 0.11, 0.08, 0.06, -15.0),
-            PotholeShape(0.02, 0.33, 0.06, 0.05, 0.035, 0.0),
+            PotholeShape(0.02, 0.33, 0.07, 0.06, 0.05, 0.0),
         ),
     )

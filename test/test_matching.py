@@ -11,7 +11,7 @@ from pothole_detector.stages.matching import downsample, match, to_gray8
 def test_sgm_on_a_rendered_road_is_subpixel_accurate(flat_sample):
     disparity = match(CPU, flat_sample.left, flat_sample.right, 128, Config())
     error = np.abs(disparity - flat_sample.disparity)
-    assert np.isfinite(disparity).mean() > 0.7
+    assert np.isfinite(disparity[:, 128:]).mean() > 0.8
     assert np.nanmedian(error) < 0.3
     assert np.nanmean(error > 1.0) < 0.02
 

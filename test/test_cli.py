@@ -1,0 +1,108 @@
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from pothole_detector.calibration import camera_info_yaml
+from pothole_detector.cli import main
+
+
+@pytest.fixture(scope="module")
+def pair_dir(tmp_path_factory, demo_sample):
+    folder = tmp_path_factory.mktemp("pair")
+    cv2.imwrite(str(folder / "left.png"), demo_sample.left)
+    cv2.imwrite(str(folder / "right.png"), demo_sample.right)
+    height, width = demo_sample.left.shape
+    for side in ("left", "right"):
+        (folder / f"{side}.yaml").write_text(
+            camera_info_yaml(demo_sample.calibration, width, height, side))
+    return folder
+
+
+def test_detect_writes_the_contract(pair_dir, tmp_path, demo_sample):
+    out = tmp_path / "out"
+    code = main(["detect", "--left", str(pair_dir / "left.png"), "--right",
+                 str(pair_dir / "right.png"), "--camera-info-left", str(pair_dir / "left.yaml"),
+                 "--camera-info-right", str(pair_dir / "right.yaml"), "--out", str(out),
+                 "--backend", "cpu"])
+    assert code == 0
+    disparity = np.load(out / "disparity.npy")
+    transformed = np.load(out / "disparity_transformed.npy")
+    assert disparity.dtype == np.float32 and disparity.shape == demo_sample.left.shape
+    assert transformed.dtype == np.float32 and np.isnan(disparity).any()
+    labels = cv2.imread(str(out / "labels.png"), cv2.IMREAD_UNCHANGED)
+    assert labels.dtype == np.uint16 and labels.shape == demo_sample.left.shape
+    report = json.loads((out / "potholes.json").read_text())
+    assert set(report) >= {"road", "backend", "timings_ms", "potholes"}
+    assert set(report["road"]) >= {"a0", "a1", "roll_deg", "inlier_fraction"}
+    assert report["backend"] == "cpu" and len(report["potholes"]) == 3
+    for pothole in report["potholes"]:
+        assert set(pothole) == {"label", "pixels", "area_m2", "max_depth_m", "mean_depth_m",
+                                "volume_m3", "centroid_cam_m", "bbox_px"}
+        assert (labels == pothole["label"]).sum() == pothole["pixels"]
+        assert 0.02 < pothole["max_depth_m"] < 0.09 and pothole["centroid_cam_m"][2] > 0
+    overlay = cv2.imread(str(out / "overlay.png"))
+    assert overlay.shape[:2] == demo_sample.left.shape
+
+
+def test_focal_baseline_equals_camera_info(pair_dir, tmp_path, demo_sample):
+    out = tmp_path / "fb"
+    calibration = demo_sample.calibration
+    assert main(["detect", "--left", str(pair_dir / "left.png"), "--right",
+                 str(pair_dir / "right.png"), "--focal", str(calibration.f), "--baseline",
+                 str(calibration.baseline), "--out", str(out), "--backend", "cpu"]) == 0
+    assert len(json.loads((out / "potholes.json").read_text())["potholes"]) == 3
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "pothole_detector.cli", *args],
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("case", ["missing", "size", "texture", "calibration", "config"])
+def test_bad_input_exits_with_one_line(case, pair_dir, tmp_path):
+    left, right = pair_dir / "left.png", pair_dir / "right.png"
+    extra = ["--focal", "430", "--baseline", "0.12"]
+    if case == "missing":
+        left = tmp_path / "nope.png"
+    elif case == "size":
+        right = tmp_path / "small.png"
+        cv2.imwrite(str(right), cv2.imread(str(pair_dir / "right.png"))[:, :-8])
+    elif case == "texture":
+        left = right = tmp_path / "flat.png"
+        cv2.imwrite(str(left), np.full((120, 160), 90, np.uint8))
+    elif case == "calibration":
+        extra = ["--focal", "430"]
+    elif case == "config":
+        config = tmp_path / "bad.yaml"
+        config.write_text("pothole_detector:\n  ros__parameters:\n    delta_pd_px: -1\n")
+        extra += ["--config", str(config)]
+    result = run_cli("detect", "--left", str(left), "--right", str(right), *extra, "--out",
+                     str(tmp_path / "o"), "--backend", "cpu")
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pothole-detector: error:")
+    assert "Traceback" not in result.stderr
+
+
+def test_evaluate_prints_the_papers_metrics(tmp_path, demo_sample):
+    frame = tmp_path / "data" / "synthetic_01"
+    frame.mkdir(parents=True)
+    cv2.imwrite(str(frame / "left.png"), demo_sample.left)
+    cv2.imwrite(str(frame / "right.png"), demo_sample.right)
+    cv2.imwrite(str(frame / "pothole_mask.png"), ((demo_sample.labels > 0) * 255).astype(np.uint8))
+    cv2.imwrite(str(frame / "label_roi.png"), np.full(demo_sample.left.shape, 255, np.uint8))
+    result = run_cli("evaluate", str(tmp_path / "data"), "--out", str(tmp_path / "r.md"),
+                     "--backend", "cpu")
+    assert result.returncode == 0, result.stderr
+    assert "F-score" in result.stdout and "synthetic_01" in result.stdout
+    assert "1/1" in result.stderr
+    row = [line for line in result.stdout.splitlines() if line.startswith("| **all**")][0]
+    precision = float(row.split("|")[2])
+    assert precision > 0.8
+    assert (tmp_path / "r.md").read_text().strip() == result.stdout.strip()

@@ -1,0 +1,41 @@
+from __future__ import annotations
+
+import numpy as np
+
+from pothole_detector.backend import CPU
+from pothole_detector.stages.components import corner_mask, pothole_components, relabel
+
+
+def grid_superpixels(height, width, step):
+    v, u = np.mgrid[0:height, 0:width]
+    return (v // step) * (width // step) + u // step, (height // step) * (width // step)
+
+
+def test_filters_corner_single_superpixel_and_keeps_diagonal_neighbours():
+    height, width = 100, 100
+    superpixels, n = grid_superpixels(height, width, 10)
+    candidate = np.zeros((height, width), bool)
+    candidate[0:20, 0:20] = True          # corner
+    candidate[40:50, 40:50] = True        # one superpixel
+    candidate[60:70, 60:70] = True        # two superpixels touching diagonally
+    candidate[70:80, 70:80] = True
+    labels, count = pothole_components(CPU, candidate, np.ones_like(candidate), superpixels, n,
+                                       0.1, 2)
+    assert count == 1
+    assert labels[65, 65] == 1 and labels[75, 75] == 1
+    assert labels[5, 5] == 0 and labels[45, 45] == 0
+
+
+def test_corner_regions_follow_the_valid_area():
+    valid = np.ones((50, 100), bool)
+    valid[:, :30] = False
+    mask = corner_mask(np, valid, 0.2)
+    assert mask[0, 30:40].all() and not mask[0, 40:50].any()
+    assert mask[49, 90:100].all() and not mask[20, 35]
+
+
+def test_relabel_renumbers_in_order():
+    labels = np.array([[0, 1, 2, 3]])
+    new, count = relabel(np, labels, np.array([False, True, False, True]))
+    np.testing.assert_array_equal(new, [[0, 1, 0, 2]])
+    assert count == 2

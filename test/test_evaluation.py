@@ -1,0 +1,54 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pothole_detector.evaluation import (ObjectCounts, PixelCounts, discover, disparity_errors,
+                                         road_region)
+from conftest import shared_data
+
+
+def test_pixel_counts_known_answer():
+    truth = np.array([[1, 1, 0, 0]], bool)
+    predicted = np.array([[1, 0, 1, 0]], bool)
+    counts = PixelCounts()
+    counts.add(predicted, truth, np.ones_like(truth))
+    assert (counts.tp, counts.fp, counts.fn, counts.tn) == (1, 1, 1, 1)
+    assert counts.precision == counts.recall == counts.f_score == counts.accuracy == 0.5
+
+
+def test_object_counts_correct_incorrect_missed():
+    truth = np.zeros((20, 40), bool)
+    truth[2:8, 2:8] = True
+    truth[12:18, 30:36] = True
+    labels = np.zeros((20, 40), np.int32)
+    labels[3:8, 3:8] = 1
+    labels[12:16, 10:14] = 2
+    counts = ObjectCounts()
+    counts.add(labels, truth, np.ones_like(truth))
+    assert (counts.correct, counts.incorrect, counts.missed) == (1, 1, 1)
+
+
+def test_disparity_errors_known_answer():
+    truth = np.array([[10.0, 10.0, 10.0, np.nan]], np.float32)
+    estimate = np.array([[10.5, 12.5, np.nan, 3.0]], np.float32)
+    errors = disparity_errors(estimate, truth)
+    assert errors["pixels"] == 3
+    assert errors["pep1"] == pytest.approx(200 / 3) and errors["pep3"] == pytest.approx(100 / 3)
+    assert errors["rmse"] == pytest.approx(np.sqrt((0.25 + 6.25) / 2))
+
+
+def test_road_region_is_the_road_plane(flat_sample):
+    truth = flat_sample.disparity.copy()
+    truth[250:300, 100:200] += 20
+    region = road_region(truth)
+    assert not region[250:300, 100:200].any()
+    assert region[200:].mean() > 0.8
+
+
+def test_discover_finds_the_shared_sets():
+    root = shared_data()
+    names = [s.name for s in discover(root)]
+    assert sum(n.startswith("model1_") for n in names) == 8
+    assert any(n.startswith("kitti2012_training/") for n in names)
+    assert {"cones", "teddy"} <= set(names)

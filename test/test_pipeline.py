@@ -1,0 +1,77 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pothole_detector.errors import InputError, NoRoadError, NoTextureError
+from pothole_detector.params import Config
+from pothole_detector.pipeline import Pipeline, metric_tolerance_px
+
+
+def detection_coverage(result, sample):
+    labels = result.labels
+    covered = [((labels > 0) & (sample.labels == k)).sum() / (sample.labels == k).sum()
+               for k in range(1, len(sample.potholes) + 1)]
+    false = ((labels > 0) & (sample.labels == 0)).sum() / max((labels > 0).sum(), 1)
+    return covered, false
+
+
+def test_finds_every_pothole_where_the_generator_put_it(demo_sample):
+    result = Pipeline(Config(), demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    covered, false = detection_coverage(result, demo_sample)
+    assert len(result.potholes) == 3
+    assert min(covered) > 0.4 and false < 0.1
+    assert abs(result.road.roll_deg - 1.5) < 0.3
+    for name in ("seed", "sgm", "slic", "threshold", "total"):
+        assert result.timings_ms[name] >= 0
+    assert result.seeded
+
+
+def test_flat_road_has_no_potholes(flat_sample):
+    result = Pipeline(Config(), flat_sample.calibration).run(flat_sample.left, flat_sample.right)
+    assert result.potholes == [] and not result.labels.any()
+    assert result.road.inlier_fraction > 0.9
+
+
+def test_second_frame_reuses_the_road_and_matches_the_same(demo_sample):
+    pipeline = Pipeline(Config(), demo_sample.calibration)
+    first = pipeline.run(demo_sample.left, demo_sample.right)
+    second = pipeline.run(demo_sample.left, demo_sample.right)
+    assert first.seeded and not second.seeded
+    assert len(second.potholes) == len(first.potholes)
+    error = np.abs(second.disparity - demo_sample.disparity)
+    assert np.nanmedian(error) < 0.3
+
+
+def test_without_gpt_full_range_gives_the_same_potholes(demo_sample):
+    config = Config({"gpt_enabled": False, "max_disparity_px": 128})
+    result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    assert result.band == (0, 128)
+    assert len(result.potholes) == 3
+
+
+def test_metric_threshold_mode(demo_sample):
+    config = Config({"threshold_mode": "metres", "delta_pd_m": 0.006})
+    result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    covered, false = detection_coverage(result, demo_sample)
+    assert len(result.potholes) == 3 and false < 0.1
+    u, v = np.array([320.0]), np.array([180.0])
+    drop = metric_tolerance_px(np, u, v, result.road, demo_sample.calibration, 0.006)
+    road = result.road.at(np, u, v)
+    depth = demo_sample.calibration.fb / (road - drop) - demo_sample.calibration.fb / road
+    assert 0.004 < depth[0] < 0.008
+
+
+def test_bad_inputs_raise_clear_errors(demo_sample):
+    pipeline = Pipeline(Config(), demo_sample.calibration)
+    with pytest.raises(InputError, match="equal sizes"):
+        pipeline.run(demo_sample.left, demo_sample.right[:, :-2])
+    with pytest.raises(InputError, match="8- or 16-bit"):
+        pipeline.run(demo_sample.left.astype(np.float32), demo_sample.right)
+    flat = np.full_like(demo_sample.left, 128)
+    with pytest.raises(NoTextureError, match="texture"):
+        pipeline.run(flat, flat)
+    noise = np.random.default_rng(0).integers(0, 255, demo_sample.left.shape, dtype=np.uint8)
+    other = np.random.default_rng(1).integers(0, 255, demo_sample.left.shape, dtype=np.uint8)
+    with pytest.raises((NoRoadError, NoTextureError)):
+        pipeline.run(noise, other)

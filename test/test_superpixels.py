@@ -1,0 +1,58 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pothole_detector.stages.superpixels import slic, superpixel_means, superpixels
+
+
+def disc_image(height=96, width=128):
+    v, u = np.mgrid[0:height, 0:width]
+    disc = (u - 60) ** 2 + (v - 50) ** 2 < 22 ** 2
+    image = np.where(disc, 20.0, 32.0).astype(np.float32)
+    image += np.random.default_rng(0).normal(0, 0.3, image.shape).astype(np.float32)
+    return image, disc
+
+
+def test_superpixels_follow_a_disparity_edge():
+    image, disc = disc_image()
+    labels, n = slic(np, image, np.ones(image.shape, bool), 12, 2.0, 8)
+    assert labels.shape == image.shape and labels.max() < n
+    inside = np.bincount(labels.ravel(), disc.ravel(), minlength=n)
+    total = np.bincount(labels.ravel(), minlength=n)
+    used = total > 0
+    purity = np.maximum(inside[used], total[used] - inside[used]) / total[used]
+    assert (purity * total[used]).sum() / total.sum() > 0.97
+
+
+def test_superpixels_are_compact_on_a_flat_map():
+    image = np.full((64, 64), 32.0, np.float32)
+    labels, n = slic(np, image, np.ones(image.shape, bool), 16, 2.0, 5)
+    sizes = np.bincount(labels.ravel(), minlength=n)
+    assert n == 16 and sizes.min() > 0.5 * 256 and sizes.max() < 1.5 * 256
+
+
+@pytest.mark.parametrize("shape", [(1, 50), (37, 53), (5, 3)])
+def test_odd_sizes_and_nan(shape):
+    image = np.random.default_rng(1).normal(30, 1, shape).astype(np.float32)
+    image[0, 0] = np.nan
+    labels, n = superpixels(np, image, 8, 2.0, 3, downsample=1)
+    assert labels.shape == shape and labels.min() >= 0 and labels.max() < n
+
+
+def test_downsampled_labels_cover_the_full_image():
+    image, disc = disc_image(97, 131)
+    labels, n = superpixels(np, image, 16, 2.0, 6, downsample=2)
+    assert labels.shape == image.shape
+    means, valid = superpixel_means(np, image, labels, n)
+    inside = means[np.unique(labels[40:60, 50:70])]
+    assert np.all(inside < 26)
+
+
+def test_means_ignore_invalid_pixels():
+    image = np.array([[1.0, np.nan], [3.0, 5.0]], np.float32)
+    labels = np.array([[0, 0], [1, 1]])
+    means, valid = superpixel_means(np, image, labels, 3)
+    np.testing.assert_allclose(means[:2], [1.0, 4.0])
+    assert np.isnan(means[2])
+    np.testing.assert_allclose(valid, [0.5, 1.0, 0.0])

@@ -1,0 +1,66 @@
+from __future__ import annotations
+
+import numpy as np
+
+from pothole_detector.stages.threshold import (histogram_threshold, neighbour_mean,
+                                               select_superpixels)
+
+
+def two_level_map():
+    rng = np.random.default_rng(2)
+    image = rng.normal(32.0, 0.5, (120, 160)).astype(np.float32)
+    image[30:70, 40:100] = rng.normal(20.0, 0.5, (40, 60))
+    return image
+
+
+def brute_force_threshold(g1, g2, candidates):
+    best = None
+    for t in candidates:
+        low = (g1 < t) & (g2 < t)
+        high = (g1 >= t) & (g2 >= t)
+        if low.sum() == 0 or high.sum() == 0:
+            continue
+        e2 = sum(((np.stack([g1[m], g2[m]]) - np.array([[g1[m].mean()], [g2[m].mean()]])) ** 2
+                  ).sum() for m in (low, high))
+        if best is None or e2 < best[0]:
+            best = (e2, t)
+    return best[1]
+
+
+def test_neighbour_mean_known_answer():
+    image = np.arange(9, dtype=np.float32).reshape(3, 3)
+    image[0, 0] = np.nan
+    result = neighbour_mean(np, image)
+    assert result[1, 1] == np.float32((1 + 2 + 3 + 5 + 6 + 7 + 8) / 7)
+    assert result[0, 0] == np.float32((1 + 3 + 4) / 3)
+
+
+def test_threshold_splits_pothole_from_road_and_reports_road_mean():
+    image = two_level_map()
+    t_r, road_mean = histogram_threshold(np, image, 0.25, 32.0)
+    assert 21.0 < t_r < 31.0
+    assert abs(road_mean - 32.0) < 0.1
+
+
+def test_cumulative_search_equals_brute_force():
+    image = two_level_map()
+    image[60:80, 10:30] = 26.0
+    t_r, _ = histogram_threshold(np, image, 0.5, 32.0)
+    g2 = neighbour_mean(np, image)
+    lo = 32.0 - 128.0
+    g1q = lo + (np.floor((image - lo) / 0.5) + 0.5) * 0.5
+    candidates = np.arange(15.0, 35.0, 0.5)
+    assert abs(brute_force_threshold(image, g2, candidates) - t_r) <= 0.5
+    del g1q
+
+
+def test_one_cluster_gives_nan():
+    t_r, road_mean = histogram_threshold(np, np.full((20, 20), 32.0, np.float32), 0.25, 32.0)
+    assert np.isnan(t_r) and np.isnan(road_mean)
+
+
+def test_selection_needs_low_mean_and_valid_pixels():
+    means = np.array([20.0, 31.0, np.nan, 20.0], np.float32)
+    valid = np.array([1.0, 1.0, 0.0, 0.0], np.float32)
+    np.testing.assert_array_equal(select_superpixels(np, means, valid, 29.6, 0.0),
+                                  [True, False, False, False])
