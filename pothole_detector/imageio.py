@@ -51,7 +51,7 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole]) -> n
         contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
                                        cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
-        u0, v0, u1, _ = pothole.bbox_px
+        _, v0, u1, _ = pothole.bbox_px
         text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
         (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
         x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))

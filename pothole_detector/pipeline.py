@@ -66,7 +66,6 @@ class Pipeline:
         xp = backend.xp
         timings: dict[str, float] = {}
         left_gray, right_gray = _validate_pair(left, right)
-        height = left_gray.shape[0]
 
         seeded = self._road is None or not config.gpt_enabled
         disparity, kappa, levels = self._match(left_gray, right_gray, timings)
@@ -119,7 +118,7 @@ class Pipeline:
         return PipelineResult(
             disparity=disparity, transformed=transformed, labels=labels,
             superpixels=sp_labels, road=road, threshold_px=reference,
-            band=(int(kappa.min()) if height else 0, int(levels)), potholes=potholes,
+            band=(int(kappa.min()), int(levels)), potholes=potholes,
             backend=backend.name, seeded=seeded, timings_ms=timings,
         )
 

@@ -47,11 +47,8 @@ def test_cumulative_search_equals_brute_force():
     image[60:80, 10:30] = 26.0
     t_r, _ = histogram_threshold(np, image, 0.5, 32.0)
     g2 = neighbour_mean(np, image)
-    lo = 32.0 - 128.0
-    g1q = lo + (np.floor((image - lo) / 0.5) + 0.5) * 0.5
     candidates = np.arange(15.0, 35.0, 0.5)
     assert abs(brute_force_threshold(image, g2, candidates) - t_r) <= 0.5
-    del g1q
 
 
 def test_one_cluster_gives_nan():

@@ -17,7 +17,6 @@ import numpy as np
 from ..backend import to_host
 from ..errors import NoRoadError
 
-MOMENT_NAMES = ("n", "Su", "Sv", "Sd", "Suu", "Svv", "Suv", "Sud", "Svd")
 # Coordinates of the quadratic correction are divided by this (px), for conditioning.
 CURVATURE_SCALE_PX = 1000.0
 
