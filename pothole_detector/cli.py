@@ -1,4 +1,4 @@
-"""Command line: ``pothole-detector detect`` and ``pothole-detector evaluate``."""
+"""Command line: ``pothole-detector detect | evaluate | play | process | record``."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import json
 import logging
 import math
 import sys
+import time
 from pathlib import Path
 from typing import Sequence
 
@@ -16,7 +17,7 @@ from . import __version__
 from .backend import BACKEND_CHOICES, get_backend
 from .calibration import StereoCalibration, load_stereo_camera_info
 from .errors import InputError, PotholeError
-from .evaluation import evaluate
+from .evaluation import draw_progress, evaluate
 from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
 from .pipeline import Pipeline, PipelineResult
@@ -46,16 +47,52 @@ def _parser() -> argparse.ArgumentParser:
     evaluate_cmd.add_argument("directory", help="fan_potholes, KITTI or Middlebury folder")
     evaluate_cmd.add_argument("--out", help="also write the report (Markdown) here")
     _common(evaluate_cmd)
+
+    play = commands.add_parser("play", help="publish a recorded bag into the live ROS graph")
+    play.add_argument("bag", help="ROS 2 bag directory (mcap or sqlite3) or ROS 1 .bag")
+    play.add_argument("--rate", type=float, default=1.0, help="playback speed factor")
+    play.add_argument("--loop", action="store_true", help="start again at the end")
+    play.add_argument("--remap", action="append", default=[], metavar="OLD:=NEW",
+                      help="publish topic OLD as NEW (repeatable)")
+    play.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
+                      help="publisher reliability")
+    play.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    play.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="S",
+                      help="wait up to S seconds until every topic has a subscriber")
+
+    process_cmd = commands.add_parser(
+        "process", help="run the detector over every stereo pair of a bag into a new bag")
+    process_cmd.add_argument("bag", help="ROS 2 bag directory (mcap or sqlite3) or ROS 1 .bag")
+    process_cmd.add_argument("--out", required=True, help="output bag directory (new)")
+    process_cmd.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    process_cmd.add_argument("--no-inputs", action="store_true",
+                             help="write only the output topics")
+    process_cmd.add_argument("--pictures", help="also write overlay PNGs into this folder")
+    for name in ("left", "right", "left-info", "right-info"):
+        process_cmd.add_argument(f"--{name}-topic",
+                                 help=f"{name.replace('-info', ' camera_info')} topic "
+                                      "(default: found in the bag)")
+    _common(process_cmd)
+
+    record_cmd = commands.add_parser("record", help="record live topics into a bag")
+    record_cmd.add_argument("out", help="output bag directory (new)")
+    record_cmd.add_argument("--topics", nargs="+", required=True, help="topics to record")
+    record_cmd.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    record_cmd.add_argument("--duration", type=float, help="stop after this many seconds")
+    record_cmd.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
+                            help="subscription reliability")
     return parser
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="parameter YAML (config/pothole_detector.yaml format)")
-    parser.add_argument("--backend", choices=BACKEND_CHOICES, default="auto")
+    parser.add_argument("--backend", choices=BACKEND_CHOICES,
+                        help="override the config's backend (auto, cpu, gpu)")
 
 
-def _config(path: str | None) -> Config:
-    return Config(load_yaml(path) if path else {})
+def _config(path: str | None, backend: str | None = None) -> Config:
+    config = Config(load_yaml(path) if path else {})
+    return config.replace(backend=backend) if backend else config
 
 
 def _calibration(args: argparse.Namespace, width: int, height: int) -> StereoCalibration:
@@ -94,8 +131,8 @@ def detection_json(result: PipelineResult) -> dict:
 def run_detect(args: argparse.Namespace) -> int:
     left, right = read_image(args.left), read_image(args.right)
     calibration = _calibration(args, left.shape[1], left.shape[0])
-    config = _config(args.config)
-    backend = get_backend(args.backend)
+    config = _config(args.config, args.backend)
+    backend = get_backend(config.backend)
     result = Pipeline(config, calibration, backend).run(left, right)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -116,11 +153,44 @@ def run_detect(args: argparse.Namespace) -> int:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
-    report = evaluate(args.directory, _config(args.config), get_backend(args.backend))
+    config = _config(args.config, args.backend)
+    report = evaluate(args.directory, config, get_backend(config.backend))
     text = report.markdown()
     print(text)
     if args.out:
         Path(args.out).write_text(text)
+    return 0
+
+
+def run_play(args: argparse.Namespace) -> int:
+    from .bagtools import play
+    count = play(args.bag, rate=args.rate, loop=args.loop, remaps=args.remap,
+                 reliability=args.qos, wait_for_subscribers=args.wait_for_subscribers,
+                 clock=not args.no_clock)
+    print(f"published {count} messages from {args.bag}")
+    return 0
+
+
+def run_process(args: argparse.Namespace) -> int:
+    from .bagtools import process
+    start = time.perf_counter()
+    summary = process(
+        args.bag, args.out, _config(args.config, args.backend), storage=args.storage,
+        keep_inputs=not args.no_inputs, left=args.left_topic, right=args.right_topic,
+        left_info=args.left_info_topic, right_info=args.right_info_topic,
+        progress=lambda index, total: draw_progress(index, total, start, "process"),
+        pictures=args.pictures)
+    for error in summary.errors:
+        print(f"  skipped {error}", file=sys.stderr)
+    print(f"{summary.text()}; wrote {args.out}")
+    return 0
+
+
+def run_record(args: argparse.Namespace) -> int:
+    from .bagtools import record
+    counts = record(args.out, args.topics, storage=args.storage, duration=args.duration,
+                    reliability=args.qos)
+    print(", ".join(f"{topic}: {count}" for topic, count in counts.items()) + f"; wrote {args.out}")
     return 0
 
 
@@ -129,13 +199,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     args = _parser().parse_args(argv)
     try:
-        return {"detect": run_detect, "evaluate": run_evaluate}[args.command](args)
+        commands = {"detect": run_detect, "evaluate": run_evaluate, "play": run_play,
+                    "process": run_process, "record": run_record}
+        return commands[args.command](args)
     except PotholeError as error:
         print(f"pothole-detector: error: {error}", file=sys.stderr)
         return 2
     except OSError as error:
         print(f"pothole-detector: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 130
 
 
 if __name__ == "__main__":

@@ -238,18 +238,23 @@ class EvaluationReport:
         return "\n".join(lines)
 
 
+def draw_progress(index: int, total: int, start: float, label: str,
+                  stream: TextIO = sys.stderr) -> None:
+    """Redraw a one-line progress bar: ``index`` of ``total`` done since ``start``
+    (perf_counter seconds); a newline once complete."""
+    done = int(30 * index / max(total, 1))
+    stream.write(f"\r{label} [{'#' * done}{'.' * (30 - done)}] {index}/{total} "
+                 f"{time.perf_counter() - start:5.1f}s" + ("\n" if index >= total else ""))
+    stream.flush()
+
+
 def progress(items: list, stream: TextIO = sys.stderr, label: str = "evaluate") -> Iterator:
     """Yield ``items`` while drawing a one-line progress bar on ``stream``."""
-    total = len(items)
     start = time.perf_counter()
     for index, item in enumerate(items):
-        done = int(30 * index / max(total, 1))
-        stream.write(f"\r{label} [{'#' * done}{'.' * (30 - done)}] {index}/{total} "
-                     f"{time.perf_counter() - start:5.1f}s")
-        stream.flush()
+        draw_progress(index, len(items), start, label, stream)
         yield item
-    stream.write(f"\r{label} [{'#' * 30}] {total}/{total} {time.perf_counter() - start:5.1f}s\n")
-    stream.flush()
+    draw_progress(len(items), len(items), start, label, stream)
 
 
 def evaluate(root: str | Path, config: Config, backend: Backend,

@@ -141,6 +141,28 @@ PARAMETERS: tuple[Param, ...] = (
           1, 1000),
     Param("min_pothole_area_m2", float, 0.0005, "Components smaller on the road are dropped.",
           0, 100),
+    # node
+    Param("backend", str, "auto", "Array backend: gpu (CuPy), cpu (NumPy), or auto (gpu when "
+          "CuPy sees a device, else cpu).", choices=("auto", "cpu", "gpu"), group="node"),
+    Param("approximate_sync", bool, False,
+          "Pair left and right images whose stamps differ by at most "
+          "approximate_sync_tolerance_seconds (false: identical stamps only).", group="node"),
+    Param("approximate_sync_tolerance_seconds", float, 0.01,
+          "Largest stamp difference (s) of an approximately synchronized pair.", 0, 10,
+          group="node"),
+    Param("queue_size", int, 10, "Unpaired images kept per side while waiting for a partner.",
+          1, 1000, group="node"),
+    Param("qos_reliability", str, "reliable",
+          "QoS reliability of every subscription and publisher. best_effort loses most large "
+          "images over DDS; its subscriptions still take reliable publishers.",
+          choices=("reliable", "best_effort"), group="node"),
+    Param("qos_depth", int, 5, "QoS history depth of every subscription and publisher.",
+          1, 1000, group="node"),
+    Param("diagnostics_period_seconds", float, 1.0, "Period of /diagnostics messages (s).",
+          0.1, 60, group="node"),
+    Param("log_throttle_seconds", float, 5.0,
+          "The same input problem is logged at most once per this many seconds.", 0, 3600,
+          group="node"),
 )
 
 PARAMETER_BY_NAME: dict[str, Param] = {p.name: p for p in PARAMETERS}

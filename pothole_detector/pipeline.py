@@ -24,7 +24,9 @@ class PipelineResult:
     """Everything one stereo pair produced. Arrays live on the pipeline's backend.
 
     ``disparity`` (D1) and ``transformed`` (D2) are float32 HxW px, NaN where invalid;
-    ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW.
+    ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW;
+    ``band`` (lowest row shift, levels) and ``disparity_range`` (lowest, highest disparity the
+    matcher could report, px).
     """
 
     disparity: Any
@@ -34,6 +36,7 @@ class PipelineResult:
     road: road_model.RoadModel
     threshold_px: float
     band: tuple[int, int]
+    disparity_range: tuple[float, float]
     potholes: list[measure.Pothole]
     backend: str
     seeded: bool
@@ -118,7 +121,9 @@ class Pipeline:
         return PipelineResult(
             disparity=disparity, transformed=transformed, labels=labels,
             superpixels=sp_labels, road=road, threshold_px=reference,
-            band=(int(kappa.min()), int(levels)), potholes=potholes,
+            band=(int(kappa.min()), int(levels)),
+            disparity_range=(float(kappa.min()), float(kappa.max()) + levels - 1),
+            potholes=potholes,
             backend=backend.name, seeded=seeded, timings_ms=timings,
         )
 

@@ -249,3 +249,23 @@ def demo_scene(width: int = 640, height: int = 360, roll_deg: float = 1.5,
             PotholeShape(0.02, 0.33, 0.07, 0.06, 0.05, 0.0),
         ),
     )
+
+
+DRIVE_POTHOLES = (
+    PotholeShape(-0.20, 0.55, 0.09, 0.07, 0.05, 20.0),
+    PotholeShape(0.22, 0.80, 0.11, 0.08, 0.06, -15.0),
+    PotholeShape(0.00, 1.05, 0.08, 0.06, 0.05, 0.0),
+    PotholeShape(-0.18, 1.30, 0.10, 0.07, 0.06, 30.0),
+    PotholeShape(0.20, 1.55, 0.09, 0.08, 0.05, -25.0),
+)
+
+
+def drive_scenes(frames: int = 16, width: int = 640, height: int = 360,
+                 speed_mps: float = 0.5, rate_hz: float = 10.0,
+                 seed: int = 11) -> list[Scene]:
+    """The demo rig driving forward at ``speed_mps`` past five potholes 5-6 cm deep, one scene
+    per frame at ``rate_hz``; the ground texture moves with the road."""
+    base = demo_scene(width, height, seed=seed)
+    return [Scene(**{**base.__dict__, "camera_y_m": index * speed_mps / rate_hz,
+                     "potholes": DRIVE_POTHOLES})
+            for index in range(frames)]

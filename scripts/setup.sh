@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Create .venv (Python 3.11 or newer) and install pothole_detector with its test tools.
+# Create .venv (Python 3.11), install pothole_detector with ROS 2 Jazzy from pip wheels and its
+# test tools, and build our messages (pothole_detector_msgs) into the same prefix.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python="${PYTHON:-python3}"
@@ -7,4 +8,5 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".[test]"
+.venv/bin/python -m pip install --quiet -e ".[test,ros,msgs]"
+scripts/build_msgs.sh

@@ -7,6 +7,7 @@ import pytest
 
 from pothole_detector.synthetic import PotholeShape, Scene, demo_scene, render
 
+REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 

@@ -1,0 +1,527 @@
+"""Bags on rosbags: our typestore, play into the live graph, record, offline processing."""
+
+from __future__ import annotations
+
+import importlib
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Connection
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+from .errors import InputError, PotholeError
+from .params import Config
+
+MSG_PACKAGE = "pothole_detector_msgs"
+MSG_NAMES = ("Pothole", "PotholeArray")
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+OUTPUT_TYPES = {
+    "disparity": "stereo_msgs/msg/DisparityImage",
+    "disparity_transformed": IMAGE_TYPE,
+    "pothole_labels": IMAGE_TYPE,
+    "pothole_points": "sensor_msgs/msg/PointCloud2",
+    "potholes": f"{MSG_PACKAGE}/msg/PotholeArray",
+    "pothole_markers": "visualization_msgs/msg/MarkerArray",
+    "overlay": IMAGE_TYPE,
+}
+
+
+def msg_directory() -> Path:
+    """Where the .msg files of pothole_detector_msgs are: the source tree's msg_schemas/msg,
+    else the installed package's share directory."""
+    source = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
+    if source.is_dir():
+        return source
+    from ament_index_python.packages import get_package_share_directory
+    return Path(get_package_share_directory(MSG_PACKAGE)) / "msg"
+
+
+def typestore() -> Typestore:
+    """The Jazzy typestore with our own message types registered from their .msg text."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types: dict[str, Any] = {}
+    for name in MSG_NAMES:
+        text = (msg_directory() / f"{name}.msg").read_text()
+        types.update(get_types_from_msg(text, f"{MSG_PACKAGE}/msg/{name}"))
+    store.register(types)
+    return store
+
+
+def message_class(msgtype: str) -> type:
+    """The rclpy class of a type name such as ``sensor_msgs/msg/Image``."""
+    package, _, name = msgtype.rpartition("/")
+    package = package.replace("/", ".")
+    try:
+        return getattr(importlib.import_module(package), name)
+    except (ImportError, AttributeError):
+        raise InputError(f"message type {msgtype} is not installed for rclpy; install its "
+                         "ROS package") from None
+
+
+def open_bag(path: str | Path) -> AnyReader:
+    """An opened AnyReader on a ROS 2 bag directory (mcap or sqlite3) or a ROS 1 .bag."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"bag {path} does not exist")
+    reader = AnyReader([path], default_typestore=typestore())
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags raises several unrelated error types
+        raise InputError(f"cannot read bag {path}: {exc}") from None
+    return reader
+
+
+_CONVERTERS: dict[tuple[str, str], Callable[[bytes], Any]] = {}
+
+
+def cdr_bytes(reader: AnyReader, connection: Connection, rawdata: bytes) -> bytes:
+    """The message as ROS 2 (Jazzy) CDR bytes, whatever the bag's own serialization; ROS 1
+    messages are migrated field by field (Header.seq dropped, CameraInfo.D -> d ...)."""
+    if reader.is2:
+        return bytes(rawdata)
+    key = (connection.msgtype, connection.msgdef.data)
+    if key not in _CONVERTERS:
+        from rosbags.convert.converter import generate_message_converter
+        _CONVERTERS[key] = generate_message_converter(
+            reader.typestore, _jazzy_store(), connection.msgtype, connection.msgtype, {},
+            src_is2=False, dst_is2=True)
+    return bytes(_CONVERTERS[key](rawdata))
+
+
+_STORE: list[Typestore] = []
+
+
+def _jazzy_store() -> Typestore:
+    if not _STORE:
+        _STORE.append(typestore())
+    return _STORE[0]
+
+
+def parse_remaps(remaps: Sequence[str]) -> dict[str, str]:
+    """``OLD:=NEW`` strings as a mapping; raises InputError on a malformed one."""
+    mapping = {}
+    for remap in remaps:
+        old, sep, new = remap.partition(":=")
+        if not sep or not old or not new:
+            raise InputError(f"remap {remap!r} must look like /old/topic:=/new/topic")
+        mapping[old] = new
+    return mapping
+
+
+def writer_for(path: str | Path, storage: str) -> Writer:
+    """A new ROS 2 bag (version 9) in ``storage`` mcap (zstd chunks) or sqlite3."""
+    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}.get(storage)
+    if plugin is None:
+        raise InputError(f"storage must be mcap or sqlite3, got {storage!r}")
+    if Path(path).exists():
+        raise InputError(f"{path} exists already; choose a new output path")
+    writer = Writer(Path(path), version=9, storage_plugin=plugin)
+    if plugin == StoragePlugin.MCAP:
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    return writer
+
+
+# --- play --------------------------------------------------------------------------------
+
+def play(bag: str | Path, rate: float = 1.0, loop: bool = False,
+         remaps: Sequence[str] = (), reliability: str = "reliable",
+         wait_for_subscribers: float = 0.0, clock: bool = True,
+         should_stop: Callable[[], bool] = lambda: False) -> int:
+    """Publish a recorded bag into the live graph on its recorded clock (scaled by ``rate``),
+    optionally publishing /clock and waiting up to ``wait_for_subscribers`` s for every topic
+    to have a subscriber. Returns the number of messages published."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    if rate <= 0:
+        raise InputError(f"--rate must be positive, got {rate}")
+    mapping = parse_remaps(remaps)
+    reader = open_bag(bag)
+    own_context = not rclpy.ok()
+    if own_context:
+        from .node import large_image_transport
+        large_image_transport()
+        rclpy.init(args=[])
+    node = rclpy.create_node("pothole_detector_player")
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE
+                     if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
+    published = 0
+    try:
+        publishers = {
+            c.id: node.create_publisher(message_class(c.msgtype),
+                                        mapping.get(c.topic, c.topic), qos)
+            for c in reader.connections
+        }
+        clock_publisher = node.create_publisher(Clock, "/clock", 10) if clock else None
+        deadline = time.monotonic() + wait_for_subscribers
+        while time.monotonic() < deadline and \
+                not all(p.get_subscription_count() for p in publishers.values()):
+            time.sleep(0.05)
+        if wait_for_subscribers > 0:
+            time.sleep(min(1.0, wait_for_subscribers))  # let the readers match us in turn
+        while True:
+            start_wall, start_bag = time.monotonic(), reader.start_time
+            for connection, timestamp, rawdata in reader.messages():
+                if should_stop():
+                    return published
+                delay = start_wall + (timestamp - start_bag) / 1e9 / rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                if clock_publisher is not None:
+                    clock_msg = Clock()
+                    clock_msg.clock.sec, clock_msg.clock.nanosec = divmod(timestamp, 10**9)
+                    clock_publisher.publish(clock_msg)
+                publishers[connection.id].publish(cdr_bytes(reader, connection, rawdata))
+                published += 1
+            if not loop:
+                break
+        time.sleep(0.2)
+    finally:
+        reader.close()
+        node.destroy_node()
+        if own_context:
+            rclpy.try_shutdown()
+    return published
+
+
+# --- record ------------------------------------------------------------------------------
+
+def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
+           duration: float | None = None, discovery_timeout: float = 10.0,
+           reliability: str = "reliable",
+           should_stop: Callable[[], bool] = lambda: False) -> dict[str, int]:
+    """Record live ``topics`` (raw CDR, receive time) into a new bag until Ctrl-C, ``duration``
+    s or ``should_stop()``. Topic types are discovered from the graph. Returns counts."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    store = typestore()
+    own_context = not rclpy.ok()
+    if own_context:
+        from .node import large_image_transport
+        large_image_transport()
+        rclpy.init(args=[])
+    node = rclpy.create_node("pothole_detector_recorder")
+    writer = writer_for(out, storage)
+    counts = {topic: 0 for topic in topics}
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE
+                     if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    writer.open()
+    try:
+        connections: dict[str, Connection] = {}
+        subscriptions = []
+        deadline = time.monotonic() + discovery_timeout
+        start = time.monotonic()
+        while True:
+            known = dict(node.get_topic_names_and_types())
+            for topic in topics:
+                if topic in connections or topic not in known:
+                    continue
+                msgtype = known[topic][0]
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
+
+                def on_message(data: bytes, topic: str = topic) -> None:
+                    writer.write(connections[topic], time.time_ns(), data)
+                    counts[topic] += 1
+
+                subscriptions.append(node.create_subscription(
+                    message_class(msgtype), topic, on_message, qos, raw=True))
+            if len(connections) < len(topics) and time.monotonic() > deadline:
+                missing = sorted(set(topics) - set(connections))
+                raise InputError(f"no publisher of {', '.join(missing)} appeared within "
+                                 f"{discovery_timeout:.0f} s; is the graph running?")
+            executor.spin_once(timeout_sec=0.05)
+            if should_stop() or (duration is not None and time.monotonic() - start > duration):
+                break
+    except KeyboardInterrupt:
+        pass
+    finally:
+        writer.close()
+        executor.shutdown()
+        node.destroy_node()
+        if own_context:
+            rclpy.try_shutdown()
+    return counts
+
+
+# --- process -----------------------------------------------------------------------------
+
+@dataclass
+class StereoTopics:
+    """The four input topics of one stereo camera."""
+
+    left: str
+    right: str
+    left_info: str
+    right_info: str
+
+    @property
+    def namespace(self) -> str:
+        """The common parent of the left and right image topics ('' for the root)."""
+        left, right = self.left.strip("/").split("/"), self.right.strip("/").split("/")
+        common = []
+        for a, b in zip(left, right):
+            if a != b:
+                break
+            common.append(a)
+        return "/" + "/".join(common) if common else ""
+
+
+def find_stereo_topics(topics: dict[str, str], left: str | None = None,
+                       right: str | None = None, left_info: str | None = None,
+                       right_info: str | None = None) -> StereoTopics:
+    """The stereo topics of a bag (``topics``: name -> type): given ones are checked, missing
+    ones are found when the bag holds one image and one camera_info topic per side."""
+
+    def pick(given: str | None, side: str, msgtype: str, what: str) -> str:
+        if given is not None:
+            if topics.get(given) != msgtype:
+                raise InputError(f"the bag has no {msgtype} topic {given}; it has "
+                                 f"{', '.join(sorted(topics))}")
+            return given
+        found = [t for t, k in topics.items() if k == msgtype and f"/{side}" in t
+                 and not t.rstrip("/").endswith(tuple(OUTPUT_TYPES))]
+        if len(found) != 1:
+            raise InputError(f"cannot tell the {side} {what} topic among {found or 'none'}; "
+                             f"name it with --{side}-{what.replace('camera_info', 'info')}"
+                             "-topic")
+        return found[0]
+
+    return StereoTopics(pick(left, "left", IMAGE_TYPE, "image"),
+                        pick(right, "right", IMAGE_TYPE, "image"),
+                        pick(left_info, "left", INFO_TYPE, "camera_info"),
+                        pick(right_info, "right", INFO_TYPE, "camera_info"))
+
+
+@dataclass
+class ProcessSummary:
+    """What :func:`process` did."""
+
+    frames: int = 0
+    failed: int = 0
+    potholes: int = 0
+    unpaired: int = 0
+    milliseconds: list[float] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+    def text(self) -> str:
+        per_frame = float(np.mean(self.milliseconds)) if self.milliseconds else 0.0
+        return (f"{self.frames} frames, {self.potholes} potholes found, {per_frame:.0f} ms per "
+                f"frame, {self.failed} failed, {self.unpaired} unpaired images")
+
+
+def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config
+                 ) -> Iterator[tuple[int, Any, Any, Any, Any]]:
+    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag."""
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from .sync import StereoSynchronizer
+
+    wanted = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
+              topics.right_info: "right_info"}
+    connections = [c for c in reader.connections if c.topic in wanted]
+    synchronizer: StereoSynchronizer[Any] = StereoSynchronizer(
+        config.queue_size, config.approximate_sync,
+        int(round(config.approximate_sync_tolerance_seconds * 1e9)))
+    infos: dict[str, Any] = {}
+    for connection, _, rawdata in reader.messages(connections=connections):
+        role = wanted[connection.topic]
+        data = cdr_bytes(reader, connection, rawdata)
+        if role.endswith("info"):
+            infos[role] = deserialize_message(data, CameraInfo)
+            continue
+        msg = deserialize_message(data, Image)
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        outcome = synchronizer.add(role, stamp, msg)
+        for pair_stamp, left, right in outcome.pairs:
+            if "left_info" in infos and "right_info" in infos:
+                yield pair_stamp, left, right, infos["left_info"], infos["right_info"]
+
+
+def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mcap",
+            keep_inputs: bool = True, left: str | None = None, right: str | None = None,
+            left_info: str | None = None, right_info: str | None = None,
+            progress: Callable[[int, int], None] | None = None,
+            pictures: str | Path | None = None) -> ProcessSummary:
+    """Run the pipeline on every synchronized stereo set of ``bag`` and write a new bag at
+    ``out`` with the inputs (``keep_inputs``) and every output topic of the node, stamped with
+    the input stamps, under the input's namespace. ``pictures``: also write overlay PNGs."""
+    from rclpy.serialization import serialize_message
+
+    from . import conversions
+    from .backend import get_backend
+    from .imageio import overlay, write_rgb
+    from .pipeline import Pipeline
+
+    reader = open_bag(bag)
+    summary = ProcessSummary()
+    try:
+        bag_topics = {c.topic: c.msgtype for c in reader.connections}
+        stereo = find_stereo_topics(bag_topics, left, right, left_info, right_info)
+        namespace = stereo.namespace
+        writer = writer_for(out, storage)
+        writer.open()
+        store = typestore()
+        try:
+            output = {name: writer.add_connection(f"{namespace}/{name}", msgtype,
+                                                  typestore=store)
+                      for name, msgtype in OUTPUT_TYPES.items()}
+            inputs = {}
+            if keep_inputs:
+                for topic in (stereo.left, stereo.right, stereo.left_info, stereo.right_info):
+                    inputs[topic] = writer.add_connection(topic, bag_topics[topic],
+                                                          typestore=store)
+                for connection, timestamp, rawdata in reader.messages(
+                        connections=[c for c in reader.connections if c.topic in inputs]):
+                    writer.write(inputs[connection.topic], timestamp,
+                                 cdr_bytes(reader, connection, rawdata))
+            backend = get_backend(config.backend)
+            image_count = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
+            if pictures is not None:
+                Path(pictures).mkdir(parents=True, exist_ok=True)
+            pipeline: Pipeline | None = None
+            calibration_used = None
+            for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
+                    _stereo_sets(reader, stereo, config)):
+                if progress is not None:
+                    progress(index, image_count)
+                header = left_msg.header
+                try:
+                    left_px = conversions.image_to_array(left_msg)
+                    right_px = conversions.image_to_array(right_msg)
+                    height, width = left_px.shape[:2]
+                    calibration = conversions.calibration_from_camera_info(
+                        left_cal, right_cal, width, height)
+                    if pipeline is None or calibration != calibration_used:
+                        pipeline = Pipeline(config, calibration, backend)
+                        calibration_used = calibration
+                    started = time.perf_counter()
+                    result = pipeline.run(left_px, right_px)
+                    labels = backend.to_host(result.labels)
+                    disparity = backend.to_host(result.disparity)
+                    summary.milliseconds.append((time.perf_counter() - started) * 1e3)
+                except PotholeError as exc:
+                    summary.failed += 1
+                    summary.errors.append(f"stamp {stamp}: {exc}")
+                    continue
+                summary.frames += 1
+                summary.potholes += len(result.potholes)
+                picture = overlay(left_px, labels, result.potholes)
+                messages = {
+                    "disparity": conversions.disparity_message(
+                        disparity, calibration, result.disparity_range, header),
+                    "disparity_transformed": conversions.array_to_image(
+                        backend.to_host(result.transformed), "32FC1", header),
+                    "pothole_labels": conversions.array_to_image(
+                        labels.astype(np.uint16), "mono16", header),
+                    "pothole_points": conversions.pointcloud_message(conversions.pothole_points(
+                        labels, disparity, result.road, calibration), header),
+                    "potholes": conversions.potholes_message(result.potholes, result.road,
+                                                             header),
+                    "pothole_markers": conversions.markers_message(
+                        labels, result.potholes, result.road, calibration, header),
+                    "overlay": conversions.array_to_image(picture, "rgb8", header),
+                }
+                for name, message in messages.items():
+                    writer.write(output[name], stamp, serialize_message(message))
+                if pictures is not None:
+                    write_rgb(Path(pictures) / f"overlay_{stamp}.png", picture)
+            if progress is not None:
+                progress(image_count, image_count)
+        finally:
+            writer.close()
+    finally:
+        reader.close()
+    return summary
+
+
+def topics_of(bag: str | Path) -> dict[str, str]:
+    """Topic name -> type of a bag."""
+    reader = open_bag(bag)
+    try:
+        return {c.topic: c.msgtype for c in reader.connections}
+    finally:
+        reader.close()
+
+
+def read_messages(bag: str | Path, topics: Iterable[str] | None = None
+                  ) -> Iterator[tuple[str, int, Any]]:
+    """(topic, bag time ns, rclpy message) of a bag, in time order."""
+    from rclpy.serialization import deserialize_message
+
+    reader = open_bag(bag)
+    try:
+        wanted = None if topics is None else set(topics)
+        connections = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        classes = {c.id: message_class(c.msgtype) for c in connections}
+        for connection, timestamp, rawdata in reader.messages(connections=connections):
+            yield connection.topic, timestamp, deserialize_message(
+                cdr_bytes(reader, connection, rawdata), classes[connection.id])
+    finally:
+        reader.close()
+
+
+
+def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]], namespace: str = "/stereo",
+                     frame_id: str = "stereo_left_optical_frame", storage: str = "mcap",
+                     ground_truth: bool = True) -> int:
+    """Write (stamp ns, StereoSample) frames as a stereo bag: ``left/image_rect``,
+    ``right/image_rect`` (mono8, or rgb8 for colour samples), both camera_info and, with
+    ``ground_truth``, ``ground_truth/pothole_labels`` (mono16) under ``namespace``. Returns
+    the number of frames written."""
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Header
+
+    from . import conversions
+
+    store = typestore()
+    writer = writer_for(out, storage)
+    writer.open()
+    topics = {"left": (f"{namespace}/left/image_rect", IMAGE_TYPE),
+              "right": (f"{namespace}/right/image_rect", IMAGE_TYPE),
+              "left_info": (f"{namespace}/left/camera_info", INFO_TYPE),
+              "right_info": (f"{namespace}/right/camera_info", INFO_TYPE)}
+    if ground_truth:
+        topics["truth"] = (f"{namespace}/ground_truth/pothole_labels", IMAGE_TYPE)
+    connections = {key: writer.add_connection(topic, msgtype, typestore=store)
+                   for key, (topic, msgtype) in topics.items()}
+    count = 0
+    try:
+        for stamp_ns, sample in frames:
+            sec, nanosec = divmod(int(stamp_ns), 10**9)
+            header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+            height, width = sample.left.shape[:2]
+            encoding = "mono8" if sample.left.ndim == 2 else "rgb8"
+            messages = {
+                "left": conversions.array_to_image(sample.left, encoding, header),
+                "right": conversions.array_to_image(sample.right, encoding, header),
+                "left_info": conversions.camera_info_message(sample.calibration, width, height,
+                                                             header),
+                "right_info": conversions.camera_info_message(sample.calibration, width,
+                                                              height, header, right=True),
+            }
+            if ground_truth:
+                messages["truth"] = conversions.array_to_image(
+                    sample.labels.astype(np.uint16), "mono16", header)
+            for key in ("left_info", "right_info", "left", "right", "truth"):
+                if key in messages:
+                    writer.write(connections[key], int(stamp_ns),
+                                 serialize_message(messages[key]))
+            count += 1
+    finally:
+        writer.close()
+    return count

@@ -1,0 +1,244 @@
+"""ROS messages <-> NumPy: images, camera info, disparity, point clouds, potholes, markers."""
+
+from __future__ import annotations
+
+import array
+import math
+from typing import Sequence
+
+import cv2
+import numpy as np
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import Point
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField, RegionOfInterest
+from std_msgs.msg import ColorRGBA, Header
+from stereo_msgs.msg import DisparityImage
+from visualization_msgs.msg import Marker, MarkerArray
+
+from pothole_detector_msgs.msg import Pothole as PotholeMsg
+from pothole_detector_msgs.msg import PotholeArray
+
+from .calibration import StereoCalibration
+from .errors import CalibrationError, InputError
+from .stages.measure import Pothole, depth_below_road
+from .stages.road_model import RoadModel
+
+IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
+    "mono8": (np.dtype(np.uint8), 1),
+    "mono16": (np.dtype(np.uint16), 1),
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "rgba8": (np.dtype(np.uint8), 4),
+    "bgra8": (np.dtype(np.uint8), 4),
+    "32FC1": (np.dtype(np.float32), 1),
+}
+INPUT_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8")
+SUBPIXEL_STEP_PX = 1.0 / 16.0
+POINT_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", PointField.FLOAT32),
+                ("depth_below_road", PointField.FLOAT32), ("label", PointField.UINT32))
+POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("depth_below_road", "<f4"),
+                        ("label", "<u4")])
+
+
+def _bytes(values: np.ndarray) -> array.array:
+    data = array.array("B")
+    data.frombytes(np.ascontiguousarray(values).tobytes())
+    return data
+
+
+def image_to_array(msg: Image, allowed: Sequence[str] = INPUT_ENCODINGS) -> np.ndarray:
+    """A host array of a sensor_msgs/Image: HxW (mono8/mono16/32FC1) or HxWx3 RGB (colour
+    encodings, alpha dropped), honouring ``step`` and ``is_bigendian``. Raises InputError when
+    the encoding is unknown or step, width, height and data disagree."""
+    if msg.encoding not in allowed:
+        raise InputError(f"image encoding {msg.encoding!r} is not supported; publish one of "
+                         f"{', '.join(allowed)}")
+    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * channels * dtype.itemsize
+    if height == 0 or width == 0:
+        raise InputError(f"image is empty ({width}x{height})")
+    if step < row_bytes:
+        raise InputError(f"image step {step} B is shorter than a {msg.encoding} row of {width} "
+                         f"px ({row_bytes} B); fix the publisher's step")
+    if len(msg.data) < step * (height - 1) + row_bytes:
+        raise InputError(f"image data holds {len(msg.data)} B but {width}x{height} "
+                         f"{msg.encoding} with step {step} needs {step * height} B")
+    raw = np.frombuffer(msg.data, dtype=np.uint8, count=min(len(msg.data), step * height))
+    if raw.size < step * height:
+        raw = np.concatenate([raw, np.zeros(step * height - raw.size, np.uint8)])
+    rows = raw.reshape(height, step)[:, :row_bytes]
+    order = ">" if msg.is_bigendian else "<"
+    pixels = np.ascontiguousarray(rows).view(dtype.newbyteorder(order))
+    pixels = pixels.astype(dtype, copy=False).reshape(height, width, channels)
+    if msg.encoding.startswith("bgr"):
+        pixels = pixels[..., 2::-1]
+    elif msg.encoding == "rgba8":
+        pixels = pixels[..., :3]
+    return np.ascontiguousarray(pixels[..., 0] if channels == 1 else pixels)
+
+
+def array_to_image(pixels: np.ndarray, encoding: str, header: Header) -> Image:
+    """A sensor_msgs/Image of a host array (HxW or HxWxC) in ``encoding`` (little endian,
+    tightly packed)."""
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    pixels = np.ascontiguousarray(pixels, dtype=dtype.newbyteorder("<"))
+    if pixels.ndim != (2 if channels == 1 else 3):
+        raise InputError(f"{encoding} needs {'HxW' if channels == 1 else 'HxWxC'} pixels")
+    height, width = pixels.shape[:2]
+    return Image(header=header, height=height, width=width, encoding=encoding,
+                 is_bigendian=0, step=width * channels * dtype.itemsize, data=_bytes(pixels))
+
+
+def calibration_from_camera_info(left: CameraInfo, right: CameraInfo, width: int,
+                                 height: int) -> StereoCalibration:
+    """The rectified stereo calibration of two sensor_msgs/CameraInfo of images ``width`` x
+    ``height`` px. Raises CalibrationError when they disagree with the images or each other."""
+    for side, info in (("left", left), ("right", right)):
+        if (int(info.width), int(info.height)) not in ((width, height), (0, 0)):
+            raise CalibrationError(
+                f"{side} camera_info is for {info.width}x{info.height} images but the images "
+                f"are {width}x{height}; publish the camera_info of the rectified images")
+    return StereoCalibration.from_projections(list(left.p), list(right.p))
+
+
+def disparity_message(disparity: np.ndarray, calibration: StereoCalibration,
+                      disparity_range: tuple[float, float], header: Header) -> DisparityImage:
+    """stereo_msgs/DisparityImage of a float32 HxW map (px, NaN invalid); invalid pixels get
+    ``min_disparity - 1`` (outside the valid range), valid_window bounds the valid pixels."""
+    low, high = disparity_range
+    valid = np.isfinite(disparity)
+    image = np.where(valid, disparity, np.float32(low - 1.0)).astype(np.float32)
+    window = RegionOfInterest()
+    rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+    if rows.size:
+        window = RegionOfInterest(x_offset=int(cols[0]), y_offset=int(rows[0]),
+                                  width=int(cols[-1] - cols[0] + 1),
+                                  height=int(rows[-1] - rows[0] + 1))
+    return DisparityImage(header=header, image=array_to_image(image, "32FC1", header),
+                          f=float(calibration.f), t=float(calibration.baseline),
+                          valid_window=window, min_disparity=float(low),
+                          max_disparity=float(high), delta_d=SUBPIXEL_STEP_PX)
+
+
+def disparity_from_message(msg: DisparityImage) -> np.ndarray:
+    """The float32 HxW map of a DisparityImage with NaN outside [min, max]_disparity."""
+    values = image_to_array(msg.image, allowed=("32FC1",)).astype(np.float32)
+    values[(values < msg.min_disparity) | (values > msg.max_disparity)] = np.nan
+    return values
+
+
+def pothole_points(labels: np.ndarray, disparity: np.ndarray, road: RoadModel,
+                   calibration: StereoCalibration) -> np.ndarray:
+    """Structured array (N,) of POINT_DTYPE: x, y, z (m, left optical frame), depth below the
+    road (m) and label of every pothole pixel with a valid disparity."""
+    v, u = np.nonzero(labels > 0)
+    d = disparity[v, u]
+    keep = np.isfinite(d) & (d > 0)
+    u, v, d = u[keep], v[keep], d[keep].astype(np.float64)
+    z = calibration.fb / d
+    points = np.empty(u.size, dtype=POINT_DTYPE)
+    points["x"] = (u - calibration.cx) * z / calibration.f
+    points["y"] = (v - calibration.cy) * z / calibration.f
+    points["z"] = z
+    with np.errstate(divide="ignore", invalid="ignore"):
+        points["depth_below_road"] = depth_below_road(np, u, v, d, road, calibration)[0]
+    points["label"] = labels[v, u]
+    return points
+
+
+def pointcloud_message(points: np.ndarray, header: Header) -> PointCloud2:
+    """sensor_msgs/PointCloud2 (unorganized, little endian) of a POINT_DTYPE array."""
+    fields = [PointField(name=name, offset=POINT_DTYPE.fields[name][1], datatype=kind, count=1)
+              for name, kind in POINT_FIELDS]
+    return PointCloud2(header=header, height=1, width=int(points.size), fields=fields,
+                       is_bigendian=False, point_step=POINT_DTYPE.itemsize,
+                       row_step=POINT_DTYPE.itemsize * int(points.size),
+                       data=_bytes(points.view(np.uint8)), is_dense=True)
+
+
+def pointcloud_to_array(msg: PointCloud2) -> np.ndarray:
+    """The POINT_DTYPE array of a PointCloud2 written by :func:`pointcloud_message`."""
+    names = [f.name for f in msg.fields]
+    if names != [name for name, _ in POINT_FIELDS] or msg.point_step != POINT_DTYPE.itemsize:
+        raise InputError(f"point cloud fields {names} are not pothole points")
+    return np.frombuffer(bytes(msg.data), dtype=POINT_DTYPE).copy()
+
+
+def potholes_message(potholes: Sequence[Pothole], road: RoadModel | None,
+                     header: Header) -> PotholeArray:
+    """pothole_detector_msgs/PotholeArray of measured potholes and the frame's road model."""
+    msg = PotholeArray(header=header)
+    if road is not None:
+        msg.a0, msg.a1 = float(road.a0), float(road.a1)
+        msg.roll_deg = math.degrees(road.roll_rad)
+        msg.inlier_fraction = float(road.inlier_fraction)
+    msg.potholes = [
+        PotholeMsg(label=p.label, pixels=p.pixels, area_m2=p.area_m2, max_depth_m=p.max_depth_m,
+                   mean_depth_m=p.mean_depth_m, volume_m3=p.volume_m3,
+                   centroid=Point(x=float(p.centroid_cam_m[0]), y=float(p.centroid_cam_m[1]),
+                                  z=float(p.centroid_cam_m[2])),
+                   bbox_px=np.asarray(p.bbox_px, dtype=np.uint32))
+        for p in potholes
+    ]
+    return msg
+
+
+def road_point(u: np.ndarray, v: np.ndarray, road: RoadModel,
+               calibration: StereoCalibration) -> np.ndarray:
+    """(N, 3) points (m, left optical frame) of the road surface seen at pixels ``u``, ``v``."""
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    z = calibration.fb / np.asarray(road.at(np, u, v), dtype=np.float64)
+    return np.stack([(u - calibration.cx) * z / calibration.f,
+                     (v - calibration.cy) * z / calibration.f, z], axis=-1)
+
+
+def markers_message(labels: np.ndarray, potholes: Sequence[Pothole], road: RoadModel | None,
+                    calibration: StereoCalibration, header: Header,
+                    max_outline_points: int = 64) -> MarkerArray:
+    """visualization_msgs/MarkerArray: DELETEALL first (old potholes vanish), then per pothole
+    its outline on the road surface (LINE_STRIP) and a text label with depth and area."""
+    markers = [Marker(header=header, action=Marker.DELETEALL)]
+    if road is None:
+        return MarkerArray(markers=markers)
+    lifetime = Duration(sec=0, nanosec=0)
+    for pothole in potholes:
+        mask = (labels == pothole.label).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        if not contours:
+            continue
+        outline = max(contours, key=cv2.contourArea)[:, 0, :]
+        stride = max(1, math.ceil(len(outline) / max_outline_points))
+        outline = np.concatenate([outline[::stride], outline[:1]])
+        corners = road_point(outline[:, 0], outline[:, 1], road, calibration)
+        line = Marker(header=header, ns="pothole_outline", id=pothole.label,
+                      type=Marker.LINE_STRIP, action=Marker.ADD, lifetime=lifetime,
+                      color=ColorRGBA(r=1.0, g=0.2, b=0.1, a=1.0),
+                      points=[Point(x=float(x), y=float(y), z=float(z)) for x, y, z in corners])
+        line.pose.orientation.w = 1.0
+        line.scale.x = 0.01
+        text = Marker(header=header, ns="pothole_label", id=pothole.label,
+                      type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, lifetime=lifetime,
+                      color=ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0),
+                      text=f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm "
+                           f"{pothole.area_m2 * 1e4:.0f} cm2")
+        centroid = pothole.centroid_cam_m
+        text.pose.position = Point(x=float(centroid[0]), y=float(centroid[1]),
+                                   z=float(centroid[2]))
+        text.pose.orientation.w = 1.0
+        text.scale.z = 0.04
+        markers += [line, text]
+    return MarkerArray(markers=markers)
+
+
+def camera_info_message(calibration: StereoCalibration, width: int, height: int,
+                        header: Header, right: bool = False) -> CameraInfo:
+    """sensor_msgs/CameraInfo of one rectified view; the right one carries
+    ``P[0,3] = -f * baseline``."""
+    f, cx, cy = calibration.f, calibration.cx, calibration.cy
+    tx = -f * calibration.baseline if right else 0.0
+    return CameraInfo(header=header, width=width, height=height, distortion_model="plumb_bob",
+                      d=[0.0] * 5, k=[f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
+                      r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                      p=[f, 0.0, cx, tx, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0])

@@ -1,0 +1,496 @@
+"""The ROS 2 node: synchronized stereo in; disparity, potholes, points, markers, overlay out."""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+from stereo_msgs.msg import DisparityImage
+from visualization_msgs.msg import MarkerArray
+
+from pothole_detector_msgs.msg import PotholeArray
+
+from . import conversions
+from .backend import Backend, get_backend
+from .calibration import StereoCalibration
+from .errors import ConfigError, PotholeError
+from .imageio import overlay
+from .params import NODE_NAME, PARAMETERS, Config, Param
+from .pipeline import Pipeline
+from .sync import StereoSynchronizer
+
+PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
+QOS_PARAMETERS = frozenset({"qos_reliability", "qos_depth"})
+SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
+                             "queue_size"})
+IMAGE_OUTPUTS = ("disparity", "disparity_transformed", "pothole_labels", "pothole_points",
+                 "pothole_markers", "overlay")
+INFO_HISTORY = 32
+LARGE_IMAGE_PROFILE = "fastdds_large_images.xml"
+
+
+def _stamp(header: Header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def descriptor(param: Param) -> ParameterDescriptor:
+    """The ROS parameter descriptor of one table row (type, range, description)."""
+    kinds = {bool: Parameter.Type.BOOL, int: Parameter.Type.INTEGER,
+             float: Parameter.Type.DOUBLE, str: Parameter.Type.STRING}
+    result = ParameterDescriptor(name=param.name, type=kinds[param.type].value,
+                                 description=param.description)
+    if param.choices:
+        result.additional_constraints = "one of " + ", ".join(param.choices)
+    if param.type is int and param.low is not None and param.high is not None:
+        result.integer_range = [IntegerRange(from_value=int(param.low),
+                                             to_value=int(param.high), step=0)]
+    elif param.type is float and param.low is not None and param.high is not None:
+        result.floating_point_range = [FloatingPointRange(from_value=float(param.low),
+                                                          to_value=float(param.high), step=0.0)]
+    return result
+
+
+@dataclass
+class StereoSet:
+    """One synchronized pair with its camera infos and the time it was complete."""
+
+    stamp_ns: int
+    left: Image
+    right: Image
+    left_info: CameraInfo | None
+    right_info: CameraInfo | None
+    received: float
+
+
+class Statistics:
+    """Counters and sliding windows behind /diagnostics (thread safe)."""
+
+    def __init__(self, window_seconds: float = 5.0) -> None:
+        self.lock = threading.Lock()
+        self.window = window_seconds
+        self.inputs: deque[float] = deque()
+        self.processed: deque[float] = deque()
+        self.latencies_ms: deque[tuple[float, float]] = deque()
+        self.dropped = 0
+        self.unpaired = 0
+        self.errors = 0
+        self.last_error = ""
+        self.last_error_time = 0.0
+        self.road_inlier_fraction = float("nan")
+        self.potholes = 0
+        self.frames = 0
+
+    def _trim(self, now: float) -> None:
+        for queue in (self.inputs, self.processed):
+            while queue and queue[0] < now - self.window:
+                queue.popleft()
+        while self.latencies_ms and self.latencies_ms[0][0] < now - self.window:
+            self.latencies_ms.popleft()
+
+    def input_set(self) -> None:
+        with self.lock:
+            self.inputs.append(time.monotonic())
+
+    def drop(self, count: int = 1) -> None:
+        with self.lock:
+            self.dropped += count
+
+    def unpaired_images(self, count: int) -> None:
+        with self.lock:
+            self.unpaired += count
+
+    def error(self, message: str) -> None:
+        with self.lock:
+            self.errors += 1
+            self.last_error = message
+            self.last_error_time = time.monotonic()
+
+    def done(self, latency_ms: float, inlier_fraction: float, potholes: int) -> None:
+        now = time.monotonic()
+        with self.lock:
+            self.processed.append(now)
+            self.latencies_ms.append((now, latency_ms))
+            self.road_inlier_fraction = inlier_fraction
+            self.potholes = potholes
+            self.frames += 1
+
+    def snapshot(self) -> dict[str, Any]:
+        now = time.monotonic()
+        with self.lock:
+            self._trim(now)
+            latencies = np.array([value for _, value in self.latencies_ms])
+            span = self.window
+            return {
+                "input_rate_hz": len(self.inputs) / span,
+                "processed_rate_hz": len(self.processed) / span,
+                "dropped_sets": self.dropped,
+                "unpaired_images": self.unpaired,
+                "latency_p50_ms": float(np.percentile(latencies, 50)) if latencies.size else 0.0,
+                "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else 0.0,
+                "road_inlier_fraction": self.road_inlier_fraction,
+                "potholes_last_frame": self.potholes,
+                "frames_processed": self.frames,
+                "input_errors": self.errors,
+                "last_error": self.last_error,
+                "seconds_since_error": now - self.last_error_time if self.errors else -1.0,
+            }
+
+
+class PotholeDetectorNode(Node):
+    """Subscribes ``left/image_rect``, ``right/image_rect``, ``left/camera_info``,
+    ``right/camera_info``; publishes ``disparity``, ``disparity_transformed``,
+    ``pothole_labels``, ``pothole_points``, ``potholes``, ``pothole_markers``, ``overlay`` and
+    ``/diagnostics``. Image outputs are computed only while subscribed; a worker thread takes
+    the newest synchronized set, older waiting sets are dropped and counted."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        for param in PARAMETERS:
+            self.declare_parameter(param.name, param.default, descriptor(param))
+        values = {p.name: self.get_parameter(p.name).value for p in PARAMETERS}
+        try:
+            self._config = Config(values)
+        except ConfigError as exc:
+            raise ConfigError(f"{exc}; fix the parameter file or --ros-args -p value") from None
+        self._lock = threading.Condition()
+        self._stats = Statistics()
+        self._log_times: dict[str, float] = {}
+        self._pending: StereoSet | None = None
+        self._waiting: StereoSet | None = None
+        self._infos: dict[str, deque[CameraInfo]] = {"left": deque(maxlen=INFO_HISTORY),
+                                                    "right": deque(maxlen=INFO_HISTORY)}
+        self._reset_requested = False
+        self._pipeline: Pipeline | None = None
+        self._pipeline_key: tuple[Any, ...] | None = None
+        self._backend: Backend | None = None
+        self._backend_choice = ""
+        self._stopping = False
+        self._synchronizer = self._make_synchronizer(self._config)
+        self._inputs: list[Any] = []
+        self._outputs: dict[str, Any] = {}
+        self._make_io(self._config)
+        self._diagnostics_timer = self.create_timer(self._config.diagnostics_period_seconds,
+                                                    self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self._worker = threading.Thread(target=self._work, name="pothole_worker", daemon=True)
+        self._worker.start()
+
+    # --- parameters -------------------------------------------------------------------------
+
+    def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        try:
+            self._config.replace(**{p.name: p.value for p in parameters})
+        except ConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        changed = {p.name for p in parameters}
+        with self._lock:
+            self._config = self._config.replace(**{p.name: p.value for p in parameters})
+            config = self._config
+            if changed & SYNC_PARAMETERS:
+                self._stats.unpaired_images(self._synchronizer.reset())
+                self._synchronizer = self._make_synchronizer(config)
+        if changed & QOS_PARAMETERS:
+            self._make_io(config)
+        if "diagnostics_period_seconds" in changed:
+            self._diagnostics_timer.cancel()
+            self.destroy_timer(self._diagnostics_timer)
+            self._diagnostics_timer = self.create_timer(config.diagnostics_period_seconds,
+                                                        self._publish_diagnostics)
+        self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
+
+    @staticmethod
+    def _make_synchronizer(config: Config) -> StereoSynchronizer[Image]:
+        return StereoSynchronizer(config.queue_size, config.approximate_sync,
+                                  int(round(config.approximate_sync_tolerance_seconds * 1e9)))
+
+    # --- topics -----------------------------------------------------------------------------
+
+    def _make_io(self, config: Config) -> None:
+        for subscription in self._inputs:
+            self.destroy_subscription(subscription)
+        for publisher in self._outputs.values():
+            self.destroy_publisher(publisher)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=config.qos_depth,
+            reliability=(ReliabilityPolicy.RELIABLE if config.qos_reliability == "reliable"
+                         else ReliabilityPolicy.BEST_EFFORT))
+        self._inputs = [
+            self.create_subscription(Image, "left/image_rect",
+                                     lambda m: self._on_image("left", m), qos),
+            self.create_subscription(Image, "right/image_rect",
+                                     lambda m: self._on_image("right", m), qos),
+            self.create_subscription(CameraInfo, "left/camera_info",
+                                     lambda m: self._on_info("left", m), qos),
+            self.create_subscription(CameraInfo, "right/camera_info",
+                                     lambda m: self._on_info("right", m), qos),
+        ]
+        self._outputs = {
+            "disparity": self.create_publisher(DisparityImage, "disparity", qos),
+            "disparity_transformed": self.create_publisher(Image, "disparity_transformed", qos),
+            "pothole_labels": self.create_publisher(Image, "pothole_labels", qos),
+            "pothole_points": self.create_publisher(PointCloud2, "pothole_points", qos),
+            "potholes": self.create_publisher(PotholeArray, "potholes", qos),
+            "pothole_markers": self.create_publisher(MarkerArray, "pothole_markers", qos),
+            "overlay": self.create_publisher(Image, "overlay", qos),
+            "diagnostics": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
+        }
+
+    def _on_info(self, side: str, msg: CameraInfo) -> None:
+        with self._lock:
+            self._infos[side].append(msg)
+            waiting = self._waiting
+            if waiting is None or not self._infos_reached(waiting.stamp_ns):
+                return
+            self._waiting = None
+        self._complete(waiting.stamp_ns, waiting.left, waiting.right, waiting.received)
+
+    def _tolerance_ns(self) -> int:
+        config = self._config
+        return int(config.approximate_sync_tolerance_seconds * 1e9) \
+            if config.approximate_sync else 0
+
+    def _infos_reached(self, stamp_ns: int) -> bool:
+        """Both camera_info streams have reached ``stamp_ns`` (ns, less the sync tolerance)."""
+        return all(history and _stamp(history[-1].header) >= stamp_ns - self._tolerance_ns()
+                   for history in self._infos.values())
+
+    def _on_image(self, side: str, msg: Image) -> None:
+        stamp_ns = _stamp(msg.header)
+        with self._lock:
+            outcome = self._synchronizer.add(side, stamp_ns, msg)
+            if outcome.backwards:
+                self._reset_requested = True
+            stalled = not outcome.pairs and min(
+                self._synchronizer.waiting(s) for s in ("left", "right")) >= 2
+        if stalled:
+            mode = ("differ by more than approximate_sync_tolerance_seconds"
+                    if self._config.approximate_sync else
+                    "never match exactly; set approximate_sync:=true unless the cameras are "
+                    "hardware-triggered")
+            self._problem("sync", f"left and right images arrive but their stamps {mode}")
+        if outcome.dropped:
+            self._stats.unpaired_images(outcome.dropped)
+        if outcome.backwards:
+            self._problem("stamps", outcome.backwards)
+        now = time.monotonic()
+        for pair_stamp, left, right in outcome.pairs:
+            self._stats.input_set()
+            self._complete(pair_stamp, left, right, now)
+
+    def _complete(self, stamp_ns: int, left: Image, right: Image, received: float) -> None:
+        """Pair a synchronized set with camera infos: those of its own stamp, else the newest
+        once both info streams have passed its stamp. A set whose infos may still be in
+        flight waits (one slot); the next set releases it with the newest infos."""
+        ready: list[StereoSet] = []
+        with self._lock:
+            missing = [side for side, history in self._infos.items() if not history]
+            held = self._waiting
+            self._waiting = None
+            if held is not None and not missing:
+                ready.append(self._with_infos(held))
+            elif held is not None:
+                self._stats.drop()
+            current = StereoSet(stamp_ns, left, right, None, None, received)
+            exact = all(self._exact_info(side, stamp_ns) for side in ("left", "right"))
+            if not missing and (exact or self._infos_reached(stamp_ns)):
+                ready.append(self._with_infos(current))
+            else:
+                self._waiting = current
+            for job in ready:
+                if self._pending is not None:
+                    self._stats.drop()
+                self._pending = job
+            if ready:
+                self._lock.notify()
+        if missing:
+            topics = " and ".join(f"{side}/camera_info" for side in missing)
+            self._problem("camera_info", f"no camera_info received on {topics} yet; holding "
+                                         "the newest stereo pair until it arrives")
+
+    def _exact_info(self, side: str, stamp_ns: int) -> CameraInfo | None:
+        """The camera_info of ``side`` stamped ``stamp_ns`` (within the sync tolerance)."""
+        tolerance = self._tolerance_ns()
+        for info in reversed(self._infos[side]):
+            if abs(_stamp(info.header) - stamp_ns) <= tolerance:
+                return info
+        return None
+
+    def _with_infos(self, job: StereoSet) -> StereoSet:
+        infos = [self._exact_info(side, job.stamp_ns) or self._infos[side][-1]
+                 for side in ("left", "right")]
+        return StereoSet(job.stamp_ns, job.left, job.right, infos[0], infos[1], job.received)
+
+    # --- processing -------------------------------------------------------------------------
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                while self._pending is None and not self._stopping:
+                    self._lock.wait()
+                if self._stopping:
+                    return
+                job, self._pending = self._pending, None
+                config = self._config
+                reset, self._reset_requested = self._reset_requested, False
+            try:
+                self._process(job, config, reset)
+            except PotholeError as exc:
+                self._problem(type(exc).__name__, str(exc))
+            except Exception as exc:  # noqa: BLE001 - the node must survive any frame
+                self._problem("internal", f"frame failed with {type(exc).__name__}: {exc}")
+
+    def _pipeline_for(self, config: Config, calibration: StereoCalibration) -> Pipeline:
+        key = (tuple(sorted((k, v) for k, v in config.as_dict().items()
+                            if k in PIPELINE_PARAMETERS or k == "backend")), calibration)
+        if self._pipeline is None or key != self._pipeline_key:
+            if self._backend is None or self._backend_choice != config.backend:
+                self._backend = get_backend(config.backend)
+                self._backend_choice = config.backend
+                self.get_logger().info(f"backend: {self._backend.name}")
+            self._pipeline = Pipeline(config, calibration, self._backend)
+            self._pipeline_key = key
+        return self._pipeline
+
+    def _process(self, job: StereoSet, config: Config, reset: bool) -> None:
+        left = conversions.image_to_array(job.left)
+        right = conversions.image_to_array(job.right)
+        height, width = left.shape[:2]
+        calibration = conversions.calibration_from_camera_info(job.left_info, job.right_info,
+                                                               width, height)
+        pipeline = self._pipeline_for(config, calibration)
+        if reset:
+            pipeline.reset()
+        result = pipeline.run(left, right)
+        backend = pipeline.backend
+        header = job.left.header
+        publishers = self._outputs
+        wanted = {name: publishers[name].get_subscription_count() > 0 for name in IMAGE_OUTPUTS}
+        labels = None
+        if any(wanted[n] for n in ("pothole_labels", "pothole_points", "pothole_markers",
+                                   "overlay")):
+            labels = backend.to_host(result.labels)
+        disparity = None
+        if wanted["disparity"] or wanted["pothole_points"]:
+            disparity = backend.to_host(result.disparity)
+        publishers["potholes"].publish(
+            conversions.potholes_message(result.potholes, result.road, header))
+        if wanted["disparity"]:
+            publishers["disparity"].publish(conversions.disparity_message(
+                disparity, calibration, result.disparity_range, header))
+        if wanted["disparity_transformed"]:
+            publishers["disparity_transformed"].publish(conversions.array_to_image(
+                backend.to_host(result.transformed), "32FC1", header))
+        if wanted["pothole_labels"]:
+            publishers["pothole_labels"].publish(conversions.array_to_image(
+                labels.astype(np.uint16), "mono16", header))
+        if wanted["pothole_points"]:
+            points = conversions.pothole_points(labels, disparity, result.road, calibration)
+            publishers["pothole_points"].publish(conversions.pointcloud_message(points, header))
+        if wanted["pothole_markers"]:
+            publishers["pothole_markers"].publish(conversions.markers_message(
+                labels, result.potholes, result.road, calibration, header))
+        if wanted["overlay"]:
+            publishers["overlay"].publish(conversions.array_to_image(
+                overlay(left, labels, result.potholes), "rgb8", header))
+        self._stats.done((time.monotonic() - job.received) * 1e3,
+                         result.road.inlier_fraction, len(result.potholes))
+
+    # --- reporting --------------------------------------------------------------------------
+
+    def _problem(self, kind: str, message: str) -> None:
+        self._stats.error(message)
+        now = time.monotonic()
+        if now - self._log_times.get(kind, -1e18) >= self._config.log_throttle_seconds:
+            self._log_times[kind] = now
+            self.get_logger().warning(message)
+
+    def _publish_diagnostics(self) -> None:
+        snapshot = self._stats.snapshot()
+        recent_error = 0 <= snapshot["seconds_since_error"] < 2 * self._stats.window
+        status = DiagnosticStatus(
+            name=f"{self.get_name()}: pipeline", hardware_id="stereo_camera",
+            level=DiagnosticStatus.WARN if recent_error else DiagnosticStatus.OK,
+            message=snapshot["last_error"] if recent_error else "ok",
+            values=[KeyValue(key="backend",
+                             value=self._backend.name if self._backend else "not started")]
+            + [KeyValue(key=key, value=f"{value:.3f}" if isinstance(value, float) else str(value))
+               for key, value in snapshot.items()],
+        )
+        self._outputs["diagnostics"].publish(
+            DiagnosticArray(header=self._header_now(), status=[status]))
+
+    def _header_now(self) -> Header:
+        return Header(stamp=self.get_clock().now().to_msg())
+
+    def destroy_node(self) -> None:
+        with self._lock:
+            self._stopping = True
+            self._lock.notify_all()
+        self._worker.join(timeout=5.0)
+        super().destroy_node()
+
+
+def large_image_transport() -> None:
+    """Point Fast DDS at config/fastdds_large_images.xml (32 MiB shared memory, 4 MiB socket
+    buffers) unless the user chose a profile; call before rclpy.init. Without it, camera
+    images between processes on this host arrive in bursts seconds late."""
+    if os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") or \
+            os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
+        return
+    profile = Path(__file__).resolve().parents[1] / "config" / LARGE_IMAGE_PROFILE
+    if not profile.is_file():
+        try:
+            from ament_index_python.packages import get_package_share_directory
+            profile = Path(get_package_share_directory(NODE_NAME)) / "config" / \
+                LARGE_IMAGE_PROFILE
+        except (ImportError, LookupError, OSError):
+            return
+    if profile.is_file():
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(profile)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``pothole_detector_node``: spin the node until Ctrl-C."""
+    large_image_transport()
+    rclpy.init(args=list(sys.argv if argv is None else argv))
+    try:
+        node = PotholeDetectorNode()
+    except PotholeError as exc:
+        print(f"pothole_detector_node: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

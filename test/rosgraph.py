@@ -1,0 +1,173 @@
+"""Helpers for tests that run the node as its own process and talk to it over DDS."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_msgs.msg import Header
+from stereo_msgs.msg import DisparityImage
+from visualization_msgs.msg import MarkerArray
+
+from pothole_detector import bagtools
+from pothole_detector_msgs.msg import PotholeArray
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE_DRIVE = REPO / "bags" / "sample_drive"
+OUTPUTS = {"disparity": DisparityImage, "disparity_transformed": Image, "pothole_labels": Image,
+           "pothole_points": PointCloud2, "potholes": PotholeArray,
+           "pothole_markers": MarkerArray, "overlay": Image}
+
+
+def isolate_ros_graph() -> None:
+    """Give this test run a DDS domain of its own on the loopback interface."""
+    os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+
+def stamp_ns(header: Header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def header_at(nanoseconds: int, frame_id: str = "stereo_left_optical_frame") -> Header:
+    sec, nanosec = divmod(nanoseconds, 1_000_000_000)
+    return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def sample_frames(count: int) -> list[dict[str, Any]]:
+    """The first ``count`` frames of the sample drive bag as rclpy messages by role."""
+    roles = {"/stereo/left/image_rect": "left", "/stereo/right/image_rect": "right",
+             "/stereo/left/camera_info": "left_info", "/stereo/right/camera_info": "right_info",
+             "/stereo/ground_truth/pothole_labels": "truth"}
+    frames: dict[int, dict[str, Any]] = defaultdict(dict)
+    for topic, stamp, msg in bagtools.read_messages(SAMPLE_DRIVE, roles):
+        frames[stamp][roles[topic]] = msg
+        if len(frames) > count:
+            break
+    return [frames[s] for s in sorted(frames)[:count]]
+
+
+class NodeProcess:
+    """``python -m pothole_detector.node`` in namespace ``namespace`` with ``params``."""
+
+    def __init__(self, log: Path, namespace: str = "/stereo", **params: Any) -> None:
+        args = [sys.executable, "-m", "pothole_detector.node", "--ros-args",
+                "-r", f"__ns:={namespace}",
+                "--params-file", str(REPO / "config" / "pothole_detector.yaml")]
+        for name, value in params.items():
+            text = str(value).lower() if isinstance(value, bool) else str(value)
+            args += ["-p", f"{name}:={text}"]
+        self.log = log
+        self.namespace = namespace
+        self._file = open(log, "w")
+        self.process = subprocess.Popen(args, stdout=self._file, stderr=subprocess.STDOUT)
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def text(self) -> str:
+        return self.log.read_text()
+
+    def stop(self) -> int:
+        if self.alive():
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._file.close()
+        return self.process.returncode
+
+
+class Probe:
+    """A test-side node: publishes stereo input and collects every output of the node."""
+
+    def __init__(self, namespace: str = "/stereo", reliability: str = "reliable",
+                 outputs: tuple[str, ...] = tuple(OUTPUTS)) -> None:
+        self.namespace = namespace
+        self.node = rclpy.create_node(f"probe_{uuid.uuid4().hex[:8]}")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE
+                         if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
+        self.received: dict[str, list[Any]] = defaultdict(list)
+        self._subs = [
+            self.node.create_subscription(OUTPUTS[name], f"{namespace}/{name}",
+                                          lambda m, n=name: self.received[n].append(m), qos)
+            for name in outputs
+        ]
+        self._subs.append(self.node.create_subscription(
+            DiagnosticArray, "/diagnostics", lambda m: self.received["diagnostics"].append(m),
+            10))
+        self.inputs = {
+            "left": self.node.create_publisher(Image, f"{namespace}/left/image_rect", qos),
+            "right": self.node.create_publisher(Image, f"{namespace}/right/image_rect", qos),
+            "left_info": self.node.create_publisher(CameraInfo, f"{namespace}/left/camera_info",
+                                                    qos),
+            "right_info": self.node.create_publisher(CameraInfo,
+                                                     f"{namespace}/right/camera_info", qos),
+        }
+
+    def spin(self, seconds: float, until: Callable[[], bool] | None = None) -> bool:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.05)
+            if until is not None and until():
+                return True
+        return until is None
+
+    def wait_connected(self, timeout: float = 15.0) -> None:
+        outputs = [f"{self.namespace}/potholes", "/diagnostics"]
+
+        def connected() -> bool:
+            return all(p.get_subscription_count() for p in self.inputs.values()) and all(
+                self.node.count_publishers(t) for t in outputs)
+
+        assert self.spin(timeout, connected), "the node did not appear in the ROS graph"
+        self.spin(0.5)
+
+    def publish(self, frame: dict[str, Any], stamp: int, infos: bool = True,
+                right_stamp: int | None = None, **replace: Any) -> None:
+        messages = {**frame, **replace}
+        for role in (("left_info", "right_info") if infos else ()) + ("left", "right"):
+            msg = messages[role]
+            msg.header = header_at(right_stamp if role.startswith("right") and right_stamp
+                                   is not None else stamp)
+            self.inputs[role].publish(msg)
+
+    def stamps(self, output: str = "potholes") -> list[int]:
+        return [stamp_ns(m.markers[0].header if output == "pothole_markers" else m.header)
+                for m in self.received[output]]
+
+    def diagnostics(self) -> dict[str, str]:
+        """Key values and message of the newest diagnostics status."""
+        if not self.received["diagnostics"]:
+            return {}
+        status = self.received["diagnostics"][-1].status[0]
+        return {"message": status.message, "level": int.from_bytes(status.level, "little")
+                if isinstance(status.level, bytes) else int(status.level),
+                **{kv.key: kv.value for kv in status.values}}
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+def labels_of(msg: Image) -> np.ndarray:
+    from pothole_detector.conversions import image_to_array
+    return image_to_array(msg, allowed=("mono16",))

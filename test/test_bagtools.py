@@ -1,0 +1,154 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("pothole_detector_msgs.msg")
+pytest.importorskip("rosbags")
+
+from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from pothole_detector import bagtools, conversions  # noqa: E402
+from pothole_detector.errors import InputError  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.pipeline import Pipeline  # noqa: E402
+from pothole_detector.synthetic import drive_scenes, render  # noqa: E402
+
+from conftest import REPO  # noqa: E402
+
+START = 1_700_000_000_000_000_000
+STEREO = ["/cam/left/image_rect", "/cam/right/image_rect", "/cam/left/camera_info",
+          "/cam/right/camera_info"]
+
+
+@pytest.fixture(scope="module")
+def drive_frames():
+    """Three frames of the driving sequence at 640x360."""
+    return [(START + i * 100_000_000, render(scene))
+            for i, scene in enumerate(drive_scenes(frames=3))]
+
+
+@pytest.fixture(scope="module")
+def drive_bag(tmp_path_factory, drive_frames):
+    path = tmp_path_factory.mktemp("bags") / "drive"
+    assert bagtools.write_stereo_bag(path, drive_frames, namespace="/cam") == 3
+    return path
+
+
+def test_typestore_knows_our_messages():
+    store = bagtools.typestore()
+    names = [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/PotholeArray"][1]]
+    assert names == ["header", "a0", "a1", "roll_deg", "inlier_fraction", "potholes"]
+    assert "bbox_px" in [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/Pothole"][1]]
+
+
+def test_find_stereo_topics():
+    types = dict(zip(STEREO, [bagtools.IMAGE_TYPE] * 2 + [bagtools.INFO_TYPE] * 2))
+    found = bagtools.find_stereo_topics(types)
+    assert (found.left, found.right_info, found.namespace) == (STEREO[0], STEREO[3], "/cam")
+    types["/other/left/image_rect"] = bagtools.IMAGE_TYPE
+    with pytest.raises(InputError, match="--left-image-topic"):
+        bagtools.find_stereo_topics(types)
+    assert bagtools.find_stereo_topics(types, left=STEREO[0]).left == STEREO[0]
+    with pytest.raises(InputError, match="no sensor_msgs/msg/Image topic /nope"):
+        bagtools.find_stereo_topics(types, left="/nope")
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, drive_frames,
+                                                           storage):
+    out = tmp_path / "processed"
+    summary = bagtools.process(drive_bag, out, Config({"backend": "cpu"}), storage=storage,
+                               pictures=tmp_path / "pictures")
+    assert (summary.frames, summary.failed) == (3, 0)
+    assert len(list((tmp_path / "pictures").glob("overlay_*.png"))) == 3
+    topics = bagtools.topics_of(out)
+    for name, msgtype in bagtools.OUTPUT_TYPES.items():
+        assert topics[f"/cam/{name}"] == msgtype
+    assert STEREO[0] in topics
+    pipeline = Pipeline(Config(), drive_frames[0][1].calibration)
+    expected = {stamp: pipeline.run(s.left, s.right) for stamp, s in drive_frames}
+    seen = set()
+    for topic, stamp, msg in bagtools.read_messages(out, ["/cam/disparity", "/cam/potholes"]):
+        assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
+        assert msg.header.frame_id == "stereo_left_optical_frame"
+        if topic == "/cam/disparity":
+            np.testing.assert_array_equal(conversions.disparity_from_message(msg),
+                                          expected[stamp].disparity)
+        else:
+            assert len(msg.potholes) == len(expected[stamp].potholes) > 0
+        seen.add((topic, stamp))
+    assert len(seen) == 6
+
+
+def test_mcap_carries_message_definitions_for_foxglove(tmp_path, drive_bag):
+    out = tmp_path / "processed"
+    bagtools.process(drive_bag, out, Config({"backend": "cpu"}), keep_inputs=False)
+    with AnyReader([out]) as reader:  # no default typestore: definitions come from the file
+        connection = next(c for c in reader.connections if c.topic == "/cam/potholes")
+        assert "Pothole[] potholes" in connection.msgdef.data
+        _, _, raw = next(iter(reader.messages(connections=[connection])))
+        msg = reader.deserialize(raw, connection.msgtype)
+        assert msg.header.frame_id == "stereo_left_optical_frame"
+
+
+def test_process_reads_a_ros1_bag(tmp_path, drive_bag):
+    noetic = get_typestore(Stores.ROS1_NOETIC)
+    path = tmp_path / "drive.bag"
+    with AnyReader([drive_bag], default_typestore=bagtools.typestore()) as source, \
+            Writer1(path) as writer:
+        connections = {}
+        for connection, stamp, raw in source.messages():
+            if connection.topic not in STEREO:
+                continue
+            msg = source.deserialize(raw, connection.msgtype)
+            fields = {k: getattr(msg, k) for k in msg.__dataclass_fields__}
+            header = noetic.types["std_msgs/msg/Header"](
+                seq=0, stamp=noetic.types["builtin_interfaces/msg/Time"](
+                    sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec),
+                frame_id=msg.header.frame_id)
+            fields["header"] = header
+            if connection.msgtype == bagtools.INFO_TYPE:
+                fields = {(k.upper() if k in "dkrp" else k): v for k, v in fields.items()}
+                fields["roi"] = noetic.types["sensor_msgs/msg/RegionOfInterest"](
+                    **{k: getattr(msg.roi, k) for k in msg.roi.__dataclass_fields__})
+            ros1 = noetic.types[connection.msgtype](**fields)
+            if connection.topic not in connections:
+                connections[connection.topic] = writer.add_connection(
+                    connection.topic, connection.msgtype, typestore=noetic)
+            writer.write(connections[connection.topic], stamp,
+                         noetic.serialize_ros1(ros1, connection.msgtype))
+    summary = bagtools.process(path, tmp_path / "out", Config({"backend": "cpu"}))
+    assert (summary.frames, summary.failed) == (3, 0)
+    assert summary.potholes > 0
+
+
+def test_process_refuses_existing_output_and_missing_bag(tmp_path, drive_bag):
+    with pytest.raises(InputError, match="exists already"):
+        bagtools.process(drive_bag, drive_bag, Config())
+    with pytest.raises(InputError, match="does not exist"):
+        bagtools.process(tmp_path / "nope", tmp_path / "out", Config())
+
+
+def test_committed_sample_bag_is_the_generators_output():
+    bag = REPO / "bags" / "sample_drive"
+    topics = bagtools.topics_of(bag)
+    assert topics["/stereo/left/image_rect"] == bagtools.IMAGE_TYPE
+    assert topics["/stereo/ground_truth/pothole_labels"] == bagtools.IMAGE_TYPE
+    first = {}
+    for topic, stamp, msg in bagtools.read_messages(bag):
+        first.setdefault(topic, (stamp, msg))
+    sample = render(drive_scenes(frames=1)[0])
+    assert first["/stereo/left/image_rect"][0] == START
+    np.testing.assert_array_equal(
+        conversions.image_to_array(first["/stereo/left/image_rect"][1]), sample.left)
+    np.testing.assert_array_equal(
+        conversions.image_to_array(first["/stereo/ground_truth/pothole_labels"][1]),
+        sample.labels)
+    counts = {}
+    for topic, _, _ in bagtools.read_messages(bag, ["/stereo/right/image_rect"]):
+        counts[topic] = counts.get(topic, 0) + 1
+    assert counts == {"/stereo/right/image_rect": 16}

@@ -1,0 +1,119 @@
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("pothole_detector_msgs.msg")
+
+from sensor_msgs.msg import Image  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
+
+from pothole_detector import conversions  # noqa: E402
+from pothole_detector.calibration import StereoCalibration  # noqa: E402
+from pothole_detector.errors import CalibrationError, InputError  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.pipeline import Pipeline  # noqa: E402
+
+HEADER = Header(frame_id="cam")
+RNG = np.random.default_rng(3)
+
+
+@pytest.mark.parametrize("encoding", ["mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8"])
+def test_image_round_trip_with_padded_step(encoding):
+    dtype, channels = conversions.IMAGE_ENCODINGS[encoding]
+    shape = (5, 7) if channels == 1 else (5, 7, channels)
+    pixels = RNG.integers(0, np.iinfo(dtype).max, size=shape).astype(dtype)
+    msg = conversions.array_to_image(pixels, encoding, HEADER)
+    row = 7 * channels * dtype.itemsize
+    padded = np.zeros((5, row + 6), np.uint8)
+    padded[:, :row] = np.frombuffer(bytes(msg.data), np.uint8).reshape(5, row)
+    msg.step, msg.data = row + 6, padded.tobytes()
+    out = conversions.image_to_array(msg)
+    expected = pixels
+    if encoding.startswith("bgr"):
+        expected = pixels[..., 2::-1]
+    elif encoding == "rgba8":
+        expected = pixels[..., :3]
+    np.testing.assert_array_equal(out, expected)
+
+
+def test_big_endian_mono16():
+    pixels = np.array([[1, 258], [65535, 4096]], dtype=">u2")
+    msg = Image(height=2, width=2, encoding="mono16", is_bigendian=1, step=4,
+                data=pixels.tobytes())
+    np.testing.assert_array_equal(conversions.image_to_array(msg), pixels.astype(np.uint16))
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"encoding": "yuv422"}, "not supported"),
+    ({"step": 6}, "step"),
+    ({"data": bytes(10)}, "needs"),
+    ({"width": 0}, "empty"),
+])
+def test_bad_images_say_what_is_wrong(change, words):
+    msg = conversions.array_to_image(np.zeros((4, 8), np.uint8), "mono8", HEADER)
+    for key, value in change.items():
+        setattr(msg, key, value)
+    with pytest.raises(InputError, match=words):
+        conversions.image_to_array(msg)
+
+
+def test_camera_info_round_trip_and_errors():
+    cal = StereoCalibration(700.0, 0.12, 320.5, 180.25)
+    left = conversions.camera_info_message(cal, 640, 360, HEADER)
+    right = conversions.camera_info_message(cal, 640, 360, HEADER, right=True)
+    assert conversions.calibration_from_camera_info(left, right, 640, 360) == cal
+    with pytest.raises(CalibrationError, match="640x360"):
+        conversions.calibration_from_camera_info(left, right, 320, 180)
+    flat = conversions.camera_info_message(cal, 640, 360, HEADER)
+    with pytest.raises(CalibrationError, match="Tx"):
+        conversions.calibration_from_camera_info(left, flat, 640, 360)
+    broken = conversions.camera_info_message(cal, 640, 360, HEADER, right=True)
+    broken.p[0] = math.nan
+    with pytest.raises(CalibrationError, match="NaN"):
+        conversions.calibration_from_camera_info(left, broken, 640, 360)
+
+
+def test_disparity_message_marks_invalid_outside_range():
+    disparity = np.full((6, 8), 20.5, np.float32)
+    disparity[:, :2] = np.nan
+    disparity[5, 7] = np.nan
+    cal = StereoCalibration(700.0, 0.12, 4.0, 3.0)
+    msg = conversions.disparity_message(disparity, cal, (10.0, 90.0), HEADER)
+    assert (msg.min_disparity, msg.max_disparity, msg.f, msg.t) == (10.0, 90.0, 700.0, 0.12)
+    assert msg.delta_d == pytest.approx(1 / 16)
+    window = msg.valid_window
+    assert (window.x_offset, window.y_offset, window.width, window.height) == (2, 0, 6, 6)
+    np.testing.assert_array_equal(conversions.disparity_from_message(msg), disparity)
+
+
+def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
+    result = Pipeline(Config(), demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    assert result.potholes
+    points = conversions.pothole_points(result.labels, result.disparity, result.road,
+                                        demo_sample.calibration)
+    cloud = conversions.pointcloud_to_array(conversions.pointcloud_message(points, HEADER))
+    np.testing.assert_array_equal(cloud, points)
+    assert set(np.unique(cloud["label"])) == {p.label for p in result.potholes}
+    for pothole in result.potholes:
+        own = cloud[cloud["label"] == pothole.label]
+        assert np.nanmax(own["depth_below_road"]) == pytest.approx(pothole.max_depth_m, abs=1e-3)
+        assert own["z"].mean() == pytest.approx(pothole.centroid_cam_m[2], rel=0.05)
+    markers = conversions.markers_message(result.labels, result.potholes, result.road,
+                                          demo_sample.calibration, HEADER).markers
+    assert markers[0].action == Marker.DELETEALL
+    assert len(markers) == 1 + 2 * len(result.potholes)
+    outline = markers[1]
+    assert outline.type == Marker.LINE_STRIP and outline.points[0] == outline.points[-1]
+    road = demo_sample.calibration.fb / result.road.at(np, np.array([0.0]), np.array([0.0]))
+    assert all(0.2 < p.z < 3 * road[0] for p in outline.points)
+    array = conversions.potholes_message(result.potholes, result.road, HEADER)
+    assert array.header.frame_id == "cam"
+    assert [p.label for p in array.potholes] == [p.label for p in result.potholes]
+    assert array.potholes[0].area_m2 == pytest.approx(result.potholes[0].area_m2)
+    assert list(array.potholes[0].bbox_px) == list(result.potholes[0].bbox_px)
+    assert array.roll_deg == pytest.approx(math.degrees(result.road.roll_rad))

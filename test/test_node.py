@@ -1,0 +1,272 @@
+"""The node as its own process, driven over DDS: bag play, parameters, QoS, sync, bad input."""
+
+from __future__ import annotations
+
+import copy
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+pytest.importorskip("pothole_detector_msgs.msg")
+
+import rclpy  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from visualization_msgs.msg import Marker  # noqa: E402
+
+from pothole_detector import conversions  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.pipeline import Pipeline  # noqa: E402
+from rosgraph import (SAMPLE_DRIVE, NodeProcess, Probe, isolate_ros_graph,  # noqa: E402
+                      labels_of, sample_frames, stamp_ns)
+
+T0 = 1_800_000_000_000_000_000
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ros():
+    isolate_ros_graph()
+    rclpy.init()
+    yield
+    rclpy.shutdown()
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return sample_frames(3)
+
+
+@pytest.fixture
+def node_factory(tmp_path):
+    started = []
+
+    def start(**params):
+        node = NodeProcess(tmp_path / f"node{len(started)}.log", **params)
+        started.append(node)
+        return node
+
+    yield start
+    for node in started:
+        assert node.alive(), f"the node died:\n{node.text()}"
+        assert node.stop() == 0, node.text()
+
+
+@pytest.fixture
+def probe():
+    made = []
+
+    def make(**kwargs):
+        made.append(Probe(**kwargs))
+        return made[-1]
+
+    yield make
+    for p in made:
+        p.close()
+
+
+def offline_results(frames):
+    left = conversions.image_to_array(frames[0]["left"])
+    calibration = conversions.calibration_from_camera_info(
+        frames[0]["left_info"], frames[0]["right_info"], left.shape[1], left.shape[0])
+    pipeline = Pipeline(Config({"backend": "cpu"}), calibration)
+    return [pipeline.run(conversions.image_to_array(f["left"]),
+                         conversions.image_to_array(f["right"])) for f in frames]
+
+
+def test_play_sample_bag_every_output(node_factory, probe):
+    node = node_factory(backend="cpu")
+    p = probe()
+    p.wait_connected()
+    p.node.create_subscription(type(sample_frames(1)[0]["truth"]),
+                               "/stereo/ground_truth/pothole_labels",
+                               lambda m: p.received["truth"].append(m), 50)
+    play = subprocess.Popen(
+        [sys.executable, "-m", "pothole_detector.cli", "play", str(SAMPLE_DRIVE), "--rate",
+         "0.2", "--wait-for-subscribers", "10"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    assert p.spin(60, lambda: play.poll() is not None)
+    out, err = play.communicate()
+    assert play.returncode == 0, err
+    assert "published 80 messages" in out
+    p.spin(30, lambda: p.diagnostics().get("frames_processed") == "16")
+    p.spin(1.5)
+    diagnostics = p.diagnostics()
+    processed = int(diagnostics["frames_processed"])
+    assert (processed, diagnostics["dropped_sets"]) == (16, "0"), diagnostics
+    by_stamp = {stamp_ns(f["left"].header): f for f in sample_frames(16)}
+    stamps = p.stamps()
+    assert len(stamps) == processed and stamps == sorted(stamps)
+    assert set(stamps) <= set(by_stamp)
+    for output in ("disparity", "disparity_transformed", "pothole_labels",
+                   "pothole_points", "pothole_markers", "overlay"):
+        assert p.stamps(output) == stamps, output
+    for msg in p.received["potholes"] + p.received["disparity"] + p.received["overlay"]:
+        assert msg.header.frame_id == "stereo_left_optical_frame"
+
+    expected = offline_results([by_stamp[s] for s in stamps])  # same sequence, same seeds
+    for msg, result in zip(p.received["disparity"], expected):
+        np.testing.assert_array_equal(conversions.disparity_from_message(msg), result.disparity)
+        assert msg.min_disparity <= np.nanmin(result.disparity)
+        assert msg.max_disparity >= np.nanmax(result.disparity)
+    for msg, result in zip(p.received["disparity_transformed"], expected):
+        np.testing.assert_array_equal(conversions.image_to_array(msg, ("32FC1",)),
+                                      result.transformed)
+    for msg, result in zip(p.received["potholes"], expected):
+        assert [q.area_m2 for q in msg.potholes] == [q.area_m2 for q in result.potholes]
+
+    hits = detected = truth_pixels = 0
+    truths = {stamp_ns(m.header): labels_of(m) for m in p.received["truth"]}
+    for msg in p.received["pothole_labels"]:
+        labels, truth = labels_of(msg) > 0, truths[stamp_ns(msg.header)] > 0
+        hits += int((labels & truth).sum())
+        detected += int(labels.sum())
+        truth_pixels += int(truth.sum())
+    assert hits / detected > 0.85, "potholes reported where the generator put none"
+    assert hits / truth_pixels > 0.4, "most of the generator's potholes were missed"
+
+    for msg, array in zip(p.received["pothole_markers"], p.received["potholes"]):
+        assert msg.markers[0].action == Marker.DELETEALL
+        assert len(msg.markers) == 1 + 2 * len(array.potholes)
+    for cloud, array in zip(p.received["pothole_points"], p.received["potholes"]):
+        points = conversions.pointcloud_to_array(cloud)
+        assert set(np.unique(points["label"])) == {q.label for q in array.potholes}
+        for pothole in array.potholes:
+            assert 0.03 < pothole.max_depth_m < 0.08
+            assert np.nanmedian(points["depth_below_road"][points["label"] == pothole.label]) > 0
+    overlay = p.received["overlay"][0]
+    assert (overlay.encoding, overlay.width, overlay.height) == ("rgb8", 640, 360)
+    assert diagnostics["backend"] == "cpu"
+    assert "Traceback" not in node.text()
+
+
+def test_parameters_change_at_run_time_and_bad_values_are_refused(node_factory, probe, frames):
+    node_factory(backend="cpu")
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    client = AsyncParameterClient(p.node, "/stereo/pothole_detector")
+    assert client.wait_for_services(timeout_sec=10)
+
+    def set_parameters(**values):
+        future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        assert p.spin(10, future.done)
+        return future.result().results
+
+    refused = set_parameters(delta_pd_px=-1.0)
+    assert not refused[0].successful and "out of range" in refused[0].reason
+    refused = set_parameters(sgm_p2=4)
+    assert not refused[0].successful and "sgm_p2 must be larger" in refused[0].reason
+    refused = set_parameters(backend="tpu")
+    assert not refused[0].successful and "one of auto, cpu, gpu" in refused[0].reason
+
+    p.publish(frames[0], T0)
+    assert p.spin(15, lambda: len(p.received["potholes"]) == 1)
+    assert len(p.received["potholes"][0].potholes) >= 2
+    assert set_parameters(min_pothole_area_m2=50.0)[0].successful
+    p.publish(frames[0], T0 + 100_000_000)
+    assert p.spin(15, lambda: len(p.received["potholes"]) == 2)
+    assert p.received["potholes"][1].potholes == []
+    assert set_parameters(min_pothole_area_m2=0.0005, qos_depth=3)[0].successful
+    p.wait_connected()
+    p.publish(frames[0], T0 + 200_000_000)
+    assert p.spin(15, lambda: len(p.received["potholes"]) == 3)
+    assert len(p.received["potholes"][2].potholes) >= 2
+
+
+@pytest.mark.parametrize("reliability", ["reliable", "best_effort"])
+def test_qos_reliability(node_factory, probe, frames, reliability):
+    node_factory(backend="cpu", qos_reliability=reliability)
+    p = probe(reliability=reliability, outputs=("potholes",))
+    p.wait_connected()
+    for index in range(5):
+        p.publish(frames[index % len(frames)], T0 + index * 300_000_000)
+        p.spin(0.3)
+    p.spin(10, lambda: len(p.received["potholes"]) >= 5)
+    got = len(p.received["potholes"])
+    if reliability == "reliable":
+        assert got == 5
+    else:
+        assert got >= 1, "best effort delivered nothing at 640x360"
+
+
+def test_approximate_sync_pairs_jittered_stamps(node_factory, probe, frames):
+    node_factory(backend="cpu", approximate_sync=True,
+                 approximate_sync_tolerance_seconds=0.01)
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    for index, jitter_ms in enumerate((3, -4, 7)):
+        stamp = T0 + index * 500_000_000
+        p.publish(frames[index], stamp, right_stamp=stamp + jitter_ms * 1_000_000)
+        p.spin(0.5)
+    p.publish(frames[0], T0 + 2_000_000_000, right_stamp=T0 + 2_030_000_000)  # 30 ms: too far
+    assert p.spin(15, lambda: len(p.received["potholes"]) >= 3)
+    p.spin(1.5)
+    assert p.stamps() == [T0, T0 + 500_000_000, T0 + 1_000_000_000]
+
+
+def test_exact_sync_refuses_jitter_and_says_so(node_factory, probe, frames):
+    node_factory(backend="cpu", diagnostics_period_seconds=0.2)
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    for index in range(3):
+        stamp = T0 + index * 500_000_000
+        p.publish(frames[index], stamp, right_stamp=stamp + 3_000_000)
+        p.spin(0.3)
+    p.spin(2)
+    assert p.received["potholes"] == []
+    assert "set approximate_sync:=true" in p.diagnostics()["message"]
+
+
+def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, frames):
+    node = node_factory(backend="cpu", log_throttle_seconds=0.0,
+                        diagnostics_period_seconds=0.2)
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    good = frames[0]
+
+    p.publish(good, T0, infos=False)
+    assert p.spin(10, lambda: "no camera_info" in p.diagnostics().get("message", ""))
+    assert p.received["potholes"] == []
+    p.publish(good, T0 + 1, infos=True)  # the held pair goes through once infos exist
+    assert p.spin(15, lambda: T0 + 1 in p.stamps())
+
+    def smaller(msg, width):
+        pixels = conversions.image_to_array(msg)[:, :width]
+        return conversions.array_to_image(pixels, "mono8", msg.header)
+
+    lying_step = copy.deepcopy(good["left"])
+    lying_step.step = lying_step.width - 10
+    short_data = copy.deepcopy(good["left"])
+    short_data.data = bytes(short_data.data)[:1000]
+    unknown = copy.deepcopy(good["left"])
+    unknown.encoding = "yuv422"
+    flat_right = copy.deepcopy(good["right_info"])
+    flat_right.p[3] = 0.0
+    nan_info = copy.deepcopy(good["left_info"])
+    nan_info.p[0] = math.nan
+    cases = [
+        ({"right": smaller(good["right"], 600)}, "640x360 but right is 600x360"),
+        ({"left": unknown}, "encoding 'yuv422' is not supported"),
+        ({"left": lying_step}, "step"),
+        ({"left": short_data}, "needs"),
+        ({"right_info": flat_right}, "Tx"),
+        ({"left_info": nan_info}, "NaN"),
+    ]
+    stamp = T0 + 1_000_000_000
+    for replace, words in cases:
+        stamp += 1_000_000_000
+        p.publish(good, stamp, **replace)
+        assert p.spin(10, lambda: words in p.diagnostics().get("message", "")), words
+        p.publish(good, stamp + 500_000_000)
+        assert p.spin(15, lambda: stamp + 500_000_000 in p.stamps()), node.text()
+        assert stamp not in p.stamps()
+    p.publish(good, T0 + 2)
+    assert p.spin(10, lambda: "backwards" in p.diagnostics().get("message", ""))
+    assert p.spin(15, lambda: T0 + 2 in p.stamps())
+    log = node.text()
+    for _, words in cases:
+        assert words in log
+    assert "backwards" in log and "Traceback" not in log
