@@ -202,7 +202,7 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
     """Record live ``topics`` (raw CDR, receive time) into a new bag until Ctrl-C, ``duration``
     s or ``should_stop()``. Topic types are discovered from the graph. Returns counts."""
     import rclpy
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     store = typestore()
@@ -245,8 +245,8 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
             executor.spin_once(timeout_sec=0.05)
             if should_stop() or (duration is not None and time.monotonic() - start > duration):
                 break
-    except KeyboardInterrupt:
-        pass
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass  # Ctrl-C or SIGTERM: close the bag properly
     finally:
         writer.close()
         executor.shutdown()

@@ -270,3 +270,28 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
     for _, words in cases:
         assert words in log
     assert "backwards" in log and "Traceback" not in log
+
+
+def test_record_writes_live_topics_as_raw_cdr(tmp_path, probe, frames):
+    from pothole_detector import bagtools
+
+    p = probe(outputs=())
+    out = tmp_path / "recorded"
+    p.spin(0.5)
+    record = subprocess.Popen(
+        [sys.executable, "-m", "pothole_detector.cli", "record", str(out), "--topics",
+         "/stereo/left/image_rect", "--duration", "8"], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    assert p.spin(15, lambda: p.inputs["left"].get_subscription_count() > 0)
+    p.spin(1.0)
+    for index in range(3):
+        p.publish(frames[index], T0 + index, infos=False)
+        p.spin(0.2)
+    assert p.spin(20, lambda: record.poll() is not None)
+    stdout, stderr = record.communicate()
+    assert record.returncode == 0, stderr
+    assert "/stereo/left/image_rect: 3" in stdout
+    recorded = [msg for _, _, msg in bagtools.read_messages(out)]
+    assert [stamp_ns(m.header) for m in recorded] == [T0, T0 + 1, T0 + 2]
+    np.testing.assert_array_equal(conversions.image_to_array(recorded[1]),
+                                  conversions.image_to_array(frames[1]["left"]))
