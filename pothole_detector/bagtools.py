@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import time
 from dataclasses import dataclass, field
@@ -44,8 +45,10 @@ def msg_directory() -> Path:
     return Path(get_package_share_directory(MSG_PACKAGE)) / "msg"
 
 
+@functools.cache
 def typestore() -> Typestore:
-    """The Jazzy typestore with our own message types registered from their .msg text."""
+    """The Jazzy typestore with our own message types registered from their .msg text (built
+    once; rosbags only reads it)."""
     store = get_typestore(Stores.ROS2_JAZZY)
     types: dict[str, Any] = {}
     for name in MSG_NAMES:
@@ -91,18 +94,9 @@ def cdr_bytes(reader: AnyReader, connection: Connection, rawdata: bytes) -> byte
     if key not in _CONVERTERS:
         from rosbags.convert.converter import generate_message_converter
         _CONVERTERS[key] = generate_message_converter(
-            reader.typestore, _jazzy_store(), connection.msgtype, connection.msgtype, {},
+            reader.typestore, typestore(), connection.msgtype, connection.msgtype, {},
             src_is2=False, dst_is2=True)
     return bytes(_CONVERTERS[key](rawdata))
-
-
-_STORE: list[Typestore] = []
-
-
-def _jazzy_store() -> Typestore:
-    if not _STORE:
-        _STORE.append(typestore())
-    return _STORE[0]
 
 
 def parse_remaps(remaps: Sequence[str]) -> dict[str, str]:
@@ -328,14 +322,13 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import CameraInfo, Image
 
+    from . import conversions
     from .sync import StereoSynchronizer
 
     wanted = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
               topics.right_info: "right_info"}
     connections = [c for c in reader.connections if c.topic in wanted]
-    synchronizer: StereoSynchronizer[Any] = StereoSynchronizer(
-        config.queue_size, config.approximate_sync,
-        int(round(config.approximate_sync_tolerance_seconds * 1e9)))
+    synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
     infos: dict[str, Any] = {}
     for connection, _, rawdata in reader.messages(connections=connections):
         role = wanted[connection.topic]
@@ -344,8 +337,7 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config
             infos[role] = deserialize_message(data, CameraInfo)
             continue
         msg = deserialize_message(data, Image)
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        outcome = synchronizer.add(role, stamp, msg)
+        outcome = synchronizer.add(role, conversions.stamp_ns(msg.header), msg)
         for pair_stamp, left, right in outcome.pairs:
             if "left_info" in infos and "right_info" in infos:
                 yield pair_stamp, left, right, infos["left_info"], infos["right_info"]
@@ -482,9 +474,7 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]], namespa
     ``right/image_rect`` (mono8, or rgb8 for colour samples), both camera_info and, with
     ``ground_truth``, ``ground_truth/pothole_labels`` (mono16) under ``namespace``. Returns
     the number of frames written."""
-    from builtin_interfaces.msg import Time
     from rclpy.serialization import serialize_message
-    from std_msgs.msg import Header
 
     from . import conversions
 
@@ -502,8 +492,7 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]], namespa
     count = 0
     try:
         for stamp_ns, sample in frames:
-            sec, nanosec = divmod(int(stamp_ns), 10**9)
-            header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+            header = conversions.header_at(stamp_ns, frame_id)
             height, width = sample.left.shape[:2]
             encoding = "mono8" if sample.left.ndim == 2 else "rgb8"
             messages = {

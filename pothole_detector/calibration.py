@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import yaml
@@ -41,6 +41,12 @@ class StereoCalibration:
     def fb(self) -> float:
         """f * baseline (px m): depth Z = fb / disparity."""
         return self.f * self.baseline
+
+    def back_project(self, u: Any, v: Any, disparity: Any) -> tuple[Any, Any, Any]:
+        """x, y, z (m, left optical frame) of pixels at columns ``u``, rows ``v`` (px) with
+        ``disparity`` (px); NumPy or CuPy arrays of one shape (or scalars)."""
+        z = self.fb / disparity
+        return (u - self.cx) * z / self.f, (v - self.cy) * z / self.f, z
 
     @classmethod
     def from_focal_baseline(

@@ -8,7 +8,7 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from builtin_interfaces.msg import Duration
+from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Point
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField, RegionOfInterest
 from std_msgs.msg import ColorRGBA, Header
@@ -38,6 +38,17 @@ POINT_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", Poin
                 ("depth_below_road", PointField.FLOAT32), ("label", PointField.UINT32))
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("depth_below_road", "<f4"),
                         ("label", "<u4")])
+
+
+def stamp_ns(header: Header) -> int:
+    """The stamp of ``header`` in integer nanoseconds."""
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def header_at(nanoseconds: int, frame_id: str = "") -> Header:
+    """A std_msgs/Header stamped ``nanoseconds`` (ns) in ``frame_id``."""
+    sec, nanosec = divmod(int(nanoseconds), 1_000_000_000)
+    return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
 
 
 def _bytes(values: np.ndarray) -> array.array:
@@ -136,11 +147,8 @@ def pothole_points(labels: np.ndarray, disparity: np.ndarray, road: RoadModel,
     d = disparity[v, u]
     keep = np.isfinite(d) & (d > 0)
     u, v, d = u[keep], v[keep], d[keep].astype(np.float64)
-    z = calibration.fb / d
     points = np.empty(u.size, dtype=POINT_DTYPE)
-    points["x"] = (u - calibration.cx) * z / calibration.f
-    points["y"] = (v - calibration.cy) * z / calibration.f
-    points["z"] = z
+    points["x"], points["y"], points["z"] = calibration.back_project(u, v, d)
     with np.errstate(divide="ignore", invalid="ignore"):
         points["depth_below_road"] = depth_below_road(np, u, v, d, road, calibration)[0]
     points["label"] = labels[v, u]
@@ -189,9 +197,8 @@ def road_point(u: np.ndarray, v: np.ndarray, road: RoadModel,
     """(N, 3) points (m, left optical frame) of the road surface seen at pixels ``u``, ``v``."""
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
-    z = calibration.fb / np.asarray(road.at(np, u, v), dtype=np.float64)
-    return np.stack([(u - calibration.cx) * z / calibration.f,
-                     (v - calibration.cy) * z / calibration.f, z], axis=-1)
+    disparity = np.asarray(road.at(np, u, v), dtype=np.float64)
+    return np.stack(calibration.back_project(u, v, disparity), axis=-1)
 
 
 def markers_message(labels: np.ndarray, potholes: Sequence[Pothole], road: RoadModel | None,

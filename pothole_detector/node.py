@@ -46,10 +46,6 @@ INFO_HISTORY = 32
 LARGE_IMAGE_PROFILE = "fastdds_large_images.xml"
 
 
-def _stamp(header: Header) -> int:
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
 def descriptor(param: Param) -> ParameterDescriptor:
     """The ROS parameter descriptor of one table row (type, range, description)."""
     kinds = {bool: Parameter.Type.BOOL, int: Parameter.Type.INTEGER,
@@ -182,7 +178,7 @@ class PotholeDetectorNode(Node):
         self._backend: Backend | None = None
         self._backend_choice = ""
         self._stopping = False
-        self._synchronizer = self._make_synchronizer(self._config)
+        self._synchronizer = StereoSynchronizer.from_config(self._config)
         self._inputs: list[Any] = []
         self._outputs: dict[str, Any] = {}
         self._make_io(self._config)
@@ -209,7 +205,7 @@ class PotholeDetectorNode(Node):
             config = self._config
             if changed & SYNC_PARAMETERS:
                 self._stats.unpaired_images(self._synchronizer.reset())
-                self._synchronizer = self._make_synchronizer(config)
+                self._synchronizer = StereoSynchronizer.from_config(config)
         if changed & QOS_PARAMETERS:
             self._make_io(config)
         if "diagnostics_period_seconds" in changed:
@@ -218,11 +214,6 @@ class PotholeDetectorNode(Node):
             self._diagnostics_timer = self.create_timer(config.diagnostics_period_seconds,
                                                         self._publish_diagnostics)
         self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
-
-    @staticmethod
-    def _make_synchronizer(config: Config) -> StereoSynchronizer[Image]:
-        return StereoSynchronizer(config.queue_size, config.approximate_sync,
-                                  int(round(config.approximate_sync_tolerance_seconds * 1e9)))
 
     # --- topics -----------------------------------------------------------------------------
 
@@ -265,18 +256,14 @@ class PotholeDetectorNode(Node):
             self._waiting = None
         self._complete(waiting.stamp_ns, waiting.left, waiting.right, waiting.received)
 
-    def _tolerance_ns(self) -> int:
-        config = self._config
-        return int(config.approximate_sync_tolerance_seconds * 1e9) \
-            if config.approximate_sync else 0
-
     def _infos_reached(self, stamp_ns: int) -> bool:
         """Both camera_info streams have reached ``stamp_ns`` (ns, less the sync tolerance)."""
-        return all(history and _stamp(history[-1].header) >= stamp_ns - self._tolerance_ns()
+        earliest = stamp_ns - self._synchronizer.tolerance_ns
+        return all(history and conversions.stamp_ns(history[-1].header) >= earliest
                    for history in self._infos.values())
 
     def _on_image(self, side: str, msg: Image) -> None:
-        stamp_ns = _stamp(msg.header)
+        stamp_ns = conversions.stamp_ns(msg.header)
         with self._lock:
             outcome = self._synchronizer.add(side, stamp_ns, msg)
             if outcome.backwards:
@@ -330,9 +317,9 @@ class PotholeDetectorNode(Node):
 
     def _exact_info(self, side: str, stamp_ns: int) -> CameraInfo | None:
         """The camera_info of ``side`` stamped ``stamp_ns`` (within the sync tolerance)."""
-        tolerance = self._tolerance_ns()
+        tolerance = self._synchronizer.tolerance_ns
         for info in reversed(self._infos[side]):
-            if abs(_stamp(info.header) - stamp_ns) <= tolerance:
+            if abs(conversions.stamp_ns(info.header) - stamp_ns) <= tolerance:
                 return info
         return None
 

@@ -40,6 +40,13 @@ class StereoSynchronizer(Generic[Item]):
         self._queues: dict[str, deque[tuple[int, Any]]] = {s: deque() for s in SIDES}
         self._newest: dict[str, int | None] = {s: None for s in SIDES}
 
+    @classmethod
+    def from_config(cls, config: Any) -> "StereoSynchronizer[Any]":
+        """A synchronizer set by ``queue_size``, ``approximate_sync`` and
+        ``approximate_sync_tolerance_seconds`` of a :class:`~pothole_detector.params.Config`."""
+        return cls(config.queue_size, config.approximate_sync,
+                   int(round(config.approximate_sync_tolerance_seconds * 1e9)))
+
     def reset(self) -> int:
         """Forget every waiting item; returns how many were dropped."""
         dropped = sum(len(q) for q in self._queues.values())

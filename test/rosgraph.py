@@ -14,7 +14,6 @@ from typing import Any, Callable
 
 import numpy as np
 import rclpy
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -23,7 +22,8 @@ from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 from visualization_msgs.msg import MarkerArray
 
-from pothole_detector import bagtools
+from pothole_detector import bagtools, conversions
+from pothole_detector.conversions import stamp_ns
 from pothole_detector_msgs.msg import PotholeArray
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,13 +39,8 @@ def isolate_ros_graph() -> None:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 
-def stamp_ns(header: Header) -> int:
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
 def header_at(nanoseconds: int, frame_id: str = "stereo_left_optical_frame") -> Header:
-    sec, nanosec = divmod(nanoseconds, 1_000_000_000)
-    return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+    return conversions.header_at(nanoseconds, frame_id)
 
 
 def sample_frames(count: int) -> list[dict[str, Any]]:

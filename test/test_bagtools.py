@@ -73,7 +73,7 @@ def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, 
     expected = {stamp: pipeline.run(s.left, s.right) for stamp, s in drive_frames}
     seen = set()
     for topic, stamp, msg in bagtools.read_messages(out, ["/cam/disparity", "/cam/potholes"]):
-        assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
+        assert conversions.stamp_ns(msg.header) == stamp
         assert msg.header.frame_id == "stereo_left_optical_frame"
         if topic == "/cam/disparity":
             np.testing.assert_array_equal(conversions.disparity_from_message(msg),

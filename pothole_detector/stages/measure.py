@@ -79,9 +79,7 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
     depth, footprint = depth_below_road(xp, cols, rows, disparity, model, calibration)
     valid = xp.isfinite(depth)
     index = xp.arange(1, count + 1)
-    z = calibration.fb / disparity
-    x = (cols - calibration.cx) * z / calibration.f
-    y = (rows - calibration.cy) * z / calibration.f
+    x, y, z = calibration.back_project(cols, rows, disparity)
 
     def total(weights: Any) -> Any:
         return xp.bincount(label, weights=weights.astype(xp.float64), minlength=count + 1)[1:]
