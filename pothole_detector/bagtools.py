@@ -316,9 +316,11 @@ class ProcessSummary:
                 f"frame, {self.failed} failed, {self.unpaired} unpaired images")
 
 
-def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config
-                 ) -> Iterator[tuple[int, Any, Any, Any, Any]]:
-    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag."""
+def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
+                 summary: ProcessSummary) -> Iterator[tuple[int, Any, Any, Any, Any]]:
+    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag;
+    images that found no partner and pairs before any camera_info are counted in
+    ``summary``."""
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import CameraInfo, Image
 
@@ -338,9 +340,15 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config
             continue
         msg = deserialize_message(data, Image)
         outcome = synchronizer.add(role, conversions.stamp_ns(msg.header), msg)
+        summary.unpaired += outcome.dropped
         for pair_stamp, left, right in outcome.pairs:
             if "left_info" in infos and "right_info" in infos:
                 yield pair_stamp, left, right, infos["left_info"], infos["right_info"]
+            else:
+                summary.failed += 1
+                summary.errors.append(f"stamp {pair_stamp}: no camera_info on "
+                                      f"{topics.left_info} and {topics.right_info} yet")
+    summary.unpaired += synchronizer.reset()
 
 
 def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mcap",
@@ -387,7 +395,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             pipeline: Pipeline | None = None
             calibration_used = None
             for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
-                    _stereo_sets(reader, stereo, config)):
+                    _stereo_sets(reader, stereo, config, summary)):
                 if progress is not None:
                     progress(index, image_count)
                 header = left_msg.header

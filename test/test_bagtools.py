@@ -152,3 +152,23 @@ def test_committed_sample_bag_is_the_generators_output():
     for topic, _, _ in bagtools.read_messages(bag, ["/stereo/right/image_rect"]):
         counts[topic] = counts.get(topic, 0) + 1
     assert counts == {"/stereo/right/image_rect": 16}
+
+
+def test_process_counts_unpaired_images(tmp_path, drive_bag):
+    cut = tmp_path / "cut"
+    writer = bagtools.writer_for(cut, "mcap")
+    writer.open()
+    store = bagtools.typestore()
+    connections = {}
+    with AnyReader([drive_bag], default_typestore=store) as reader:
+        for connection, stamp, raw in reader.messages():
+            if connection.topic == STEREO[1] and stamp == START:
+                continue  # the first right image is lost
+            if connection.topic not in connections:
+                connections[connection.topic] = writer.add_connection(
+                    connection.topic, connection.msgtype, typestore=store)
+            writer.write(connections[connection.topic], stamp, raw)
+    writer.close()
+    summary = bagtools.process(cut, tmp_path / "out", Config({"backend": "cpu"}))
+    assert (summary.frames, summary.unpaired) == (2, 1)
+    assert "1 unpaired images" in summary.text()
