@@ -6,6 +6,7 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    package_data={package_name: ["kernels/*.cu", "kernels/*.cuh"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -20,7 +21,7 @@ setup(
         "PyYAML>=6.0",
     ],
     extras_require={
-        "gpu": ["cupy-cuda12x>=13"],
+        "gpu": ["cupy-cuda12x>=13"],  # or cupy-cuda13x on CUDA 13
         "test": ["pytest>=7"],
         # ROS 2 Jazzy from pip wheels (on a ROS install these come from the distribution)
         "ros": [
@@ -37,7 +38,7 @@ setup(
             "catkin_pkg",
         ],
     },
-    zip_safe=True,
+    zip_safe=False,
     maintainer="pothole_detector developers",
     maintainer_email="dev@pothole-detector.invalid",
     description="Stereo road pothole detection (Fan et al., T-CYB) for ROS 2 and the command line",

@@ -6,10 +6,15 @@ arrays of the same kind as their inputs.
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import scipy.ndimage
@@ -25,6 +30,7 @@ except Exception:  # noqa: BLE001 - any import failure means "no GPU backend"
 
 _log = logging.getLogger(__name__)
 BACKEND_CHOICES = ("auto", "cpu", "gpu")
+KERNEL_DIR = Path(__file__).resolve().parent / "kernels"
 
 
 @dataclass(frozen=True)
@@ -47,13 +53,96 @@ class Backend:
         """Copy a backend array to a NumPy array (no copy on the CPU backend)."""
         return to_host(array)
 
+    def upload_many(self, *arrays: np.ndarray) -> tuple[Any, ...]:
+        """Copy several host arrays to the backend in one transfer; returns one array each
+        (views into one device buffer on the GPU)."""
+        if not self.is_gpu:
+            return arrays
+        sizes = [a.nbytes for a in arrays]
+        offsets = np.concatenate([[0], np.cumsum([-(-n // 16) * 16 for n in sizes])])
+        staging = np.empty(int(offsets[-1]), dtype=np.uint8)
+        for array, start, size in zip(arrays, offsets, sizes):
+            staging[start:start + size] = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
+        device = self.xp.asarray(staging)
+        return tuple(device[start:start + size].view(a.dtype).reshape(a.shape)
+                     for a, start, size in zip(arrays, offsets, sizes))
+
+    def kernel(self, source: str, name: str, defines: dict[str, int]) -> Any:
+        """The CUDA kernel ``name`` of kernels/``source`` built with ``defines`` (memoized on
+        the source text and the defines). GPU backend only."""
+        if not self.is_gpu:
+            raise BackendError(f"kernel {name} needs the gpu backend")
+        text = (KERNEL_DIR / source).read_text()
+        digest = hashlib.sha1(text.encode()).hexdigest()
+        return _module(source, digest, tuple(sorted(defines.items()))).get_function(name)
+
+    def memory_bytes(self) -> int:
+        """Device memory held by the backend's allocator (bytes; 0 on the CPU backend)."""
+        if not self.is_gpu:
+            return 0
+        return int(self.xp.get_default_memory_pool().total_bytes())
+
+    def release_memory(self) -> None:
+        """Give the allocator's unused device blocks back to the driver (no-op on the CPU)."""
+        if self.is_gpu:
+            self.xp.get_default_memory_pool().free_all_blocks()
+
     def synchronize(self) -> None:
         """Wait for queued device work (no-op on the CPU backend), e.g. before reading a clock."""
         if self.is_gpu:
             self.xp.cuda.get_current_stream().synchronize()
 
 
+class StageClock:
+    """Per-stage times of one frame: CUDA events on the GPU (no synchronization until
+    :meth:`timings`), wall clock on the CPU."""
+
+    def __init__(self, backend: Backend) -> None:
+        self._gpu = backend.is_gpu
+        self._marks: list[tuple[str, Any, Any]] = []
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        if self._gpu:
+            assert _cupy is not None
+            start = _cupy.cuda.Event()
+            start.record()
+            try:
+                yield
+            finally:
+                end = _cupy.cuda.Event()
+                end.record()
+                self._marks.append((name, start, end))
+        else:
+            begin = time.perf_counter()
+            try:
+                yield
+            finally:
+                self._marks.append((name, begin, time.perf_counter()))
+
+    def timings(self) -> dict[str, float]:
+        """Stage name -> ms (a stage entered twice adds up); waits for the device."""
+        result: dict[str, float] = {}
+        for name, start, end in self._marks:
+            if self._gpu:
+                assert _cupy is not None
+                end.synchronize()
+                elapsed = _cupy.cuda.get_elapsed_time(start, end)
+            else:
+                elapsed = (end - start) * 1e3
+            result[name] = result.get(name, 0.0) + elapsed
+        return result
+
+
 CPU = Backend("cpu", np, scipy.ndimage)
+
+
+@lru_cache(maxsize=64)
+def _module(source: str, digest: str, defines: tuple[tuple[str, int], ...]) -> Any:
+    """A compiled RawModule of kernels/``source`` (digest: sha1 of its text, part of the key)."""
+    assert _cupy is not None
+    options = ("--std=c++17",) + tuple(f"-D{key}={value}" for key, value in defines)
+    return _cupy.RawModule(code=(KERNEL_DIR / source).read_text(), options=options)
 
 
 def gpu_available() -> bool:

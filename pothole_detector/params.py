@@ -75,6 +75,13 @@ PARAMETERS: tuple[Param, ...] = (
           "Band margin above the road's highest disparity in a row (px), for bumps and noise.",
           0, 512),
     # matching
+    Param("matcher", str, "auto",
+          "Stereo matcher: census (our census SGM: CUDA kernels on the GPU, a slow NumPy "
+          "reference on the CPU), opencv (OpenCV SGBM, on the host), or auto (census on the "
+          "GPU, opencv on the CPU).", choices=("auto", "census", "opencv")),
+    Param("census_p1", int, 3, "Census SGM penalty for |dd| = 1 (census bits: 0 .. 31); low "
+          "penalties keep pothole rims sharp.", 0, 200),
+    Param("census_p2", int, 20, "Census SGM penalty for |dd| > 1 (> census_p1).", 1, 224),
     Param("sgm_block_size", int, 5, "Matching block size (px, odd).", 1, 11),
     Param("sgm_p1", int, 8, "SGM penalty for |dd| = 1, per block pixel (OpenCV: x block area).",
           0, 1000),
@@ -180,8 +187,9 @@ class Config:
             if name not in merged:
                 raise ConfigError(f"unknown parameter {name!r}; see config/{NODE_NAME}.yaml")
             merged[name] = PARAMETER_BY_NAME[name].validate(value)
-        if merged.get("sgm_p2", 1) <= merged.get("sgm_p1", 0):
-            raise ConfigError("sgm_p2 must be larger than sgm_p1")
+        for low, high in (("sgm_p1", "sgm_p2"), ("census_p1", "census_p2")):
+            if high in merged and merged[high] <= merged[low]:
+                raise ConfigError(f"{high} must be larger than {low}")
         object.__setattr__(self, "_values", merged)
 
     def __getattr__(self, name: str) -> Any:

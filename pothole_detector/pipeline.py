@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import math
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
-from .backend import CPU, Backend
+from .backend import CPU, Backend, StageClock
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError
 from .params import Config
@@ -56,6 +55,7 @@ class Pipeline:
         self.config = config
         self.calibration = calibration
         self.backend = backend
+        self.matcher = matching.Matcher(backend)
         self._road: road_model.RoadModel | None = None
 
     def reset(self) -> None:
@@ -67,11 +67,12 @@ class Pipeline:
         uint16). Raises InputError, NoTextureError or NoRoadError with a message saying why."""
         config, backend = self.config, self.backend
         xp = backend.xp
-        timings: dict[str, float] = {}
+        started = time.perf_counter()
+        clock = StageClock(backend)
         left_gray, right_gray = _validate_pair(left, right)
 
         seeded = self._road is None or not config.gpt_enabled
-        disparity, kappa, levels = self._match(left_gray, right_gray, timings)
+        disparity, kappa, levels = self._match(left_gray, right_gray, clock)
         valid_fraction = float(xp.isfinite(disparity).mean())
         if valid_fraction < config.min_valid_fraction:
             self.reset()
@@ -80,7 +81,7 @@ class Pipeline:
                 f"{config.min_valid_fraction:.0%}): the images lack texture, are not a "
                 "rectified pair, or the road is outside max_disparity_px"
             )
-        with _timed(timings, "road", backend):
+        with clock.stage("road"):
             road = self._fit(disparity, stride=config.road_fit_stride)
             if road.inlier_fraction < config.min_road_inlier_fraction:
                 self.reset()
@@ -90,24 +91,24 @@ class Pipeline:
                     "looking at the road?"
                 )
             self._road = road
-        with _timed(timings, "dt", backend):
+        with clock.stage("dt"):
             transformed = transform_disparity(xp, disparity, road, config.delta_dt_px)
-        with _timed(timings, "slic", backend):
+        with clock.stage("slic"):
             sp_labels, n_sp = superpixels.superpixels(
-                xp, transformed, config.slic_region_size_px, config.slic_compactness,
+                backend, transformed, config.slic_region_size_px, config.slic_compactness,
                 config.slic_iterations, config.slic_downsample)
             sp_means, sp_valid = superpixels.superpixel_means(xp, transformed, sp_labels, n_sp)
-        with _timed(timings, "threshold", backend):
+        with clock.stage("threshold"):
             t_r, road_mean = thresholding.histogram_threshold(
                 xp, transformed, config.histogram_bin_px, config.delta_dt_px)
             reference = road_mean if config.threshold_reference == "road_mean" else t_r
             selected = self._select(sp_labels, n_sp, sp_means, sp_valid, reference, road)
-        with _timed(timings, "components", backend):
+        with clock.stage("components"):
             labels, count = components.pothole_components(
                 backend, selected[sp_labels], xp.isfinite(disparity), sp_labels, n_sp,
                 config.corner_fraction,
                 config.min_pothole_superpixels)
-        with _timed(timings, "measure", backend):
+        with clock.stage("measure"):
             with np.errstate(divide="ignore", invalid="ignore"):
                 potholes = measure.measure_potholes(backend, labels, count, disparity, road,
                                                     self.calibration)
@@ -117,7 +118,9 @@ class Pipeline:
                     xp, labels, xp.asarray(np.array([False] + keep)))
                 potholes = [measure.Pothole(**{**p.__dict__, "label": i})
                             for i, p in enumerate((p for p, k in zip(potholes, keep) if k), 1)]
+        timings = clock.timings()
         timings["total"] = sum(timings.values())
+        timings["host"] = (time.perf_counter() - started) * 1e3
         return PipelineResult(
             disparity=disparity, transformed=transformed, labels=labels,
             superpixels=sp_labels, road=road, threshold_px=reference,
@@ -131,7 +134,7 @@ class Pipeline:
         """D1 of a host pair (float32 HxW px, NaN invalid, on the backend) and the number of
         disparity levels searched; seeds and updates the road model like :meth:`run`."""
         left_gray, right_gray = _validate_pair(left, right)
-        disparity, _, levels = self._match(left_gray, right_gray, {})
+        disparity, _, levels = self._match(left_gray, right_gray, StageClock(self.backend))
         if self.config.gpt_enabled:
             try:
                 self._road = self._fit(disparity, stride=self.config.road_fit_stride)
@@ -140,34 +143,35 @@ class Pipeline:
         return disparity, levels
 
     def _match(self, left_gray: np.ndarray, right_gray: np.ndarray,
-               timings: dict[str, float]) -> tuple[Any, Any, int]:
-        """Seed (if needed), GPT and SGM: (D1, kappa (H,), levels)."""
+               clock: StageClock) -> tuple[Any, np.ndarray, int]:
+        """One upload of the pair and the GPT row shifts, seed (if needed), SGM:
+        (D1 on the backend, kappa (H,) on the host, levels)."""
         config, backend = self.config, self.backend
-        xp = backend.xp
-        height, width = left_gray.shape
-        with _timed(timings, "seed", backend):
-            if config.gpt_enabled and self._road is None:
-                self._road = self._seed(left_gray, right_gray)
-        with _timed(timings, "gpt", backend):
-            left_dev = backend.upload(left_gray)
-            right_dev = backend.upload(right_gray)
-            if config.gpt_enabled:
-                assert self._road is not None
-                kappa = perspective.row_shifts(xp, self._road, height, width,
-                                               config.gpt_margin_below_px)
-                levels = perspective.band_levels(xp, self._road, kappa, height, width,
-                                                 config.gpt_margin_above_px,
-                                                 config.max_disparity_px)
-                right_dev = perspective.shift_rows(xp, right_dev, kappa)
-            else:
-                kappa = xp.zeros(height, dtype=xp.int32)
-                levels = perspective.round_up_levels(config.max_disparity_px)
-        with _timed(timings, "sgm", backend):
-            disparity = matching.match(backend, left_dev, right_dev, levels, config)
-            disparity += kappa[:, None].astype(xp.float32)
-            outside = xp.arange(width, dtype=xp.float32)[None, :] - disparity < 0
-            disparity[outside] = xp.nan
+        seeding = config.gpt_enabled and self._road is None
+        with clock.stage("gpt"):
+            kappa, levels = self._band(left_gray.shape)
+            left_dev, right_dev, kappa_dev = backend.upload_many(left_gray, right_gray, kappa)
+        if seeding:
+            with clock.stage("seed"):
+                self._road = self._seed(left_dev, right_dev)
+                kappa, levels = self._band(left_gray.shape)
+                kappa_dev = backend.upload(kappa)
+        with clock.stage("sgm"):
+            disparity = self.matcher(left_dev, right_dev, kappa_dev, levels, config)
         return disparity, kappa, levels
+
+    def _band(self, shape: tuple[int, int]) -> tuple[np.ndarray, int]:
+        """GPT row shifts kappa (int32 (H,), host) and level count from the current road model
+        (kappa = 0 and the full range without one or with GPT off)."""
+        config = self.config
+        height, width = shape
+        if not config.gpt_enabled or self._road is None:
+            return np.zeros(height, np.int32), \
+                perspective.round_up_levels(config.max_disparity_px)
+        kappa = perspective.row_shifts(np, self._road, height, width, config.gpt_margin_below_px)
+        levels = perspective.band_levels(np, self._road, kappa, height, width,
+                                         config.gpt_margin_above_px, config.max_disparity_px)
+        return kappa, levels
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
         config = self.config
@@ -177,22 +181,23 @@ class Pipeline:
             quadratic_gain=config.road_quadratic_gain, coordinate_scale=scale,
             coordinate_offset=(scale - 1.0) / 2.0)
 
-    def _seed(self, left: np.ndarray, right: np.ndarray) -> road_model.RoadModel:
-        """Road model from a full-range match of the pair reduced by coarse_scale."""
-        config = self.config
+    def _seed(self, left: Any, right: Any) -> road_model.RoadModel:
+        """Road model from a full-range match of the (backend) pair reduced by coarse_scale."""
+        config, xp = self.config, self.backend.xp
         scale = config.coarse_scale
-        small_left = matching.downsample(left, scale)
-        small_right = matching.downsample(right, scale)
+        small_left = matching.downsample(xp, left, scale)
+        small_right = matching.downsample(xp, right, scale)
         half_width = small_left.shape[1] // 2
         levels = perspective.round_up_levels(min(config.max_disparity_px / scale, half_width))
-        coarse = matching.sgm_disparity(small_left, small_right, levels, config,
-                                        block_size=min(config.sgm_block_size, 5))
-        if np.isfinite(coarse).mean() < config.min_valid_fraction:
+        kappa = xp.zeros(small_left.shape[0], dtype=xp.int32)
+        coarse = self.matcher(small_left, small_right, kappa, levels, config,
+                              block_size=min(config.sgm_block_size, 5))
+        if float(xp.isfinite(coarse).mean()) < config.min_valid_fraction:
             raise NoTextureError(
                 "the coarse seed pass found almost no disparities: the images lack texture, "
                 "are not a rectified pair, or the road is beyond max_disparity_px"
             )
-        return self._fit(self.backend.upload(coarse), stride=1, scale=float(scale))
+        return self._fit(coarse, stride=1, scale=float(scale))
 
     def _select(self, sp_labels: Any, n_sp: int, means: Any, valid_fraction: Any,
                 t_r: float, road: road_model.RoadModel) -> Any:
@@ -244,13 +249,3 @@ def _validate_pair(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.
     if min(left.shape[:2]) < 16:
         raise InputError(f"images of {left.shape[1]}x{left.shape[0]} are too small (min 16x16)")
     return matching.to_gray8(left), matching.to_gray8(right)
-
-
-@contextmanager
-def _timed(timings: dict[str, float], stage: str, backend: Backend) -> Iterator[None]:
-    start = time.perf_counter()
-    try:
-        yield
-    finally:
-        backend.synchronize()
-        timings[stage] = (time.perf_counter() - start) * 1e3

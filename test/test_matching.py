@@ -5,7 +5,11 @@ import pytest
 
 from pothole_detector.backend import CPU
 from pothole_detector.params import Config
-from pothole_detector.stages.matching import downsample, match, to_gray8
+from pothole_detector.stages.matching import Matcher, downsample, to_gray8
+
+
+def match(backend, left, right, levels, config):
+    return Matcher(backend)(left, right, np.zeros(left.shape[0], np.int32), levels, config)
 
 
 def test_sgm_on_a_rendered_road_is_subpixel_accurate(flat_sample):
@@ -41,4 +45,21 @@ def test_to_gray8_accepts_mono16_rgb_rgba(image):
 
 def test_downsample_averages_blocks():
     image = np.arange(16, dtype=np.uint8).reshape(4, 4) * 10
-    np.testing.assert_array_equal(downsample(image, 2), [[25, 45], [105, 125]])
+    np.testing.assert_array_equal(downsample(np, image, 2), [[25, 45], [105, 125]])
+
+
+def test_matcher_kind_follows_the_backend_unless_set(flat_sample):
+    matcher = Matcher(CPU)
+    assert matcher.kind(Config()) == "opencv"
+    assert matcher.kind(Config({"matcher": "census"})) == "census"
+
+
+def test_census_reference_on_the_cpu_matches_a_rendered_road(flat_sample):
+    left = to_gray8(flat_sample.left)[100:164, 200:456]
+    right = to_gray8(flat_sample.right)[100:164, 200:456]
+    truth = flat_sample.disparity[100:164, 200:456]
+    kappa = np.floor(np.nanmin(truth, axis=1) - 8).astype(np.int32)
+    disparity = Matcher(CPU)(left, right, kappa, 32, Config({"matcher": "census"}))
+    error = np.abs(disparity - truth)
+    assert np.isfinite(disparity[:, 80:]).mean() > 0.8
+    assert np.nanmedian(error) < 0.3 and np.nanmean(error > 1.0) < 0.03

@@ -3,6 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pothole_detector.backend import CPU
 from pothole_detector.stages.superpixels import slic, superpixel_means, superpixels
 
 
@@ -16,7 +17,7 @@ def disc_image(height=96, width=128):
 
 def test_superpixels_follow_a_disparity_edge():
     image, disc = disc_image()
-    labels, n = slic(np, image, np.ones(image.shape, bool), 12, 2.0, 8)
+    labels, n = slic(CPU, image, np.ones(image.shape, bool), 12, 2.0, 8)
     assert labels.shape == image.shape and labels.max() < n
     inside = np.bincount(labels.ravel(), disc.ravel(), minlength=n)
     total = np.bincount(labels.ravel(), minlength=n)
@@ -27,7 +28,7 @@ def test_superpixels_follow_a_disparity_edge():
 
 def test_superpixels_are_compact_on_a_flat_map():
     image = np.full((64, 64), 32.0, np.float32)
-    labels, n = slic(np, image, np.ones(image.shape, bool), 16, 2.0, 5)
+    labels, n = slic(CPU, image, np.ones(image.shape, bool), 16, 2.0, 5)
     sizes = np.bincount(labels.ravel(), minlength=n)
     assert n == 16 and sizes.min() > 0.5 * 256 and sizes.max() < 1.5 * 256
 
@@ -36,13 +37,13 @@ def test_superpixels_are_compact_on_a_flat_map():
 def test_odd_sizes_and_nan(shape):
     image = np.random.default_rng(1).normal(30, 1, shape).astype(np.float32)
     image[0, 0] = np.nan
-    labels, n = superpixels(np, image, 8, 2.0, 3, downsample=1)
+    labels, n = superpixels(CPU, image, 8, 2.0, 3, downsample=1)
     assert labels.shape == shape and labels.min() >= 0 and labels.max() < n
 
 
 def test_downsampled_labels_cover_the_full_image():
     image, disc = disc_image(97, 131)
-    labels, n = superpixels(np, image, 16, 2.0, 6, downsample=2)
+    labels, n = superpixels(CPU, image, 16, 2.0, 6, downsample=2)
     assert labels.shape == image.shape
     means, valid = superpixel_means(np, image, labels, n)
     inside = means[np.unique(labels[40:60, 50:70])]

@@ -1,6 +1,7 @@
 """Dense matching: semi-global matching with subpixel refinement and left-right check.
 
-The CPU path runs OpenCV's StereoSGBM (Birchfield-Tomasi cost on Sobel-prefiltered images,
+Two matchers (``matcher`` parameter): ``census`` is our census SGM (stages/census_sgm.py), on
+the GPU in CUDA kernels, on the CPU as its slow NumPy reference; ``opencv`` runs OpenCV's StereoSGBM (Birchfield-Tomasi cost on Sobel-prefiltered images,
 path aggregation with P1/P2, parabola subpixel, uniqueness, speckle filter) on the pair and on
 the mirrored pair for our own left-right check (OpenCV 5's internal check, disp12MaxDiff, was
 measured to drop nothing); a 3x3 median follows. Disparities are float32 pixels with NaN where invalid.
@@ -16,6 +17,8 @@ import numpy as np
 
 from ..backend import Backend, to_host
 from ..params import Config
+from . import census_sgm
+from .perspective import shift_rows
 
 _SGBM_MODES = {
     "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
@@ -104,17 +107,49 @@ def sgm_disparity(left: np.ndarray, right: np.ndarray, levels: int, config: Conf
     return disparity
 
 
-def match(backend: Backend, left: Any, right: Any, levels: int, config: Config,
-          block_size: int | None = None) -> Any:
-    """SGM on the backend's arrays; returns float32 HxW of the same kind (NaN = invalid)."""
-    disparity = sgm_disparity(to_host(left), to_host(right), levels, config, block_size)
-    return backend.upload(disparity)
+class Matcher:
+    """D1 of a rectified pair on one backend: census SGM or OpenCV SGBM (``config.matcher``;
+    auto = census on the GPU, OpenCV on the CPU). Keeps the GPU buffers between frames."""
+
+    def __init__(self, backend: Backend) -> None:
+        self.backend = backend
+        self._gpu = census_sgm.GpuMatcher(backend) if backend.is_gpu else None
+
+    def kind(self, config: Config) -> str:
+        """census or opencv: what ``config.matcher`` means on this backend."""
+        if config.matcher != "auto":
+            return config.matcher
+        return "census" if self.backend.is_gpu else "opencv"
+
+    def __call__(self, left: Any, right: Any, kappa: Any, levels: int, config: Config,
+                 block_size: int | None = None) -> Any:
+        """D1 (float32 HxW px, NaN invalid) of uint8 HxW images on the backend, matched over
+        kappa(v) + [0, levels) with the int32 (H,) GPT row shifts ``kappa``."""
+        kind = self.kind(config)
+        if kind == "census" and self._gpu is not None:
+            return self._gpu(left, right, kappa, levels, config.census_p1, config.census_p2,
+                             config.sgm_uniqueness_percent, config.lr_max_diff_px,
+                             config.median_filter)
+        left, right, kappa = to_host(left), to_host(right), to_host(kappa)
+        if kind == "census":
+            disparity = census_sgm.reference_disparity(
+                left, right, kappa, levels, config.census_p1, config.census_p2,
+                config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter)
+        else:
+            disparity = sgm_disparity(left, shift_rows(np, right, kappa), levels, config,
+                                      block_size)
+            disparity += kappa[:, None].astype(np.float32)
+            outside = np.arange(left.shape[1], dtype=np.float32)[None, :] - disparity < 0
+            disparity[outside] = np.nan
+        return self.backend.upload(disparity)
 
 
-def downsample(image: np.ndarray, factor: int) -> np.ndarray:
-    """Area-averaged reduction of a uint8 image by an integer factor (H//factor x W//factor)."""
+def downsample(xp: Any, image: Any, factor: int) -> Any:
+    """Area-averaged reduction of a uint8 image by an integer factor (H//factor x W//factor):
+    the block mean rounded half up, the same on both backends."""
     if factor == 1:
         return image
     height, width = image.shape[0] // factor, image.shape[1] // factor
-    return cv2.resize(image[: height * factor, : width * factor], (width, height),
-                      interpolation=cv2.INTER_AREA)
+    crop = image[: height * factor, : width * factor]
+    total = crop.reshape(height, factor, width, factor).sum(axis=(1, 3), dtype=xp.int32)
+    return ((total + factor * factor // 2) // (factor * factor)).astype(xp.uint8)

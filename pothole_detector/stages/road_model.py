@@ -88,16 +88,23 @@ def moments(xp: Any, disparity: Any, mask: Any, u: Any, v: Any) -> np.ndarray:
     """The nine moments (n, Su, Sv, Sd, Suu, Svv, Suv, Sud, Svd) of the masked pixels.
 
     ``disparity`` and ``mask`` are HxW, ``u`` (1xW) and ``v`` (Hx1) the pixel coordinates.
-    One reduction; returns a float64 host array of 9 numbers (the only readback).
+    One matrix product; returns a float64 host array of 9 numbers (the only readback).
     """
-    w = mask.astype(xp.float64)
-    d = xp.where(mask, disparity, 0).astype(xp.float64)
-    wu, wv = w * u, w * v
-    sums = xp.stack([
-        w.sum(), wu.sum(), wv.sum(), d.sum(), (wu * u).sum(), (wv * v).sum(),
-        (wu * v).sum(), (d * u).sum(), (d * v).sum(),
-    ])
-    return to_host(sums).astype(np.float64)
+    return _moments_of(xp, _basis(xp, disparity, u, v), mask)
+
+
+def _basis(xp: Any, disparity: Any, u: Any, v: Any) -> Any:
+    """(N, 4) float64 columns 1, u, v, d (d = 0 where invalid) of an HxW map."""
+    shape = disparity.shape
+    d = xp.where(xp.isfinite(disparity), disparity, 0)
+    return xp.stack([xp.ones(shape), xp.broadcast_to(u, shape), xp.broadcast_to(v, shape), d],
+                    axis=-1).reshape(-1, 4).astype(xp.float64)
+
+
+def _moments_of(xp: Any, basis: Any, mask: Any) -> np.ndarray:
+    second = to_host((basis * mask.reshape(-1, 1)).T @ basis)
+    return np.array([second[0, 0], second[0, 1], second[0, 2], second[0, 3], second[1, 1],
+                     second[2, 2], second[1, 2], second[1, 3], second[2, 3]])
 
 
 def solve_roll(m: np.ndarray) -> tuple[float, float, float, float]:
@@ -136,22 +143,29 @@ def solve_roll(m: np.ndarray) -> tuple[float, float, float, float]:
     return best
 
 
-def _fit_curvature(xp: Any, residual: Any, mask: Any, u: Any, v: Any) -> tuple[float, ...]:
+def _curvature_design(xp: Any, shape: tuple[int, int], u: Any, v: Any) -> Any:
+    """(N, 6) float64 columns 1, x, y, x^2, xy, y^2 with x = u / 1000, y = v / 1000."""
+    x = xp.broadcast_to(u / CURVATURE_SCALE_PX, shape).reshape(-1)
+    y = xp.broadcast_to(v / CURVATURE_SCALE_PX, shape).reshape(-1)
+    return xp.stack([xp.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+
+
+def _fit_curvature(xp: Any, design: Any, residual: Any, mask: Any) -> tuple[float, ...]:
     """Least-squares quadratic q(u, v) of the planar residual over the masked pixels."""
-    x = xp.broadcast_to(u / CURVATURE_SCALE_PX, residual.shape)[mask]
-    y = xp.broadcast_to(v / CURVATURE_SCALE_PX, residual.shape)[mask]
-    design = xp.stack([xp.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
-    normal = to_host(design.T @ design)
-    rhs = to_host(design.T @ residual[mask])
-    return tuple(float(c) for c in np.linalg.lstsq(normal, rhs, rcond=None)[0])
+    weighted = design * mask.reshape(-1, 1)
+    target = xp.where(mask, residual, 0).reshape(-1, 1)
+    system = to_host(weighted.T @ xp.concatenate([design, target], axis=1))
+    return tuple(float(c) for c in np.linalg.lstsq(system[:, :6], system[:, 6], rcond=None)[0])
 
 
-def _robust_sigma(xp: Any, residual: Any, mask: Any) -> float:
-    """1.4826 x median absolute residual of the masked pixels (px)."""
-    values = xp.abs(residual[mask])
-    if values.size == 0:
-        return 0.0
-    return 1.4826 * float(xp.median(values))
+def _robust_sigma(xp: Any, residual: Any, mask: Any) -> Any:
+    """1.4826 x median absolute residual of the masked pixels (px), as a 0-d backend array
+    (0 when nothing is masked); no host readback."""
+    values = xp.sort(xp.where(mask, xp.abs(residual), xp.inf).reshape(-1))
+    count = mask.sum()
+    low = xp.take(values, xp.maximum((count - 1) // 2, 0))
+    high = xp.take(values, xp.minimum(count // 2, values.size - 1))
+    return xp.where(count > 0, 1.4826 * (low + high) / 2, 0.0)
 
 
 def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
@@ -174,9 +188,7 @@ def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
     v = xp.arange(height, dtype=xp.float64)[:, None] * step + coordinate_offset
     d = sub.astype(xp.float64) * coordinate_scale
     valid = xp.isfinite(d)
-    n_valid = int(valid.sum())
-    if n_valid < 3:
-        raise NoRoadError("no valid disparities to fit a road to")
+    basis = _basis(xp, d, u, v)
 
     def robust_rounds(model: RoadModel, refit: Any) -> RoadModel:
         mask = valid
@@ -184,22 +196,24 @@ def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
             model = refit(model, mask)
             residual = d - model.at(xp, u, v)
             sigma = _robust_sigma(xp, residual, mask)
-            mask = valid & (xp.abs(residual) <= outlier_k * max(sigma, 1e-3))
-            if round_index == rounds:
-                return replace(model, inlier_fraction=int(mask.sum()) / n_valid, sigma_px=sigma)
-        raise AssertionError("unreachable")
+            mask = valid & (xp.abs(residual) <= outlier_k * xp.maximum(sigma, 1e-3))
+        inliers, sigma_px, n_valid = to_host(xp.stack(
+            [mask.sum(), sigma, valid.sum()]).astype(xp.float64))
+        return replace(model, inlier_fraction=float(inliers / max(n_valid, 1)),
+                       sigma_px=float(sigma_px))
 
     def refit_planar(model: RoadModel, mask: Any) -> RoadModel:
-        a0, a1, phi, _ = solve_roll(moments(xp, d, mask, u, v))
+        a0, a1, phi, _ = solve_roll(_moments_of(xp, basis, mask))
         return RoadModel(a0, a1, phi)
 
     planar = robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
     if kind == "planar":
         return planar
+    design = _curvature_design(xp, d.shape, u, v)
+    planar_residual = d - planar.at(xp, u, v)
 
     def refit_quadratic(model: RoadModel, mask: Any) -> RoadModel:
-        residual = d - planar.at(xp, u, v)
-        return replace(planar, curvature=_fit_curvature(xp, residual, mask, u, v),
+        return replace(planar, curvature=_fit_curvature(xp, design, planar_residual, mask),
                        kind="quadratic")
 
     quadratic = robust_rounds(planar, refit_quadratic)

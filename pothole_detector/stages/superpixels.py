@@ -3,14 +3,19 @@
 Pixels are clustered on (D2 value, u, v). The image is cut into S x S cells; a centre starts at
 each cell's middle, moved to the lowest gradient of its 3x3 neighbourhood, and each k-means
 iteration compares every pixel with the centres of its own and the eight surrounding cells
-(those whose 2S x 2S windows can cover it). The comparison is written as broadcasts over a
-(cells_y, S, cells_x, S) view, so one body runs on NumPy and CuPy. Invalid pixels (NaN) join
-the spatially nearest centre and do not move centre values.
+(those whose 2S x 2S windows can cover it). On the CPU the comparison is written as
+broadcasts over a (cells_y, S, cells_x, S) view (the reference); on the GPU each iteration is
+two kernels of kernels/slic.cu (assignment, centre update) with the same arithmetic. Invalid
+pixels (NaN) join the spatially nearest centre and do not move centre values.
 """
 
 from __future__ import annotations
 
 from typing import Any
+
+import numpy as np
+
+from ..backend import Backend
 
 
 def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
@@ -23,7 +28,7 @@ def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]
     return means.astype(xp.float32), counts * 2 >= factor * factor
 
 
-def slic(xp: Any, image: Any, valid: Any, region_size: int, compactness: float,
+def slic(backend: Backend, image: Any, valid: Any, region_size: int, compactness: float,
          iterations: int) -> tuple[Any, int]:
     """SLIC labels of an HxW float32 map with HxW bool ``valid``.
 
@@ -31,6 +36,9 @@ def slic(xp: Any, image: Any, valid: Any, region_size: int, compactness: float,
     of S in value units. Returns (int32 HxW labels in [0, n), n); label ``i * cells_x + j``
     belongs to grid cell (i, j), and some labels may be empty.
     """
+    if backend.is_gpu:
+        return _slic_gpu(backend, image, valid, region_size, compactness, iterations)
+    xp = backend.xp
     height, width = image.shape
     step = int(region_size)
     cells_y, cells_x = -(-height // step), -(-width // step)
@@ -95,6 +103,33 @@ def slic(xp: Any, image: Any, valid: Any, region_size: int, compactness: float,
     return labels.reshape(inside.shape)[:height, :width].astype(xp.int32), n_labels
 
 
+def _slic_gpu(backend: Backend, image: Any, valid: Any, region_size: int, compactness: float,
+              iterations: int) -> tuple[Any, int]:
+    xp = backend.xp
+    height, width = image.shape
+    step = int(region_size)
+    cells_y, cells_x = -(-height // step), -(-width // step)
+    n_labels = cells_y * cells_x
+    filled = xp.where(valid, image, 0).astype(xp.float32)
+    valid_bytes = valid.astype(xp.uint8)
+    centre_v, centre_u = _initial_centres(xp, filled, valid, cells_y, cells_x, step)
+    centre_d = filled[centre_v.astype(xp.int32), centre_u.astype(xp.int32)]
+    labels = xp.empty((height, width), dtype=xp.int32)
+    assign = backend.kernel("slic.cu", "slic_assign", {})
+    update = backend.kernel("slic.cu", "slic_update", {})
+    i32 = np.int32
+    grid = ((width + 31) // 32, (height + 7) // 8)
+    for iteration in range(iterations):
+        assign(grid, (32, 8), (filled, valid_bytes, centre_v, centre_u, centre_d, labels,
+                               i32(height), i32(width), i32(step), i32(cells_y), i32(cells_x),
+                               np.float32((compactness / step) ** 2)))
+        if iteration < iterations - 1:
+            update((n_labels,), (256,), (filled, valid_bytes, labels, centre_v, centre_u,
+                                         centre_d, i32(height), i32(width), i32(step),
+                                         i32(cells_x)))
+    return labels, n_labels
+
+
 def _initial_centres(xp: Any, filled: Any, valid: Any, cells_y: int, cells_x: int,
                      step: int) -> tuple[Any, Any]:
     """Cell-middle centres moved to the lowest gradient of their 3x3 neighbourhood;
@@ -115,20 +150,21 @@ def _initial_centres(xp: Any, filled: Any, valid: Any, cells_y: int, cells_x: in
     return v.reshape(-1).astype(xp.float32), u.reshape(-1).astype(xp.float32)
 
 
-def superpixels(xp: Any, transformed: Any, region_size_px: int, compactness: float,
+def superpixels(backend: Backend, transformed: Any, region_size_px: int, compactness: float,
                 iterations: int, downsample: int = 1) -> tuple[Any, int]:
     """SLIC on the transformed map D2 (HxW float32, NaN invalid), optionally on a reduced copy.
 
     ``region_size_px`` is the superpixel grid step in full-resolution pixels. Returns
     (int32 HxW labels, label count).
     """
+    xp = backend.xp
     valid = xp.isfinite(transformed)
     if downsample > 1:
         image, image_valid = _block_mean(xp, transformed, valid, downsample)
     else:
         image, image_valid = transformed, valid
     step = max(2, int(round(region_size_px / downsample)))
-    labels, n_labels = slic(xp, image, image_valid, step, compactness, iterations)
+    labels, n_labels = slic(backend, image, image_valid, step, compactness, iterations)
     if downsample > 1:
         labels = _upsample_labels(xp, labels, downsample, transformed.shape)
     return labels, n_labels

@@ -46,13 +46,16 @@ def histogram_threshold(xp: Any, transformed: Any, bin_px: float,
     i2 = xp.floor((g2 - lo) / bin_px)
     keep = xp.isfinite(i1) & xp.isfinite(i2) & (i1 >= 0) & (i2 >= 0) & (i1 < n_bins) \
         & (i2 < n_bins)
-    index = (i1[keep].astype(xp.int64) * n_bins + i2[keep].astype(xp.int64))
-    a, b = g1[keep].astype(xp.float64), g2[keep].astype(xp.float64)
     size = n_bins * n_bins
+    # pixels left out go to one extra bin past the table, so no masked copy (and no sync)
+    index = xp.where(keep, xp.where(keep, i1, 0) * n_bins + xp.where(keep, i2, 0),
+                     size).astype(xp.int64).ravel()
+    a = xp.where(keep, g1, 0).astype(xp.float64).ravel()
+    b = xp.where(keep, g2, 0).astype(xp.float64).ravel()
 
     def table(weights: Any) -> Any:
-        hist = xp.bincount(index, weights=weights, minlength=size).reshape(n_bins, n_bins)
-        return hist.cumsum(axis=0).cumsum(axis=1)
+        hist = xp.bincount(index, weights=weights, minlength=size + 1)[:size]
+        return hist.reshape(n_bins, n_bins).cumsum(axis=0).cumsum(axis=1)
 
     tables = xp.stack([table(None if w is None else w) for w in (None, a, b, a * a + b * b)])
     diagonal = xp.arange(n_bins - 1)

@@ -1,0 +1,138 @@
+"""GPU speed of the whole pipeline and of each stage (CUDA events), beside OpenCV SGBM.
+
+Frames: the synthetic road at 1280x720 and 1920x1080 and the real 2079x1040 pothole frames
+(fan_potholes layout under --data). Each frame runs with the GPT band and with the full range
+the frame needs without GPT. Prints a Markdown table for docs/benchmarks.md.
+
+    python benchmarks/bench_gpu.py [--frames 100] [--data DIR] [--long 10000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from datetime import date
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pothole_detector.backend import get_backend  # noqa: E402
+from pothole_detector.calibration import StereoCalibration  # noqa: E402
+from pothole_detector.imageio import read_image  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.pipeline import Pipeline  # noqa: E402
+from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E402
+from pothole_detector.stages.perspective import round_up_levels  # noqa: E402
+from pothole_detector.synthetic import demo_scene, render  # noqa: E402
+
+STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure")
+
+
+def frames(data: Path | None, real_count: int):
+    for width, height in ((1280, 720), (1920, 1080)):
+        sample = render(demo_scene(width, height))
+        yield (f"synthetic {width}x{height}", to_gray8(sample.left), to_gray8(sample.right),
+               sample.calibration)
+    if data is None:
+        return
+    for folder in sorted(data.glob("model1_*"))[:real_count]:
+        left, right = to_gray8(read_image(folder / "left.png")), \
+            to_gray8(read_image(folder / "right.png"))
+        calibration = StereoCalibration.from_focal_baseline(1390, 0.1194, left.shape[1],
+                                                            left.shape[0])
+        yield f"real {folder.name} 2079x1040", left, right, calibration
+
+
+def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
+            right: np.ndarray, count: int) -> dict:
+    backend = get_backend("gpu")
+    backend.release_memory()
+    pipeline = Pipeline(config, calibration, backend)
+    for _ in range(5):
+        result = pipeline.run(left, right)
+    runs = []
+    for _ in range(count):
+        result = pipeline.run(left, right)
+        runs.append(result.timings_ms)
+    medians = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    medians["levels"] = result.band[1]
+    medians["range_hi"] = result.disparity_range[1]
+    medians["memory_mib"] = backend.memory_bytes() / 2**20
+    medians["potholes"] = len(result.potholes)
+    return medians
+
+
+def opencv_ms(left: np.ndarray, right: np.ndarray, levels: int, threads: int) -> float:
+    cv2.setNumThreads(threads)
+    config = Config({"lr_max_diff_px": -1, "speckle_window_px": 0, "median_filter": False})
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        sgm_disparity(left, right, levels, config)
+        times.append((time.perf_counter() - start) * 1e3)
+    return float(np.median(times))
+
+
+def long_run(count: int) -> str:
+    sample = render(demo_scene(1280, 720))
+    backend = get_backend("gpu")
+    pipeline = Pipeline(Config(), sample.calibration, backend)
+    left, right = to_gray8(sample.left), to_gray8(sample.right)
+    for _ in range(100):
+        pipeline.run(left, right)
+    before = backend.memory_bytes()
+    start = time.perf_counter()
+    for _ in range(count):
+        pipeline.run(left, right)
+    seconds = time.perf_counter() - start
+    after = backend.memory_bytes()
+    return (f"{count} frames at 1280x720 in {seconds:.1f} s: device pool {before / 2**20:.1f} "
+            f"MiB after 100 frames, {after / 2**20:.1f} MiB after {count} more")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data"
+                        / "fan_potholes")
+    parser.add_argument("--real", type=int, default=2, help="real frames to time")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--long", type=int, default=0, help="frames of the memory-growth run")
+    args = parser.parse_args()
+    import cupy  # the benchmark's own device query; the package imports CuPy in backend.py
+    device = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
+    print(f"GPU benchmark, {date.today()}, {device}, CuPy {cupy.__version__}, "
+          f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores; median "
+          f"over {args.frames} frames after 5 warm-up frames (same pair each frame, road model "
+          "carried over as in a drive). Stage and total: CUDA events, ms; host: wall time of "
+          f"Pipeline.run, ms. OpenCV SGBM 3WAY on {args.threads} threads, same frame, no LR "
+          "check.\n")
+    print("| frame | range | levels | " + " | ".join(STAGES)
+          + " | total GPU | host | pool MiB | OpenCV SGBM | SGBM / our SGM | SGBM / pipeline |")
+    print("| --- |" + " --- |" * (len(STAGES) + 10))
+    data = args.data if args.data.is_dir() else None
+    for name, left, right, calibration in frames(data, args.real):
+        band = measure(Config(), calibration, left, right, args.frames)
+        full_levels = round_up_levels(band["range_hi"] + 1)
+        full_config = Config({"gpt_enabled": False, "max_disparity_px": full_levels})
+        full = measure(full_config, calibration, left, right, args.frames)
+        sgbm = opencv_ms(left, right, full_levels, args.threads)
+        for label, row in (("GPT band", band), ("full", full)):
+            print(f"| {name} | {label} | {row['levels']} | "
+                  + " | ".join(f"{row.get(s, 0.0):.3f}" for s in STAGES)
+                  + f" | {row['total']:.3f} | {row['host']:.2f} | {row['memory_mib']:.0f} | "
+                  + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / row['sgm']:.0f}x | "
+                  + f"{sgbm / row['total']:.0f}x |", flush=True)
+    if args.long:
+        print("\n" + long_run(args.long))
+
+
+if __name__ == "__main__":
+    main()

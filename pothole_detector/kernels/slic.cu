@@ -1,0 +1,84 @@
+// SLIC on the device: the assignment and the centre update of stages/superpixels.slic, whose
+// NumPy loop is the reference. Distances use the reference's float32 operation order with
+// rounded intrinsics (no fused multiply-add), so labels agree with the CPU.
+
+#define FAR_CENTRE 1e9f
+
+// One thread per pixel: the nearest of the centres of its own and the eight surrounding cells.
+extern "C" __global__ void slic_assign(const float* filled, const unsigned char* valid,
+                                       const float* centre_v, const float* centre_u,
+                                       const float* centre_d, int* labels, int height,
+                                       int width, int step, int cells_y, int cells_x,
+                                       float spatial_weight) {
+    const int c = blockIdx.x * blockDim.x + threadIdx.x;
+    const int r = blockIdx.y * blockDim.y + threadIdx.y;
+    if (c >= width || r >= height) return;
+    const int i = r / step, j = c / step;
+    const float value = filled[r * width + c];
+    const float weight = valid[r * width + c] ? 1.0f : 0.0f;
+    float best = __int_as_float(0x7f800000);
+    int choice = 0;
+#pragma unroll
+    for (int k = 0; k < 9; ++k) {
+        const int ni = i + k / 3 - 1, nj = j + k % 3 - 1;
+        float cv = FAR_CENTRE, cu = FAR_CENTRE, cd = 0.0f;
+        if (ni >= 0 && ni < cells_y && nj >= 0 && nj < cells_x) {
+            const int index = ni * cells_x + nj;
+            cv = centre_v[index]; cu = centre_u[index]; cd = centre_d[index];
+        }
+        float dd = __fsub_rn(value, cd);
+        dd = __fmul_rn(__fmul_rn(dd, dd), weight);
+        const float dv = __fsub_rn((float)r, cv), du = __fsub_rn((float)c, cu);
+        const float spatial = __fadd_rn(__fmul_rn(dv, dv), __fmul_rn(du, du));
+        const float distance = __fadd_rn(dd, __fmul_rn(spatial_weight, spatial));
+        if (distance < best) { best = distance; choice = k; }
+    }
+    labels[r * width + c] = (i + choice / 3 - 1) * cells_x + (j + choice % 3 - 1);
+}
+
+// One block per centre: sums over the pixels of the 3x3 cells around it that chose it, then
+// the new centre (position: mean of its pixels; value: mean of its valid pixels).
+extern "C" __global__ void __launch_bounds__(256)
+slic_update(const float* filled, const unsigned char* valid, const int* labels,
+            float* centre_v, float* centre_u, float* centre_d, int height, int width, int step,
+            int cells_x) {
+    __shared__ double partial[5][256];
+    const int label = blockIdx.x;
+    const int ci = label / cells_x, cj = label % cells_x;
+    const int r0 = max((ci - 1) * step, 0), r1 = min((ci + 2) * step, height);
+    const int c0 = max((cj - 1) * step, 0), c1 = min((cj + 2) * step, width);
+    const int span = c1 - c0;
+    double count = 0.0, count_valid = 0.0, sum_v = 0.0, sum_u = 0.0, sum_d = 0.0;
+    for (int p = threadIdx.x; p < (r1 - r0) * span; p += blockDim.x) {
+        const int r = r0 + p / span, c = c0 + p % span;
+        const int index = r * width + c;
+        if (labels[index] != label) continue;
+        count += 1.0;
+        sum_v += r;
+        sum_u += c;
+        if (valid[index]) {
+            count_valid += 1.0;
+            sum_d += (double)filled[index];
+        }
+    }
+    partial[0][threadIdx.x] = count;
+    partial[1][threadIdx.x] = count_valid;
+    partial[2][threadIdx.x] = sum_v;
+    partial[3][threadIdx.x] = sum_u;
+    partial[4][threadIdx.x] = sum_d;
+    __syncthreads();
+    for (int stride = blockDim.x / 2; stride > 0; stride >>= 1) {
+        if (threadIdx.x < stride) {
+#pragma unroll
+            for (int q = 0; q < 5; ++q) partial[q][threadIdx.x] += partial[q][threadIdx.x + stride];
+        }
+        __syncthreads();
+    }
+    if (threadIdx.x == 0) {
+        if (partial[0][0] > 0.0) {
+            centre_v[label] = (float)(partial[2][0] / partial[0][0]);
+            centre_u[label] = (float)(partial[3][0] / partial[0][0]);
+        }
+        if (partial[1][0] > 0.0) centre_d[label] = (float)(partial[4][0] / partial[1][0]);
+    }
+}

@@ -1,0 +1,253 @@
+"""Census semi-global matching: the GPU matcher, with its NumPy reference.
+
+The algorithm, the same on both backends to the integer disparity:
+
+1. Centre-symmetric census over a 9x7 window (31 bits, edge-clamped): bit i of pixel (v, u)
+   says whether I(v + dy_i, u + dx_i) > I(v - dy_i, u - dx_i) for the 31 offsets with
+   dy > 0, or dy = 0 and dx > 0.
+2. Matching cost of left pixel (v, u) at level d against the right pixel u - d - kappa(v)
+   (kappa: the GPT row shift, so the perspective transformation needs no shifted image):
+   the Hamming distance of the two census words, or 31 where that pixel lies left of the
+   image.
+3. Eight path costs L_r(p, d) = C(p, d) + min(L_r(q, d), L_r(q, d -+ 1) + P1,
+   min_k L_r(q, k) + P2) - min_k L_r(q, k), q the predecessor of p along r; pixels whose
+   predecessor lies outside the image start with L_r = C. Each path cost fits a byte
+   (C <= 31, P2 <= 224).
+4. S = sum of the eight; winner d* = the smallest d of least S. Invalid when a level more than
+   one from d* comes within the uniqueness margin (100 S(d*) >= (100 - U) S(d)), when d* points
+   left of the image, or when the right view's winner at u - d* (least S(u - d* + d, d) over d,
+   smallest d on ties) differs from d* by more than the left-right tolerance. Subpixel:
+   d* + (S(d*-1) - S(d*+1)) / (2 max(S(d*-1) + S(d*+1) - 2 S(d*), 1)) inside the band.
+5. 3x3 median (edge-replicated, invalid = -1 takes part), then the census border is invalid,
+   kappa is added back and pixels whose match falls left of the image are invalid.
+
+Disparities are float32 px, NaN where invalid.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..backend import Backend
+from ..errors import ConfigError
+
+CENSUS_RADIUS_Y, CENSUS_RADIUS_X = 3, 4
+CENSUS_OFFSETS: tuple[tuple[int, int], ...] = tuple(
+    (dy, dx) for dy in range(CENSUS_RADIUS_Y + 1)
+    for dx in range(-CENSUS_RADIUS_X, CENSUS_RADIUS_X + 1) if dy > 0 or dx > 0)
+CENSUS_BITS = len(CENSUS_OFFSETS)
+INVALID_COST = CENSUS_BITS
+BORDER_Y, BORDER_X = CENSUS_RADIUS_Y + 1, CENSUS_RADIUS_X + 1
+# (dx, dy) of the eight path directions, in the order of the kernels' blockIdx.y.
+DIRECTIONS: tuple[tuple[int, int], ...] = (
+    (1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, 1), (1, -1), (-1, -1))
+MAX_P2 = 255 - CENSUS_BITS
+_OUTSIDE = np.int32(1 << 20)
+
+
+def census_transform(image: np.ndarray) -> np.ndarray:
+    """uint32 HxW census words of a uint8 HxW image (NumPy reference)."""
+    height, width = image.shape
+    ry, rx = CENSUS_RADIUS_Y, CENSUS_RADIUS_X
+    padded = np.pad(image, ((ry, ry), (rx, rx)), mode="edge")
+    words = np.zeros((height, width), dtype=np.uint32)
+    for bit, (dy, dx) in enumerate(CENSUS_OFFSETS):
+        ahead = padded[ry + dy:ry + dy + height, rx + dx:rx + dx + width]
+        behind = padded[ry - dy:ry - dy + height, rx - dx:rx - dx + width]
+        words |= (ahead > behind).astype(np.uint32) << np.uint32(bit)
+    return words
+
+
+def matching_cost(census_left: np.ndarray, census_right: np.ndarray, kappa: np.ndarray,
+                  levels: int) -> np.ndarray:
+    """int32 HxWxD Hamming costs of left (v, u) against right (v, u - d - kappa(v))."""
+    height, width = census_left.shape
+    source = np.arange(width)[None, :, None] - np.arange(levels)[None, None, :] \
+        - kappa.astype(np.int64)[:, None, None]
+    inside = source >= 0
+    rows = np.arange(height)[:, None, None]
+    right = census_right[rows, np.maximum(source, 0)]
+    cost = np.bitwise_count(census_left[:, :, None] ^ right).astype(np.int32)
+    return np.where(inside, cost, np.int32(INVALID_COST))
+
+
+def _path_step(cost: np.ndarray, previous: np.ndarray, p1: int, p2: int) -> np.ndarray:
+    """One step of the path recurrence for N pixels: cost and previous are int32 (N, D)."""
+    least = previous.min(axis=1, keepdims=True)
+    lower = np.full_like(previous, _OUTSIDE)
+    lower[:, 1:] = previous[:, :-1]
+    upper = np.full_like(previous, _OUTSIDE)
+    upper[:, :-1] = previous[:, 1:]
+    best = np.minimum(np.minimum(previous, np.minimum(lower, upper) + p1), least + p2)
+    return cost + best - least
+
+
+def aggregate_path(cost: np.ndarray, dx: int, dy: int, p1: int, p2: int) -> np.ndarray:
+    """int32 HxWxD path cost L_r along direction (dx, dy) (NumPy reference)."""
+    height, width, _ = cost.shape
+    paths = np.empty_like(cost)
+    if dy == 0:
+        columns = range(width) if dx > 0 else range(width - 1, -1, -1)
+        for index, u in enumerate(columns):
+            paths[:, u] = cost[:, u] if index == 0 else \
+                _path_step(cost[:, u], paths[:, u - dx], p1, p2)
+        return paths
+    rows = range(height) if dy > 0 else range(height - 1, -1, -1)
+    for index, v in enumerate(rows):
+        if index == 0:
+            paths[v] = cost[v]
+            continue
+        previous = paths[v - dy]
+        if dx == 0:
+            paths[v] = _path_step(cost[v], previous, p1, p2)
+        elif dx > 0:
+            paths[v, 0] = cost[v, 0]
+            paths[v, 1:] = _path_step(cost[v, 1:], previous[:-1], p1, p2)
+        else:
+            paths[v, -1] = cost[v, -1]
+            paths[v, :-1] = _path_step(cost[v, :-1], previous[1:], p1, p2)
+    return paths
+
+
+def aggregate(cost: np.ndarray, p1: int, p2: int) -> np.ndarray:
+    """uint8 8xHxWxD path costs in the order of DIRECTIONS (NumPy reference)."""
+    return np.stack([aggregate_path(cost, dx, dy, p1, p2).astype(np.uint8)
+                     for dx, dy in DIRECTIONS])
+
+
+def select_disparities(paths: np.ndarray, uniqueness_percent: int,
+                       lr_max_diff_px: int) -> np.ndarray:
+    """float32 HxW winner-take-all disparity with subpixel offset, -1 where invalid
+    (uniqueness, left of the image, left-right check), from uint8 8xHxWxD path costs."""
+    total = paths.sum(axis=0, dtype=np.int32)
+    height, width, levels = total.shape
+    best = total.argmin(axis=2)
+    least = np.take_along_axis(total, best[..., None], axis=2)[..., 0]
+    far = np.abs(np.arange(levels)[None, None, :] - best[..., None]) > 1
+    second = np.where(far, total, _OUTSIDE).min(axis=2)
+    unique = (uniqueness_percent == 0) | (second == _OUTSIDE) \
+        | (100 * least < (100 - uniqueness_percent) * second)
+    below = np.take_along_axis(total, np.maximum(best - 1, 0)[..., None], axis=2)[..., 0]
+    above = np.take_along_axis(total, np.minimum(best + 1, levels - 1)[..., None], axis=2)[..., 0]
+    denominator = np.maximum(below + above - 2 * least, 1)
+    offset = (below - above).astype(np.float32) / (np.float32(2) * denominator.astype(np.float32))
+    inner = (best > 0) & (best < levels - 1)
+    disparity = best.astype(np.float32) + np.where(inner, offset, np.float32(0))
+    target = np.arange(width)[None, :] - best
+    valid = unique & (target >= 0)
+    if lr_max_diff_px >= 0:
+        column = np.arange(width)[:, None] + np.arange(levels)[None, :]
+        rows = np.arange(height)[:, None, None]
+        right_total = np.where(column[None] < width,
+                               total[rows, np.minimum(column, width - 1)[None],
+                                     np.arange(levels)[None, None, :]], _OUTSIDE)
+        right_best = right_total.argmin(axis=2)
+        partner = np.take_along_axis(right_best, np.maximum(target, 0), axis=1)
+        valid &= np.abs(partner - best) <= lr_max_diff_px
+    return np.where(valid, disparity, np.float32(-1)).astype(np.float32)
+
+
+def finish(raw: np.ndarray, kappa: np.ndarray, median: bool) -> np.ndarray:
+    """D1 (float32 HxW px, NaN invalid) from the raw D0 (-1 invalid): median, census border,
+    kappa added back, matches left of the image dropped (NumPy reference)."""
+    height, width = raw.shape
+    if median:
+        padded = np.pad(raw, 1, mode="edge")
+        stack = np.stack([padded[a:a + height, b:b + width] for a in range(3) for b in range(3)])
+        raw = np.sort(stack, axis=0)[4]
+    disparity = raw + kappa.astype(np.float32)[:, None]
+    invalid = (raw < 0) | (np.arange(width, dtype=np.float32)[None, :] - disparity < 0)
+    invalid[:BORDER_Y] = invalid[height - BORDER_Y:] = True
+    invalid[:, :BORDER_X] = invalid[:, width - BORDER_X:] = True
+    return np.where(invalid, np.float32(np.nan), disparity).astype(np.float32)
+
+
+def reference_disparity(left: np.ndarray, right: np.ndarray, kappa: np.ndarray, levels: int,
+                        p1: int, p2: int, uniqueness_percent: int, lr_max_diff_px: int,
+                        median: bool) -> np.ndarray:
+    """The whole census SGM in NumPy on uint8 HxW images; float32 HxW D1 (px, NaN invalid).
+    Slow (seconds per megapixel): for tests and for checking the GPU matcher."""
+    check_settings(left.shape, levels, p1, p2)
+    cost = matching_cost(census_transform(left), census_transform(right), kappa, levels)
+    raw = select_disparities(aggregate(cost, p1, p2), uniqueness_percent, lr_max_diff_px)
+    return finish(raw, kappa, median)
+
+
+def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> None:
+    """Raise ConfigError for settings the matcher cannot run."""
+    if levels < 16 or levels % 16:
+        raise ConfigError(f"census SGM needs a positive multiple of 16 levels, got {levels}")
+    if not 0 <= p1 < p2 <= MAX_P2:
+        raise ConfigError(f"census SGM needs 0 <= P1 < P2 <= {MAX_P2}, got P1={p1}, P2={p2}")
+    if len(shape) != 2 or min(shape) < 1:
+        raise ConfigError(f"census SGM needs a non-empty HxW image, got shape {shape}")
+
+
+class GpuMatcher:
+    """Census SGM on the device with buffers kept per (height, width, levels).
+
+    Kernels come from kernels/sgm.cu, built once per level count. Memory: 8 bytes per pixel
+    and level for the path costs, plus 12 bytes per pixel.
+    """
+
+    THREADS = 256
+
+    def __init__(self, backend: Backend) -> None:
+        if not backend.is_gpu:
+            raise ConfigError("GpuMatcher needs the gpu backend")
+        self.backend = backend
+        self._buffers: dict[tuple[int, int, int], dict[str, Any]] = {}
+
+    def _kernels(self, levels: int) -> dict[str, Any]:
+        lanes = 32 if levels % 32 == 0 and levels >= 128 else 16
+        defines = {"LEVELS": levels, "LANES": lanes, "CENSUS_RY": CENSUS_RADIUS_Y,
+                   "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
+                   "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X}
+        names = ("census_pair", "sgm_paths", "sgm_select", "sgm_finish")
+        return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
+            | {"lanes": lanes}
+
+    def _buffers_for(self, height: int, width: int, levels: int) -> dict[str, Any]:
+        key = (height, width, levels)
+        if key not in self._buffers:
+            xp = self.backend.xp
+            self._buffers.clear()
+            self._buffers[key] = {
+                "census": xp.empty((2, height, width), dtype=xp.uint32),
+                "paths": xp.empty((8, height, width, levels), dtype=xp.uint8),
+                "raw": xp.empty((height, width), dtype=xp.float32),
+            }
+        return self._buffers[key]
+
+    def __call__(self, left: Any, right: Any, kappa: Any, levels: int, p1: int, p2: int,
+                 uniqueness_percent: int, lr_max_diff_px: int, median: bool,
+                 out: Any | None = None) -> Any:
+        """D1 (float32 HxW px, NaN invalid) of device uint8 HxW images, int32 (H,) kappa."""
+        height, width = left.shape
+        check_settings(left.shape, levels, p1, p2)
+        xp = self.backend.xp
+        kernels = self._kernels(levels)
+        buffers = self._buffers_for(height, width, levels)
+        census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
+        if out is None:
+            out = xp.empty((height, width), dtype=xp.float32)
+        i32 = np.int32
+        kernels["census_pair"](((width + 31) // 32, (height + 7) // 8, 2), (32, 8, 1),
+                               (left, right, census[0], census[1], i32(height), i32(width)))
+        lines = max(height, width + height - 1)
+        groups = self.THREADS // kernels["lanes"]
+        kernels["sgm_paths"](((lines + groups - 1) // groups, 8), (self.THREADS,),
+                             (census[0], census[1], kappa, paths, i32(height), i32(width),
+                              i32(p1), i32(p2)))
+        shared = 4 * (2 * width + groups * levels)
+        select = kernels["sgm_select"]
+        if shared > 48 * 1024:
+            select.max_dynamic_shared_size_bytes = shared
+        select((height,), (self.THREADS,),
+               (paths, raw, i32(height), i32(width), i32(uniqueness_percent),
+                i32(lr_max_diff_px)), shared_mem=shared)
+        kernels["sgm_finish"](((width + 31) // 32, (height + 7) // 8), (32, 8),
+                              (raw, kappa, out, i32(height), i32(width), i32(bool(median))))
+        return out

@@ -1,0 +1,92 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pothole_detector.errors import ConfigError
+from pothole_detector.stages import census_sgm
+from pothole_detector.stages.census_sgm import (
+    CENSUS_BITS, CENSUS_OFFSETS, INVALID_COST, _path_step, aggregate_path, census_transform,
+    matching_cost, reference_disparity, select_disparities)
+
+
+def textured_pair(height: int, width: int, shift: np.ndarray, seed: int = 0):
+    """Random texture and its right view: right(v, x) = left(v, x + shift(v))."""
+    rng = np.random.default_rng(seed)
+    wide = rng.integers(0, 256, (height, width + int(shift.max())), dtype=np.uint8)
+    left = np.ascontiguousarray(wide[:, :width])
+    right = np.stack([wide[v, shift[v]:shift[v] + width] for v in range(height)])
+    return left, np.ascontiguousarray(right)
+
+
+def test_census_of_a_ramp_sets_exactly_the_rightward_bits():
+    image = np.tile(np.arange(40, dtype=np.uint8) * 3, (12, 1))
+    words = census_transform(image)
+    expected = sum(1 << i for i, (dy, dx) in enumerate(CENSUS_OFFSETS) if dx > 0)
+    assert CENSUS_BITS == 31
+    assert (words[:, 4:-4] == expected).all()
+
+
+def test_cost_is_zero_at_the_true_shift_and_invalid_left_of_the_image():
+    left, right = textured_pair(10, 50, np.full(10, 6))
+    cost = matching_cost(census_transform(left), census_transform(right), np.zeros(10, int), 16)
+    assert (cost[4:-4, 20:-5, 6] == 0).all()
+    assert (cost[4:-4, 20:-5, 5] > 3).mean() > 0.9
+    assert (cost[:, 3, 4:] == INVALID_COST).all()
+
+
+def test_path_step_known_answer():
+    previous = np.array([[0, 10, 10]], np.int32)
+    cost = np.full((1, 3), 5, np.int32)
+    np.testing.assert_array_equal(_path_step(cost, previous, 1, 3), [[5, 6, 8]])
+
+
+def test_path_starts_where_the_predecessor_is_outside():
+    cost = np.random.default_rng(1).integers(0, 31, (5, 7, 16)).astype(np.int32)
+    for dx, dy in census_sgm.DIRECTIONS:
+        paths = aggregate_path(cost, dx, dy, 3, 20)
+        start_u = 0 if dx > 0 else 6
+        start_v = 0 if dy > 0 else 4
+        if dx:
+            np.testing.assert_array_equal(paths[:, start_u], cost[:, start_u])
+        if dy:
+            np.testing.assert_array_equal(paths[start_v], cost[start_v])
+        assert (paths >= cost).all() and (paths <= cost + 20).all()
+
+
+@pytest.mark.parametrize("with_gpt", [False, True])
+def test_reference_recovers_a_road_like_shift_with_gpt_row_shifts(with_gpt):
+    """Disparity grows by one every 6 rows, like a road; GPT's kappa follows it."""
+    height, width = 24, 64
+    true_shift = 9 + np.arange(height) // 6
+    left, right = textured_pair(height, width, true_shift, seed=2)
+    kappa = np.arange(height) // 6 if with_gpt else np.zeros(height, int)
+    disparity = reference_disparity(left, right, kappa, 16, 7, 86, 5, 1, True)
+    error = np.abs(disparity - true_shift[:, None])[6:-6, 24:-8]
+    assert np.isfinite(error).mean() > 0.9
+    assert np.nanmedian(error) < 0.2 and np.nanmean(error > 1.0) < 0.02
+    assert np.isnan(disparity[:, :9]).all()
+
+
+def test_uniqueness_and_left_right_check_invalidate():
+    total = np.full((1, 4, 16), 100, np.uint8)
+    total[0, :, 5] = 10
+    paths = np.zeros((8, 1, 4, 16), np.uint8)
+    paths[0] = total
+    # every pixel picks 5; pixels 0..4 point left of the image
+    raw = select_disparities(paths, 5, 1)
+    assert (raw[0, :] == -1).all()
+    wide = np.full((8, 1, 20, 16), 12, np.uint8)
+    wide[:, :, :, 5] = 10
+    ambiguous = select_disparities(wide, 25, -1)
+    assert (ambiguous[0, 6:] == -1).all()
+    clear = select_disparities(wide, 5, -1)
+    assert (clear[0, 6:] == 5).all()
+
+
+def test_settings_the_matcher_cannot_run_are_refused():
+    image = np.zeros((8, 8), np.uint8)
+    with pytest.raises(ConfigError, match="multiple of 16"):
+        reference_disparity(image, image, np.zeros(8, int), 24, 5, 50, 5, 1, True)
+    with pytest.raises(ConfigError, match="P1 < P2"):
+        reference_disparity(image, image, np.zeros(8, int), 16, 50, 250, 5, 1, True)
