@@ -72,9 +72,7 @@ class Backend:
         the source text and the defines). GPU backend only."""
         if not self.is_gpu:
             raise BackendError(f"kernel {name} needs the gpu backend")
-        text = (KERNEL_DIR / source).read_text()
-        digest = hashlib.sha1(text.encode()).hexdigest()
-        return _module(source, digest, tuple(sorted(defines.items()))).get_function(name)
+        return _kernel(source, _source_digest(source), tuple(sorted(defines.items())), name)
 
     def memory_bytes(self) -> int:
         """Device memory held by the backend's allocator (bytes; 0 on the CPU backend)."""
@@ -137,12 +135,24 @@ class StageClock:
 CPU = Backend("cpu", np, scipy.ndimage)
 
 
+@lru_cache(maxsize=None)
+def _source_digest(source: str) -> str:
+    """sha1 of kernels/``source``, read once per process."""
+    return hashlib.sha1((KERNEL_DIR / source).read_bytes()).hexdigest()
+
+
 @lru_cache(maxsize=64)
 def _module(source: str, digest: str, defines: tuple[tuple[str, int], ...]) -> Any:
     """A compiled RawModule of kernels/``source`` (digest: sha1 of its text, part of the key)."""
     assert _cupy is not None
     options = ("--std=c++17",) + tuple(f"-D{key}={value}" for key, value in defines)
     return _cupy.RawModule(code=(KERNEL_DIR / source).read_text(), options=options)
+
+
+@lru_cache(maxsize=256)
+def _kernel(source: str, digest: str, defines: tuple[tuple[str, int], ...], name: str) -> Any:
+    """Kernel ``name`` of the module built from kernels/``source`` with ``defines``."""
+    return _module(source, digest, defines).get_function(name)
 
 
 def gpu_available() -> bool:

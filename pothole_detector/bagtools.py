@@ -475,7 +475,8 @@ def read_messages(bag: str | Path, topics: Iterable[str] | None = None
 
 
 
-def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]], namespace: str = "/stereo",
+def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
+                     namespace: str = "/stereo",
                      frame_id: str = "stereo_left_optical_frame", storage: str = "mcap",
                      ground_truth: bool = True) -> int:
     """Write (stamp ns, StereoSample) frames as a stereo bag: ``left/image_rect``,

@@ -190,7 +190,8 @@ def run_record(args: argparse.Namespace) -> int:
     from .bagtools import record
     counts = record(args.out, args.topics, storage=args.storage, duration=args.duration,
                     reliability=args.qos)
-    print(", ".join(f"{topic}: {count}" for topic, count in counts.items()) + f"; wrote {args.out}")
+    summary = ", ".join(f"{topic}: {count}" for topic, count in counts.items())
+    print(f"{summary}; wrote {args.out}")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The one parameter table: ROS parameter descriptors, config/*.yaml and the CLI all come from it."""
+"""The one parameter table: ROS parameter descriptors, config/*.yaml and the CLI come from it."""
 
 from __future__ import annotations
 
@@ -125,7 +125,8 @@ PARAMETERS: tuple[Param, ...] = (
           "SLIC m: a spatial distance of S weighs like m px of transformed disparity.", 0.01, 100),
     Param("slic_iterations", int, 6, "Fixed number of SLIC k-means iterations.", 1, 50),
     Param("slic_downsample", int, 2,
-          "SLIC runs on the transformed map reduced by this factor; labels are scaled back.", 1, 8),
+          "SLIC runs on the transformed map reduced by this factor; labels are scaled back.",
+          1, 8),
     # threshold and selection
     Param("histogram_bin_px", float, 0.25, "Bin width of the 2D histogram (px).", 0.01, 10),
     Param("threshold_reference", str, "road_mean",

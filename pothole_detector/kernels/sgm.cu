@@ -7,6 +7,10 @@
 #define PER_LANE (LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
 
+// (dx, dy) of the eight path directions: census_sgm.DIRECTIONS.
+__constant__ int DIRECTION_DX[8] = {1, -1, 0, 0, 1, -1, 1, -1};
+__constant__ int DIRECTION_DY[8] = {0, 0, 1, -1, 1, 1, -1, -1};
+
 __device__ __forceinline__ unsigned group_mask() {
     return LANES == 32 ? 0xffffffffu : (0xffffu << (threadIdx.x & 16));
 }
@@ -60,9 +64,7 @@ extern "C" __global__ void __launch_bounds__(256)
 sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* kappa,
           unsigned char* paths, int height, int width, int p1, int p2) {
     const int direction = blockIdx.y;
-    const int dx = direction == 0 || direction == 4 || direction == 6 ? 1
-                 : (direction == 2 || direction == 3 ? 0 : -1);
-    const int dy = direction < 2 ? 0 : (direction == 2 || direction == 4 || direction == 5 ? 1 : -1);
+    const int dx = DIRECTION_DX[direction], dy = DIRECTION_DY[direction];
     const int sub = threadIdx.x % LANES;
     const int line = blockIdx.x * (blockDim.x / LANES) + threadIdx.x / LANES;
     int u, v, lines;

@@ -70,7 +70,8 @@ slic_update(const float* filled, const unsigned char* valid, const int* labels,
     for (int stride = blockDim.x / 2; stride > 0; stride >>= 1) {
         if (threadIdx.x < stride) {
 #pragma unroll
-            for (int q = 0; q < 5; ++q) partial[q][threadIdx.x] += partial[q][threadIdx.x + stride];
+            for (int q = 0; q < 5; ++q)
+                partial[q][threadIdx.x] += partial[q][threadIdx.x + stride];
         }
         __syncthreads();
     }

@@ -199,8 +199,14 @@ class GpuMatcher:
             raise ConfigError("GpuMatcher needs the gpu backend")
         self.backend = backend
         self._buffers: dict[tuple[int, int, int], dict[str, Any]] = {}
+        self._kernel_sets: dict[int, dict[str, Any]] = {}
 
     def _kernels(self, levels: int) -> dict[str, Any]:
+        if levels not in self._kernel_sets:
+            self._kernel_sets[levels] = self._build_kernels(levels)
+        return self._kernel_sets[levels]
+
+    def _build_kernels(self, levels: int) -> dict[str, Any]:
         lanes = 32 if levels % 32 == 0 and levels >= 128 else 16
         defines = {"LEVELS": levels, "LANES": lanes, "CENSUS_RY": CENSUS_RADIUS_Y,
                    "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
@@ -222,8 +228,7 @@ class GpuMatcher:
         return self._buffers[key]
 
     def __call__(self, left: Any, right: Any, kappa: Any, levels: int, p1: int, p2: int,
-                 uniqueness_percent: int, lr_max_diff_px: int, median: bool,
-                 out: Any | None = None) -> Any:
+                 uniqueness_percent: int, lr_max_diff_px: int, median: bool) -> Any:
         """D1 (float32 HxW px, NaN invalid) of device uint8 HxW images, int32 (H,) kappa."""
         height, width = left.shape
         check_settings(left.shape, levels, p1, p2)
@@ -231,8 +236,7 @@ class GpuMatcher:
         kernels = self._kernels(levels)
         buffers = self._buffers_for(height, width, levels)
         census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
-        if out is None:
-            out = xp.empty((height, width), dtype=xp.float32)
+        out = xp.empty((height, width), dtype=xp.float32)
         i32 = np.int32
         kernels["census_pair"](((width + 31) // 32, (height + 7) // 8, 2), (32, 8, 1),
                                (left, right, census[0], census[1], i32(height), i32(width)))

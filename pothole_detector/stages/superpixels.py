@@ -40,11 +40,10 @@ def slic(backend: Backend, image: Any, valid: Any, region_size: int, compactness
         return _slic_gpu(backend, image, valid, region_size, compactness, iterations)
     xp = backend.xp
     height, width = image.shape
-    step = int(region_size)
-    cells_y, cells_x = -(-height // step), -(-width // step)
+    step, cells_y, cells_x, filled, centre_v, centre_u, centre_d = _start(
+        xp, image, valid, region_size)
     n_labels = cells_y * cells_x
     pad_h, pad_w = cells_y * step - height, cells_x * step - width
-    filled = xp.where(valid, image, 0).astype(xp.float32)
     padded = xp.pad(filled, ((0, pad_h), (0, pad_w)), mode="edge")
     padded_valid = xp.pad(valid, ((0, pad_h), (0, pad_w)))
     blocks = padded.reshape(cells_y, step, cells_x, step)
@@ -53,8 +52,6 @@ def slic(backend: Backend, image: Any, valid: Any, region_size: int, compactness
     cols = xp.arange(cells_x * step, dtype=xp.float32).reshape(1, 1, cells_x, step)
     spatial_weight = xp.float32((compactness / step) ** 2)
 
-    centre_v, centre_u = _initial_centres(xp, filled, valid, cells_y, cells_x, step)
-    centre_d = filled[centre_v.astype(xp.int32), centre_u.astype(xp.int32)]
     inside = xp.zeros((cells_y * step, cells_x * step), dtype=bool)
     inside[:height, :width] = True
     inside_flat = inside.ravel()
@@ -103,17 +100,26 @@ def slic(backend: Backend, image: Any, valid: Any, region_size: int, compactness
     return labels.reshape(inside.shape)[:height, :width].astype(xp.int32), n_labels
 
 
+def _start(xp: Any, image: Any, valid: Any, region_size: int) -> tuple[Any, ...]:
+    """What both SLIC implementations start from: (step, cells_y, cells_x, the map with 0 at
+    invalid pixels, and the initial centres' row, column and value, float32 (cells,))."""
+    height, width = image.shape
+    step = int(region_size)
+    cells_y, cells_x = -(-height // step), -(-width // step)
+    filled = xp.where(valid, image, 0).astype(xp.float32)
+    centre_v, centre_u = _initial_centres(xp, filled, valid, cells_y, cells_x, step)
+    centre_d = filled[centre_v.astype(xp.int32), centre_u.astype(xp.int32)]
+    return step, cells_y, cells_x, filled, centre_v, centre_u, centre_d
+
+
 def _slic_gpu(backend: Backend, image: Any, valid: Any, region_size: int, compactness: float,
               iterations: int) -> tuple[Any, int]:
     xp = backend.xp
     height, width = image.shape
-    step = int(region_size)
-    cells_y, cells_x = -(-height // step), -(-width // step)
+    step, cells_y, cells_x, filled, centre_v, centre_u, centre_d = _start(
+        xp, image, valid, region_size)
     n_labels = cells_y * cells_x
-    filled = xp.where(valid, image, 0).astype(xp.float32)
     valid_bytes = valid.astype(xp.uint8)
-    centre_v, centre_u = _initial_centres(xp, filled, valid, cells_y, cells_x, step)
-    centre_d = filled[centre_v.astype(xp.int32), centre_u.astype(xp.int32)]
     labels = xp.empty((height, width), dtype=xp.int32)
     assign = backend.kernel("slic.cu", "slic_assign", {})
     update = backend.kernel("slic.cu", "slic_update", {})

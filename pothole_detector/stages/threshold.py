@@ -47,11 +47,11 @@ def histogram_threshold(xp: Any, transformed: Any, bin_px: float,
     keep = xp.isfinite(i1) & xp.isfinite(i2) & (i1 >= 0) & (i2 >= 0) & (i1 < n_bins) \
         & (i2 < n_bins)
     size = n_bins * n_bins
-    # pixels left out go to one extra bin past the table, so no masked copy (and no sync)
-    index = xp.where(keep, xp.where(keep, i1, 0) * n_bins + xp.where(keep, i2, 0),
-                     size).astype(xp.int64).ravel()
-    a = xp.where(keep, g1, 0).astype(xp.float64).ravel()
-    b = xp.where(keep, g2, 0).astype(xp.float64).ravel()
+    # pixels left out (NaN ones too) go to one extra bin past the table, dropped after the
+    # count: no masked copy and no sync
+    index = xp.where(keep, i1 * n_bins + i2, size).astype(xp.int64).ravel()
+    a = g1.astype(xp.float64).ravel()
+    b = g2.astype(xp.float64).ravel()
 
     def table(weights: Any) -> Any:
         hist = xp.bincount(index, weights=weights, minlength=size + 1)[:size]
