@@ -60,10 +60,13 @@ class Backend:
             return arrays
         sizes = [a.nbytes for a in arrays]
         offsets = np.concatenate([[0], np.cumsum([-(-n // 16) * 16 for n in sizes])])
-        staging = np.empty(int(offsets[-1]), dtype=np.uint8)
+        staging, copied = _pinned_staging(int(offsets[-1]))
+        copied.synchronize()
         for array, start, size in zip(arrays, offsets, sizes):
             staging[start:start + size] = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
-        device = self.xp.asarray(staging)
+        device = self.xp.empty(staging.shape, dtype=np.uint8)
+        device.set(staging, stream=self.xp.cuda.get_current_stream())
+        copied.record()
         return tuple(device[start:start + size].view(a.dtype).reshape(a.shape)
                      for a, start, size in zip(arrays, offsets, sizes))
 
@@ -133,6 +136,18 @@ class StageClock:
 
 
 CPU = Backend("cpu", np, scipy.ndimage)
+
+
+@lru_cache(maxsize=4)
+def _pinned_staging(nbytes: int) -> tuple[np.ndarray, Any]:
+    """A page-locked host buffer of ``nbytes`` (uploads from it run at full bus speed and
+    asynchronously) and the event recorded after its last copy, kept per size."""
+    assert _cupy is not None
+    memory = _cupy.cuda.alloc_pinned_memory(max(nbytes, 1))
+    buffer = np.frombuffer(memory, dtype=np.uint8, count=nbytes)
+    event = _cupy.cuda.Event(block=False, disable_timing=True)
+    event.record()
+    return buffer, event
 
 
 @lru_cache(maxsize=None)

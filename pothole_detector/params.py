@@ -80,8 +80,8 @@ PARAMETERS: tuple[Param, ...] = (
           "reference on the CPU), opencv (OpenCV SGBM, on the host), or auto (census on the "
           "GPU, opencv on the CPU).", choices=("auto", "census", "opencv")),
     Param("census_p1", int, 3, "Census SGM penalty for |dd| = 1 (census bits: 0 .. 31); low "
-          "penalties keep pothole rims sharp.", 0, 200),
-    Param("census_p2", int, 20, "Census SGM penalty for |dd| > 1 (> census_p1).", 1, 224),
+          "penalties keep pothole rims sharp.", 0, 95),
+    Param("census_p2", int, 20, "Census SGM penalty for |dd| > 1 (> census_p1).", 1, 96),
     Param("sgm_block_size", int, 5, "Matching block size (px, odd).", 1, 11),
     Param("sgm_p1", int, 8, "SGM penalty for |dd| = 1, per block pixel (OpenCV: x block area).",
           0, 1000),

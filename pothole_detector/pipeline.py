@@ -97,10 +97,11 @@ class Pipeline:
             sp_labels, n_sp = superpixels.superpixels(
                 backend, transformed, config.slic_region_size_px, config.slic_compactness,
                 config.slic_iterations, config.slic_downsample)
-            sp_means, sp_valid = superpixels.superpixel_means(xp, transformed, sp_labels, n_sp)
+            sp_means, sp_valid = superpixels.superpixel_means(backend, transformed, sp_labels,
+                                                              n_sp)
         with clock.stage("threshold"):
             t_r, road_mean = thresholding.histogram_threshold(
-                xp, transformed, config.histogram_bin_px, config.delta_dt_px)
+                backend, transformed, config.histogram_bin_px, config.delta_dt_px)
             reference = road_mean if config.threshold_reference == "road_mean" else t_r
             selected = self._select(sp_labels, n_sp, sp_means, sp_valid, reference, road)
         with clock.stage("components"):
@@ -175,8 +176,8 @@ class Pipeline:
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
         config = self.config
-        return road_model.fit_road(
-            self.backend.xp, disparity, stride=stride, rounds=config.road_fit_rounds,
+        return road_model.fit(
+            self.backend, disparity, stride=stride, rounds=config.road_fit_rounds,
             outlier_k=config.road_outlier_k, kind=config.road_model,
             quadratic_gain=config.road_quadratic_gain, coordinate_scale=scale,
             coordinate_offset=(scale - 1.0) / 2.0)

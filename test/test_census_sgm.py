@@ -6,8 +6,8 @@ import pytest
 from pothole_detector.errors import ConfigError
 from pothole_detector.stages import census_sgm
 from pothole_detector.stages.census_sgm import (
-    CENSUS_BITS, CENSUS_OFFSETS, INVALID_COST, _path_step, aggregate_path, census_transform,
-    matching_cost, reference_disparity, select_disparities)
+    CENSUS_BITS, CENSUS_OFFSETS, DIRECTION_PAIRS, INVALID_COST, MAX_P2, _path_step, aggregate,
+    aggregate_path, census_transform, matching_cost, reference_disparity, select_disparities)
 
 
 def textured_pair(height: int, width: int, shift: np.ndarray, seed: int = 0):
@@ -90,3 +90,38 @@ def test_settings_the_matcher_cannot_run_are_refused():
         reference_disparity(image, image, np.zeros(8, int), 24, 5, 50, 5, 1, True)
     with pytest.raises(ConfigError, match="P1 < P2"):
         reference_disparity(image, image, np.zeros(8, int), 16, 50, 250, 5, 1, True)
+
+
+def test_path_costs_stay_within_the_byte_pair_bound():
+    """Each path cost is at most INVALID_COST + P2, so two opposite paths fit one byte at
+    P2 = MAX_P2 (what the GPU matcher's four volumes rely on)."""
+    rng = np.random.default_rng(11)
+    left = rng.integers(0, 256, (16, 40), dtype=np.uint8)
+    right = rng.integers(0, 256, (16, 40), dtype=np.uint8)
+    cost = matching_cost(census_transform(left), census_transform(right), np.zeros(16, int), 16)
+    paths = aggregate(cost, 0, MAX_P2).astype(np.int32)
+    assert paths.max() <= INVALID_COST + MAX_P2 == 127
+    assert paths.max() > INVALID_COST + MAX_P2 // 2
+    for a, b in DIRECTION_PAIRS:
+        assert (paths[a] + paths[b]).max() <= 255
+
+
+def test_textureless_patches_are_invalid_and_textured_ones_are_not():
+    left, right = textured_pair(40, 90, np.full(40, 6), seed=4)
+    left[10:30, 40:70] = 120
+    right[10:30, 34:64] = 120
+    disparity = reference_disparity(left, right, np.zeros(40, int), 16, 3, 20, 5, 1, True)
+    # windows (9x7) that lie inside the flat patch, and their 3x3 neighbourhoods
+    assert not np.isfinite(disparity[15:25, 46:64]).any()
+    textured = disparity[5:35, 10:30]
+    assert np.isfinite(textured).mean() > 0.9
+    assert np.nanmedian(textured) == 6
+
+
+def test_lanes_leave_at_most_16_levels_each_in_whole_words_where_possible():
+    for levels in range(16, 513, 16):
+        lanes = census_sgm.lanes_for(levels)
+        assert lanes in (4, 8, 16, 32) and levels % lanes == 0
+        if levels <= 256:
+            assert levels // lanes <= 16
+    assert [census_sgm.lanes_for(n) for n in (16, 64, 96, 128, 384)] == [4, 4, 8, 8, 32]

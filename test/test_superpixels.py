@@ -45,7 +45,7 @@ def test_downsampled_labels_cover_the_full_image():
     image, disc = disc_image(97, 131)
     labels, n = superpixels(CPU, image, 16, 2.0, 6, downsample=2)
     assert labels.shape == image.shape
-    means, valid = superpixel_means(np, image, labels, n)
+    means, valid = superpixel_means(CPU, image, labels, n)
     inside = means[np.unique(labels[40:60, 50:70])]
     assert np.all(inside < 26)
 
@@ -53,7 +53,7 @@ def test_downsampled_labels_cover_the_full_image():
 def test_means_ignore_invalid_pixels():
     image = np.array([[1.0, np.nan], [3.0, 5.0]], np.float32)
     labels = np.array([[0, 0], [1, 1]])
-    means, valid = superpixel_means(np, image, labels, 3)
+    means, valid = superpixel_means(CPU, image, labels, 3)
     np.testing.assert_allclose(means[:2], [1.0, 4.0])
     assert np.isnan(means[2])
     np.testing.assert_allclose(valid, [0.5, 1.0, 0.0])

@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pothole_detector.backend import CPU
 from pothole_detector.stages.threshold import (histogram_threshold, neighbour_mean,
                                                select_superpixels)
 
@@ -37,7 +38,7 @@ def test_neighbour_mean_known_answer():
 
 def test_threshold_splits_pothole_from_road_and_reports_road_mean():
     image = two_level_map()
-    t_r, road_mean = histogram_threshold(np, image, 0.25, 32.0)
+    t_r, road_mean = histogram_threshold(CPU, image, 0.25, 32.0)
     assert 21.0 < t_r < 31.0
     assert abs(road_mean - 32.0) < 0.1
 
@@ -45,14 +46,14 @@ def test_threshold_splits_pothole_from_road_and_reports_road_mean():
 def test_cumulative_search_equals_brute_force():
     image = two_level_map()
     image[60:80, 10:30] = 26.0
-    t_r, _ = histogram_threshold(np, image, 0.5, 32.0)
+    t_r, _ = histogram_threshold(CPU, image, 0.5, 32.0)
     g2 = neighbour_mean(np, image)
     candidates = np.arange(15.0, 35.0, 0.5)
     assert abs(brute_force_threshold(image, g2, candidates) - t_r) <= 0.5
 
 
 def test_one_cluster_gives_nan():
-    t_r, road_mean = histogram_threshold(np, np.full((20, 20), 32.0, np.float32), 0.25, 32.0)
+    t_r, road_mean = histogram_threshold(CPU, np.full((20, 20), 32.0, np.float32), 0.25, 32.0)
     assert np.isnan(t_r) and np.isnan(road_mean)
 
 

@@ -1,8 +1,10 @@
 // Census semi-global matching on the device. Algorithm and reference:
-// pothole_detector/stages/census_sgm.py. Compile-time: LEVELS (multiple of LANES), LANES (16 or
-// 32 threads per path line / per pixel), CENSUS_RY, CENSUS_RX, INVALID_COST, BORDER_Y,
-// BORDER_X. Path costs: uint8 [8][H][W][LEVELS]; thread `sub` of a group holds levels
-// sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1.
+// pothole_detector/stages/census_sgm.py. Compile-time: LEVELS (a multiple of LANES), LANES (4
+// to 32 threads per path line and per pixel in sgm_select), CENSUS_RY, CENSUS_RX,
+// INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8 [4][H][W][LEVELS], slot s holding the
+// sum of the directions FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most
+// INVALID_COST + P2 <= 127, so a pair fits a byte). In sgm_paths lane `sub` of a group holds
+// levels sub + LANES k; in sgm_select levels sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1.
 
 #define PER_LANE (LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
@@ -10,15 +12,41 @@
 // (dx, dy) of the eight path directions: census_sgm.DIRECTIONS.
 __constant__ int DIRECTION_DX[8] = {1, -1, 0, 0, 1, -1, 1, -1};
 __constant__ int DIRECTION_DY[8] = {0, 0, 1, -1, 1, 1, -1, -1};
+// Directions of the first pass (written) and of the second (added to the same slot). Slots 0
+// and 1 (horizontal, then vertical walks) and slots 2 and 3 (diagonals) are independent, so
+// the host runs them on two streams.
+__constant__ int FIRST_PASS[4] = {0, 1, 4, 5};
+__constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 
+template <int N>
 __device__ __forceinline__ unsigned group_mask() {
-    return LANES == 32 ? 0xffffffffu : (0xffffu << (threadIdx.x & 16));
+    return N == 32 ? 0xffffffffu : ((1u << N) - 1u) << (threadIdx.x & (32 - N));
 }
 
+// PER_LANE consecutive path bytes of one lane (sgm_select): 32-bit accesses when PER_LANE is a
+// multiple of 4 (the lane's bytes then start on a 4-byte boundary), single bytes otherwise.
+// Path bytes are written once and read once per pass, so they go through the cache as
+// streaming data (evict first), which leaves L2 to the census words every step reads.
+__device__ __forceinline__ void load_bytes(const unsigned char* cell,
+                                           unsigned char (&bytes)[PER_LANE]) {
+#if PER_LANE % 4 == 0
+#pragma unroll
+    for (int w = 0; w < PER_LANE / 4; ++w) {
+        const unsigned word = __ldcs(reinterpret_cast<const unsigned*>(cell) + w);
+#pragma unroll
+        for (int b = 0; b < 4; ++b) bytes[4 * w + b] = (unsigned char)(word >> (8 * b));
+    }
+#else
+#pragma unroll
+    for (int k = 0; k < PER_LANE; ++k) bytes[k] = __ldcs(cell + k);
+#endif
+}
+
+template <int N>
 __device__ __forceinline__ int group_min(int value, unsigned mask) {
 #pragma unroll
-    for (int offset = LANES / 2; offset > 0; offset >>= 1)
-        value = min(value, __shfl_xor_sync(mask, value, offset, LANES));
+    for (int offset = N / 2; offset > 0; offset >>= 1)
+        value = min(value, __shfl_xor_sync(mask, value, offset, N));
     return value;
 }
 
@@ -58,12 +86,49 @@ extern "C" __global__ void census_pair(const unsigned char* left, const unsigned
     out[v * width + u] = bits;
 }
 
-// blockIdx.y: direction (dx, dy) in the order of census_sgm.DIRECTIONS; each group of LANES
-// threads walks one line of that direction from where it enters the image.
+#define PREFETCH_STEPS 3
+
+// What one path step reads: the left census word, the right census words of the lane's
+// levels, the lane's first candidate column `start` and, in pass 1, the earlier path sums.
+struct StepData {
+    unsigned left;
+    unsigned right[PER_LANE];
+    unsigned char old[PER_LANE];
+    int start;
+};
+
+// Loads of one path step at (u, v): the left census word, the right census words of this
+// lane's levels sub + LANES k (0 where left of the image; start = u - kappa(v) - sub) and, in
+// pass 1, the path sums written by pass 0. Lanes of a group read consecutive words and bytes.
+__device__ __forceinline__ void load_step(const unsigned* census_left,
+                                          const unsigned* census_right, const int* row_shift,
+                                          const unsigned char* out, int width, int u, int v,
+                                          int sub, int pass, StepData& data) {
+    data.left = __ldg(census_left + v * width + u);
+    const int start = u - row_shift[v] - sub;
+    data.start = start;
+    const unsigned* right_row = census_right + (size_t)v * width;
+#pragma unroll
+    for (int k = 0; k < PER_LANE; ++k)
+        data.right[k] = start - LANES * k >= 0 ? __ldg(right_row + start - LANES * k) : 0u;
+    if (pass == 1) {
+        const unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
+#pragma unroll
+        for (int k = 0; k < PER_LANE; ++k) data.old[k] = __ldcs(cell + LANES * k);
+    }
+}
+
+// Slot first_slot + blockIdx.y; the direction is FIRST_PASS[slot] in pass 0 (path costs
+// written) and SECOND_PASS[slot] in pass 1 (added). Each group of LANES threads walks one line
+// of that direction from where it enters the image; lane `sub` holds levels sub + LANES k
+// (interleaved, so the group's loads and stores of one k are contiguous).
 extern "C" __global__ void __launch_bounds__(256)
 sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* kappa,
-          unsigned char* paths, int height, int width, int p1, int p2) {
-    const int direction = blockIdx.y;
+          unsigned char* paths, int height, int width, int p1, int p2, int pass,
+          int first_slot) {
+    extern __shared__ int row_shift[];
+    const int slot = first_slot + blockIdx.y;
+    const int direction = pass == 0 ? FIRST_PASS[slot] : SECOND_PASS[slot];
     const int dx = DIRECTION_DX[direction], dy = DIRECTION_DY[direction];
     const int sub = threadIdx.x % LANES;
     const int line = blockIdx.x * (blockDim.x / LANES) + threadIdx.x / LANES;
@@ -81,32 +146,47 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
             u = dx > 0 ? 0 : width - 1; v = dy > 0 ? along : height - 1 - along;
         }
     }
+    for (int i = threadIdx.x; i < height; i += blockDim.x) row_shift[i] = kappa[i];
+    __syncthreads();
     if (line >= lines) return;
-    const unsigned mask = group_mask();
-    unsigned char* out = paths + (size_t)direction * height * width * LEVELS;
+    const unsigned mask = group_mask<LANES>();
+    unsigned char* out = paths + (size_t)slot * height * width * LEVELS + sub;
+    // census words (and, in pass 1, path sums) are loaded PREFETCH_STEPS steps ahead, into
+    // one of PREFETCH_STEPS register sets used in turn
+    auto inside = [&](int x, int y) { return x >= 0 && x < width && y >= 0 && y < height; };
+    StepData sets[PREFETCH_STEPS];
+#pragma unroll
+    for (int s = 0; s < PREFETCH_STEPS; ++s)
+        if (inside(u + s * dx, v + s * dy))
+            load_step(census_left, census_right, row_shift, out, width, u + s * dx, v + s * dy,
+                      sub, pass, sets[s]);
     int previous[PER_LANE];
     int previous_min = 0;
     bool first = true;
-    while (u >= 0 && u < width && v >= 0 && v < height) {
-        const unsigned left_bits = census_left[v * width + u];
-        const unsigned* right_row = census_right + (size_t)v * width;
-        const int start = u - kappa[v] - sub * PER_LANE;
+    auto advance = [&](StepData& data) -> bool {
+        const StepData here = data;
+        if (inside(u + PREFETCH_STEPS * dx, v + PREFETCH_STEPS * dy))
+            load_step(census_left, census_right, row_shift, out, width, u + PREFETCH_STEPS * dx,
+                      v + PREFETCH_STEPS * dy, sub, pass, data);
         int current[PER_LANE];
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k) {
-            const int x = start - k;
-            current[k] = x >= 0 ? __popc(left_bits ^ right_row[x]) : INVALID_COST;
-        }
+        for (int k = 0; k < PER_LANE; ++k)
+            current[k] = here.start - LANES * k >= 0 ? __popc(here.left ^ here.right[k])
+                                                     : INVALID_COST;
         if (!first) {
-            int below = __shfl_up_sync(mask, previous[PER_LANE - 1], 1, LANES);
-            int above = __shfl_down_sync(mask, previous[0], 1, LANES);
-            if (sub == 0) below = OUTSIDE_COST;
-            if (sub == LANES - 1) above = OUTSIDE_COST;
             const int jump = previous_min + p2;
+            const int left_lane = (sub + LANES - 1) % LANES, right_lane = (sub + 1) % LANES;
 #pragma unroll
             for (int k = 0; k < PER_LANE; ++k) {
-                const int lower = k == 0 ? below : previous[k - 1];
-                const int upper = k == PER_LANE - 1 ? above : previous[k + 1];
+                // level d - 1: lane sub - 1, or the last lane's previous register for lane 0
+                const int give_lower = sub == LANES - 1 && k > 0 ? previous[k - 1] : previous[k];
+                int lower = __shfl_sync(mask, give_lower, left_lane, LANES);
+                if (sub == 0 && k == 0) lower = OUTSIDE_COST;
+                // level d + 1: lane sub + 1, or lane 0's next register for the last lane
+                const int give_upper = sub == 0 && k < PER_LANE - 1 ? previous[k + 1]
+                                                                    : previous[k];
+                int upper = __shfl_sync(mask, give_upper, right_lane, LANES);
+                if (sub == LANES - 1 && k == PER_LANE - 1) upper = OUTSIDE_COST;
                 const int best = min(min(previous[k], min(lower, upper) + p1), jump);
                 current[k] += best - previous_min;
             }
@@ -114,21 +194,26 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
         int local = current[0];
 #pragma unroll
         for (int k = 1; k < PER_LANE; ++k) local = min(local, current[k]);
-        previous_min = group_min(local, mask);
-        unsigned char* cell = out + ((size_t)v * width + u) * LEVELS + sub * PER_LANE;
+        previous_min = group_min<LANES>(local, mask);
+        unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) {
-            cell[k] = (unsigned char)current[k];
+            const int stored = pass == 0 ? current[k] : here.old[k] + current[k];
+            __stcs(reinterpret_cast<char*>(cell) + LANES * k, (char)stored);
             previous[k] = current[k];
         }
         first = false;
         u += dx;
         v += dy;
+        return inside(u, v);
+    };
+    while (advance(sets[0]) && advance(sets[1]) && advance(sets[2])) {
     }
 }
 
-// One block per row. Winner, uniqueness, subpixel, the right view's winners (shared-memory
-// atomicMin of cost << 16 | d per right column) and the left-right check. raw: D0, -1 invalid.
+// One block per row. Sum of the four slots, winner, uniqueness, subpixel, the right view's
+// winners (shared-memory atomicMin of cost << 16 | d per right column) and the left-right
+// check. raw: D0, -1 invalid.
 extern "C" __global__ void __launch_bounds__(256)
 sgm_select(const unsigned char* paths, float* raw, int height, int width, int uniqueness,
            int lr_max_diff) {
@@ -140,7 +225,7 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
     const int sub = threadIdx.x % LANES;
     unsigned* totals = shared + 2 * width + group * LEVELS;
     const int v = blockIdx.x;
-    const unsigned mask = group_mask();
+    const unsigned mask = group_mask<LANES>();
     const size_t plane = (size_t)height * width * LEVELS;
     for (int x = threadIdx.x; x < width; x += blockDim.x) right_best[x] = 0xffffffffu;
     __syncthreads();
@@ -150,9 +235,11 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) total[k] = 0;
 #pragma unroll
-        for (int direction = 0; direction < 8; ++direction) {
+        for (int slot = 0; slot < 4; ++slot) {
+            unsigned char bytes[PER_LANE];
+            load_bytes(paths + slot * plane + cell, bytes);
 #pragma unroll
-            for (int k = 0; k < PER_LANE; ++k) total[k] += paths[direction * plane + cell + k];
+            for (int k = 0; k < PER_LANE; ++k) total[k] += bytes[k];
         }
         unsigned packed = 0xffffffffu;
 #pragma unroll
@@ -199,9 +286,12 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
 }
 
 // 3x3 median (edge-replicated; -1 = invalid takes part), census border, kappa added back,
-// matches left of the image dropped. out: D1, NaN invalid.
-extern "C" __global__ void sgm_finish(const float* raw, const int* kappa, float* out,
-                                      int height, int width, int median) {
+// matches left of the image dropped, and textureless pixels: a zero left census word here and
+// at the 8 neighbours (edge-replicated).
+// out: D1, NaN invalid.
+extern "C" __global__ void sgm_finish(const float* raw, const unsigned* census_left,
+                                      const int* kappa, float* out, int height, int width,
+                                      int median) {
     const int u = blockIdx.x * blockDim.x + threadIdx.x;
     const int v = blockIdx.y * blockDim.y + threadIdx.y;
     if (u >= width || v >= height) return;
@@ -229,6 +319,14 @@ extern "C" __global__ void sgm_finish(const float* raw, const int* kappa, float*
     const float disparity = value + (float)kappa[v];
     const bool border = v < BORDER_Y || v >= height - BORDER_Y || u < BORDER_X
                         || u >= width - BORDER_X;
-    const bool invalid = value < 0.0f || (float)u - disparity < 0.0f || border;
+    bool textureless = true;
+#pragma unroll
+    for (int a = -1; a <= 1; ++a)
+#pragma unroll
+        for (int b = -1; b <= 1; ++b)
+            textureless = textureless
+                          && census_left[clamp_index(v + a, height) * width
+                                         + clamp_index(u + b, width)] == 0u;
+    const bool invalid = value < 0.0f || (float)u - disparity < 0.0f || border || textureless;
     out[v * width + u] = invalid ? __int_as_float(0x7fc00000) : disparity;
 }

@@ -83,3 +83,85 @@ slic_update(const float* filled, const unsigned char* valid, const int* labels,
         if (partial[1][0] > 0.0) centre_d[label] = (float)(partial[4][0] / partial[1][0]);
     }
 }
+
+// One thread per cell: the cell-middle centre (clamped to the image) moved to the lowest
+// gradient (dv^2 + du^2 of central differences, edge-replicated; invalid pixels never win) of
+// its 3x3 neighbourhood, first in raster order on ties; its value is filled at the new centre.
+extern "C" __global__ void slic_start(const float* filled, const unsigned char* valid,
+                                      float* centre_v, float* centre_u, float* centre_d,
+                                      int height, int width, int step, int cells_y,
+                                      int cells_x) {
+    const int cell = blockIdx.x * blockDim.x + threadIdx.x;
+    if (cell >= cells_y * cells_x) return;
+    const int v0 = min((cell / cells_x) * step + step / 2, height - 1);
+    const int u0 = min((cell % cells_x) * step + step / 2, width - 1);
+    float best = 0.0f;
+    int best_v = 0, best_u = 0;
+    for (int k = 0; k < 9; ++k) {
+        const int v = min(max(v0 + k / 3 - 1, 0), height - 1);
+        const int u = min(max(u0 + k % 3 - 1, 0), width - 1);
+        float gradient = __int_as_float(0x7f800000);
+        if (valid[v * width + u]) {
+            const float du = __fsub_rn(filled[v * width + min(u + 1, width - 1)],
+                                       filled[v * width + max(u - 1, 0)]);
+            const float dv = __fsub_rn(filled[min(v + 1, height - 1) * width + u],
+                                       filled[max(v - 1, 0) * width + u]);
+            gradient = __fadd_rn(__fmul_rn(du, du), __fmul_rn(dv, dv));
+        }
+        if (k == 0 || gradient < best) {
+            best = gradient;
+            best_v = v;
+            best_u = u;
+        }
+    }
+    centre_v[cell] = (float)best_v;
+    centre_u[cell] = (float)best_u;
+    centre_d[cell] = filled[best_v * width + best_u];
+}
+
+// Per-superpixel count, valid count and sum of valid values of an HxW float32 map (NaN
+// invalid), float64 sums[n][3]; each warp adds once per distinct label among its pixels.
+extern "C" __global__ void superpixel_sums(const float* image, const int* labels, long long size,
+                                           double* sums) {
+    const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const bool inside = index < size;
+    const int label = inside ? labels[index] : -1;
+    const float value = inside ? image[index] : 0.0f;
+    const bool valid = inside && (__float_as_uint(value) & 0x7f800000u) != 0x7f800000u;
+    const int lane = threadIdx.x & 31;
+    unsigned remaining = __ballot_sync(0xffffffffu, inside);
+    while (remaining) {
+        const int leader = __ffs(remaining) - 1;
+        const int target = __shfl_sync(0xffffffffu, label, leader);
+        const bool mine = inside && label == target;
+        remaining &= ~__ballot_sync(0xffffffffu, mine);
+        double count = mine ? 1.0 : 0.0;
+        double count_valid = mine && valid ? 1.0 : 0.0;
+        double total = mine && valid ? (double)value : 0.0;
+#pragma unroll
+        for (int offset = 16; offset > 0; offset >>= 1) {
+            count += __shfl_down_sync(0xffffffffu, count, offset);
+            count_valid += __shfl_down_sync(0xffffffffu, count_valid, offset);
+            total += __shfl_down_sync(0xffffffffu, total, offset);
+        }
+        const double group_count = __shfl_sync(0xffffffffu, count, 0);
+        const double group_valid = __shfl_sync(0xffffffffu, count_valid, 0);
+        const double group_total = __shfl_sync(0xffffffffu, total, 0);
+        if (lane == leader) {
+            atomicAdd(&sums[target * 3], group_count);
+            atomicAdd(&sums[target * 3 + 1], group_valid);
+            atomicAdd(&sums[target * 3 + 2], group_total);
+        }
+    }
+}
+
+// Mean of the valid values (NaN where none) and valid fraction per superpixel, float32.
+extern "C" __global__ void superpixel_finish(const double* sums, float* mean, float* fraction,
+                                             int n) {
+    const int label = blockIdx.x * blockDim.x + threadIdx.x;
+    if (label >= n) return;
+    const double count = sums[label * 3], count_valid = sums[label * 3 + 1];
+    mean[label] = count_valid > 0.0 ? (float)(sums[label * 3 + 2] / count_valid)
+                                    : __int_as_float(0x7fc00000);
+    fraction[label] = (float)(count_valid / fmax(count, 1.0));
+}

@@ -48,6 +48,10 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
     count = int(count)
     if count == 0:
         return components.astype(xp.int32), 0
+    if backend.is_gpu:
+        keep = _filters_gpu(backend, components, valid, superpixel_labels, n_superpixels,
+                            count, corner_fraction, min_superpixels)
+        return relabel(xp, components, keep)
     keep = xp.ones(count + 1, dtype=bool)
     keep[0] = False
     touched = components[corner_mask(xp, valid, corner_fraction)]
@@ -65,3 +69,31 @@ def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:
     new_ids = xp.cumsum(keep).astype(xp.int32) * keep
     kept = int(to_host(keep.sum()))
     return new_ids[labels].astype(xp.int32), kept
+
+
+def _filters_gpu(backend: Backend, components: Any, valid: Any, superpixel_labels: Any,
+                 n_superpixels: int, count: int, corner_fraction: float,
+                 min_superpixels: int) -> Any:
+    """Bool (count + 1,) keep flags of pothole_components by two kernels
+    (kernels/components.cu): per-row valid span, then one pass marking corner contact and
+    the superpixels present in each component."""
+    xp = backend.xp
+    height, width = components.shape
+    i32 = np.int32
+    first = xp.empty(height, dtype=xp.int32)
+    last = xp.empty(height, dtype=xp.int32)
+    backend.kernel("components.cu", "row_extents", {})(
+        ((height + 7) // 8,), (256,),
+        (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
+    touched = xp.zeros(count + 1, dtype=xp.uint8)
+    present = xp.zeros((count + 1, n_superpixels), dtype=xp.uint8)
+    side = int(round(corner_fraction * min(height, width)))
+    size = height * width
+    backend.kernel("components.cu", "component_marks", {})(
+        ((size + 255) // 256,), (256,),
+        (xp.ascontiguousarray(components, dtype=xp.int32),
+         xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last, i32(height),
+         i32(width), i32(side), i32(n_superpixels), touched, present))
+    keep = (touched == 0) & (present.sum(axis=1, dtype=xp.int32) >= min_superpixels)
+    keep[0] = False
+    return keep

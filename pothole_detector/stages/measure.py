@@ -72,6 +72,9 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
     table."""
     if count == 0:
         return []
+    if backend.is_gpu:
+        return _potholes_from_table(_table_gpu(backend, labels, count, disparity, model,
+                                               calibration))
     xp, ndimage = backend.xp, backend.ndimage
     rows, cols = xp.nonzero(labels > 0)
     label = labels[rows, cols]
@@ -98,8 +101,14 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
         extreme(ndimage.minimum, cols), extreme(ndimage.minimum, rows),
         extreme(ndimage.maximum, cols), extreme(ndimage.maximum, rows),
     ], axis=1)
+    return _potholes_from_table(to_host(table))
+
+
+def _potholes_from_table(table: np.ndarray) -> list[Pothole]:
+    """Potholes from the (count, 12) table: pixels, area, valid area, depth x area, largest
+    depth, x, y, z x area, u min, v min, u max, v max."""
     potholes = []
-    for label_id, row in enumerate(to_host(table), start=1):
+    for label_id, row in enumerate(table, start=1):
         pixels, area, area_valid, depth_area, max_depth = row[:5]
         mean_depth = depth_area / area_valid if area_valid > 0 else float("nan")
         centroid = tuple(float(c / area_valid) if area_valid > 0 else float("nan")
@@ -112,3 +121,36 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
             bbox_px=tuple(int(c) for c in row[8:12]),  # type: ignore[arg-type]
         ))
     return potholes
+
+
+def _table_gpu(backend: Backend, labels: Any, count: int, disparity: Any, model: RoadModel,
+               calibration: StereoCalibration) -> np.ndarray:
+    """The (count, 12) table of measure_potholes by one pass of kernels/measure.cu over the
+    label image (per-warp sums, atomics per label); one readback."""
+    xp = backend.xp
+    height, width = labels.shape
+    sums_bytes = (count + 1) * 7 * 8
+    buffer = xp.empty(sums_bytes + (count + 1) * 5 * 4, dtype=xp.uint8)
+    sums = buffer[:sums_bytes].view(xp.float64)
+    extremes = buffer[sums_bytes:].view(xp.int32)
+    backend.kernel("measure.cu", "measure_reset", {})(
+        ((count + 256) // 256,), (256,), (sums, extremes, np.int32(count)))
+    normal = road_normal(model, calibration)
+    curvature = model.curvature if model.kind != "planar" else (0.0,) * 6
+    pixels = height * width
+    f64 = np.float64
+    backend.kernel("measure.cu", "measure_potholes", {})(
+        ((pixels + 255) // 256,), (256,),
+        (xp.ascontiguousarray(labels, dtype=xp.int32),
+         xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
+         f64(calibration.f), f64(calibration.cx), f64(calibration.cy), f64(calibration.fb),
+         *(f64(c) for c in normal), f64(model.a0), f64(model.a1),
+         f64(math.cos(model.roll_rad)), f64(math.sin(model.roll_rad)),
+         *(f64(c) for c in curvature), sums, extremes))
+    host = to_host(buffer)
+    sums_host = host[:sums_bytes].view(np.float64).reshape(count + 1, 7)[1:]
+    extremes_host = host[sums_bytes:].view(np.int32).reshape(count + 1, 5)[1:]
+    bits = extremes_host[:, 0]
+    largest = np.where(bits >= 0, bits, bits ^ np.int32(0x7FFFFFFF)).view(np.float32)
+    return np.column_stack([sums_host[:, :4], largest.astype(np.float64), sums_host[:, 4:7],
+                            extremes_host[:, 1:].astype(np.float64)])

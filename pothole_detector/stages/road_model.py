@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..backend import to_host
+from ..backend import Backend, to_host
 from ..errors import NoRoadError
 
 # Coordinates of the quadratic correction are divided by this (px), for conditioning.
@@ -220,3 +220,64 @@ def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
     if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
         return planar
     return quadratic
+
+
+def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
+        outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
+        coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
+    """:func:`fit_road` on ``backend``: on the GPU every round runs in one launch of one
+    8-block cluster (kernels/road.cu) with one readback of 15 numbers; on the CPU it is
+    fit_road."""
+    if not backend.is_gpu:
+        return fit_road(backend.xp, disparity, stride=stride, rounds=rounds,
+                        outlier_k=outlier_k, kind=kind, quadratic_gain=quadratic_gain,
+                        coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset)
+    xp = backend.xp
+    sub = xp.ascontiguousarray(disparity[::stride, ::stride], dtype=xp.float32)
+    height, width = sub.shape
+    tables = _coordinate_tables(backend, height, width, stride * coordinate_scale,
+                                coordinate_offset)
+    n = height * width
+    residual = xp.empty(n, dtype=xp.float64)
+    planar_values = xp.empty(n, dtype=xp.float64)
+    keys = xp.empty(n, dtype=xp.uint32)
+    out = xp.zeros(15, dtype=xp.float64)
+    kernel = backend.kernel("road.cu", "road_fit", {})
+    kernel((8,), (512,), (sub, tables, np.int32(height), np.int32(width),
+                          np.float64(coordinate_scale), np.int32(rounds),
+                          np.float64(outlier_k), np.int32(kind != "planar"), residual,
+                          planar_values, keys, out))
+    result = to_host(out)
+    if result[0] == 1:
+        raise NoRoadError("fewer than 3 valid disparities: no road to fit")
+    if result[0] == 2:
+        raise NoRoadError("valid disparities lie on a line: the road plane is undetermined")
+    n_valid = max(result[1], 1.0)
+    planar = RoadModel(float(result[2]), float(result[3]), float(result[4]),
+                       inlier_fraction=float(result[5] / n_valid), sigma_px=float(result[6]))
+    if kind == "planar":
+        return planar
+    quadratic = replace(planar, curvature=tuple(float(c) for c in result[7:13]),
+                        kind="quadratic", inlier_fraction=float(result[13] / n_valid),
+                        sigma_px=float(result[14]))
+    if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
+        return planar
+    return quadratic
+
+
+def _coordinate_tables(backend: Backend, height: int, width: int, step: float,
+                       offset: float) -> Any:
+    """Device float64 (2 (width + height),): column u, row v, then u / 1000 and v / 1000, as
+    fit_road computes them; uploaded once per size."""
+    key = (height, width, step, offset)
+    if key not in _TABLES:
+        u = np.arange(width, dtype=np.float64) * step + offset
+        v = np.arange(height, dtype=np.float64) * step + offset
+        if len(_TABLES) >= 4:
+            _TABLES.pop(next(iter(_TABLES)))
+        _TABLES[key] = backend.upload(np.concatenate(
+            [u, v, u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX]))
+    return _TABLES[key]
+
+
+_TABLES: dict[tuple[int, int, float, float], Any] = {}

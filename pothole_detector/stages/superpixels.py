@@ -101,8 +101,9 @@ def slic(backend: Backend, image: Any, valid: Any, region_size: int, compactness
 
 
 def _start(xp: Any, image: Any, valid: Any, region_size: int) -> tuple[Any, ...]:
-    """What both SLIC implementations start from: (step, cells_y, cells_x, the map with 0 at
-    invalid pixels, and the initial centres' row, column and value, float32 (cells,))."""
+    """What the SLIC reference starts from: (step, cells_y, cells_x, the map with 0 at invalid
+    pixels, and the initial centres' row, column and value, float32 (cells,)); kernel
+    slic_start computes the same centres on the GPU."""
     height, width = image.shape
     step = int(region_size)
     cells_y, cells_x = -(-height // step), -(-width // step)
@@ -116,14 +117,21 @@ def _slic_gpu(backend: Backend, image: Any, valid: Any, region_size: int, compac
               iterations: int) -> tuple[Any, int]:
     xp = backend.xp
     height, width = image.shape
-    step, cells_y, cells_x, filled, centre_v, centre_u, centre_d = _start(
-        xp, image, valid, region_size)
+    step = int(region_size)
+    cells_y, cells_x = -(-height // step), -(-width // step)
     n_labels = cells_y * cells_x
+    filled = xp.where(valid, image, 0).astype(xp.float32)
     valid_bytes = valid.astype(xp.uint8)
+    centres = xp.empty((3, n_labels), dtype=xp.float32)
+    centre_v, centre_u, centre_d = centres
     labels = xp.empty((height, width), dtype=xp.int32)
     assign = backend.kernel("slic.cu", "slic_assign", {})
     update = backend.kernel("slic.cu", "slic_update", {})
     i32 = np.int32
+    backend.kernel("slic.cu", "slic_start", {})(
+        ((n_labels + 127) // 128,), (128,),
+        (filled, valid_bytes, centre_v, centre_u, centre_d, i32(height), i32(width), i32(step),
+         i32(cells_y), i32(cells_x)))
     grid = ((width + 31) // 32, (height + 7) // 8)
     for iteration in range(iterations):
         assign(grid, (32, 8), (filled, valid_bytes, centre_v, centre_u, centre_d, labels,
@@ -185,10 +193,24 @@ def _upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int]) 
     return labels[rows[:, None], cols[None, :]]
 
 
-def superpixel_means(xp: Any, transformed: Any, labels: Any, n_labels: int,
+def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: int,
                      ) -> tuple[Any, Any]:
     """Per-superpixel mean of the valid D2 values (float32 (n,), NaN where none is valid) and
-    fraction of valid pixels (float32 (n,))."""
+    fraction of valid pixels (float32 (n,)). On the GPU: one pass of per-warp sums and one
+    small kernel (kernels/slic.cu)."""
+    xp = backend.xp
+    if backend.is_gpu:
+        sums = xp.zeros((n_labels, 3), dtype=xp.float64)
+        size = transformed.size
+        backend.kernel("slic.cu", "superpixel_sums", {})(
+            ((size + 255) // 256,), (256,),
+            (xp.ascontiguousarray(transformed, dtype=xp.float32),
+             xp.ascontiguousarray(labels, dtype=xp.int32), np.int64(size), sums))
+        mean = xp.empty(n_labels, dtype=xp.float32)
+        fraction = xp.empty(n_labels, dtype=xp.float32)
+        backend.kernel("slic.cu", "superpixel_finish", {})(
+            ((n_labels + 255) // 256,), (256,), (sums, mean, fraction, np.int32(n_labels)))
+        return mean, fraction
     valid = xp.isfinite(transformed).ravel()
     flat = labels.ravel()
     count = xp.bincount(flat, minlength=n_labels).astype(xp.float64)

@@ -5,11 +5,15 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from ..backend import to_host
+import numpy as np
+
+from ..backend import Backend, to_host
 
 # D2 values farther than this from the road level (px) are left out of the histogram.
 HISTOGRAM_BELOW_PX = 128.0
 HISTOGRAM_ABOVE_PX = 64.0
+# Per-block histograms of the GPU kernel stay in shared memory up to this size (bytes).
+MAX_SHARED_TABLE_BYTES = 200 * 1024
 
 
 def neighbour_mean(xp: Any, image: Any) -> Any:
@@ -29,51 +33,85 @@ def neighbour_mean(xp: Any, image: Any) -> Any:
     return xp.where(number > 0, total / xp.maximum(number, 1), xp.nan).astype(xp.float32)
 
 
-def histogram_threshold(xp: Any, transformed: Any, bin_px: float,
+def histogram_threshold(backend: Backend, transformed: Any, bin_px: float,
                         road_level: float) -> tuple[float, float]:
     """(t_r, road mean) in px: t_r is the diagonal threshold of the 2D histogram that minimises
     the within-cluster scatter E2 of region 1 (both components below t_r, pothole) and region 2
     (both above, road); the road mean is the mean D2 of region 2 at that t_r.
 
-    Cumulative sums over the histogram make each candidate O(1). ``road_level`` (delta_DT)
-    centres the histogram range. Returns (NaN, NaN) when two clusters cannot be formed.
+    A pixel with bins (i1, i2) is in region 1 for every split t >= max(i1, i2) and in region 2
+    for every t < min(i1, i2), so two 1D tables over max and min of the bin pair (count, sum
+    of g1, of g2, of g1^2 + g2^2), a prefix and a suffix sum give each candidate in O(1): the
+    same sums as cumulative sums over the 2D table. ``road_level`` (delta_DT) centres the
+    histogram range. Returns (NaN, NaN) when two clusters cannot be formed.
     """
-    g1 = transformed
-    g2 = neighbour_mean(xp, transformed)
     lo = road_level - HISTOGRAM_BELOW_PX
     n_bins = int(math.ceil((HISTOGRAM_BELOW_PX + HISTOGRAM_ABOVE_PX) / bin_px))
+    if backend.is_gpu:
+        found, best, road_mean = _threshold_gpu(backend, transformed, lo, bin_px, n_bins)
+    else:
+        found, best, road_mean = _search(np, *_tables(np, transformed, lo, bin_px, n_bins))
+    if not found:
+        return float("nan"), float("nan")
+    return lo + (int(best) + 1) * bin_px, float(road_mean)
+
+
+def _tables(xp: Any, transformed: Any, lo: float, bin_px: float,
+            n_bins: int) -> tuple[Any, Any]:
+    """(4, n_bins) float64 tables over max(i1, i2) and over min(i1, i2): count and sums of
+    g1, g2, g1^2 + g2^2 of the pixels inside the histogram range."""
+    g1 = transformed
+    g2 = neighbour_mean(xp, transformed)
     i1 = xp.floor((g1 - lo) / bin_px)
     i2 = xp.floor((g2 - lo) / bin_px)
     keep = xp.isfinite(i1) & xp.isfinite(i2) & (i1 >= 0) & (i2 >= 0) & (i1 < n_bins) \
         & (i2 < n_bins)
-    size = n_bins * n_bins
-    # pixels left out (NaN ones too) go to one extra bin past the table, dropped after the
-    # count: no masked copy and no sync
-    index = xp.where(keep, i1 * n_bins + i2, size).astype(xp.int64).ravel()
     a = g1.astype(xp.float64).ravel()
     b = g2.astype(xp.float64).ravel()
+    weights = (None, a, b, a * a + b * b)
+    keep = keep.ravel()
+    # pixels left out (NaN ones too) go to one extra bin past the table, dropped after the count
+    high = xp.where(keep, xp.maximum(i1, i2).ravel(), n_bins).astype(xp.int64)
+    low = xp.where(keep, xp.minimum(i1, i2).ravel(), n_bins).astype(xp.int64)
+    return tuple(xp.stack([xp.bincount(index, weights=w, minlength=n_bins + 1)[:n_bins]
+                           for w in weights]) for index in (high, low))
 
-    def table(weights: Any) -> Any:
-        hist = xp.bincount(index, weights=weights, minlength=size + 1)[:size]
-        return hist.reshape(n_bins, n_bins).cumsum(axis=0).cumsum(axis=1)
 
-    tables = xp.stack([table(None if w is None else w) for w in (None, a, b, a * a + b * b)])
-    diagonal = xp.arange(n_bins - 1)
-    last = n_bins - 1
-    below = tables[:, diagonal, diagonal]
-    above = tables[:, last, last][:, None] - tables[:, diagonal, last] \
-        - tables[:, last, diagonal] + below
-    scatter = xp.full(diagonal.shape, xp.inf)
+def _search(xp: Any, by_high: Any, by_low: Any) -> tuple[bool, int, float]:
+    """(found, best split index, road mean) from the two (4, n_bins) tables of _tables."""
+    below = xp.cumsum(by_high, axis=1)[:, :-1]
+    above = xp.cumsum(by_low[:, ::-1], axis=1)[:, ::-1][:, 1:]
     ok = (below[0] > 0) & (above[0] > 0)
     n1, n2 = xp.maximum(below[0], 1), xp.maximum(above[0], 1)
     e2 = below[3] + above[3] - (below[1] ** 2 + below[2] ** 2) / n1 \
         - (above[1] ** 2 + above[2] ** 2) / n2
-    scatter = xp.where(ok, e2, scatter)
-    best = xp.argmin(scatter)
-    found, road_mean = to_host(xp.stack([ok[best], above[1][best] / n2[best]]))
-    if not found:
-        return float("nan"), float("nan")
-    return lo + (int(to_host(best)) + 1) * bin_px, float(road_mean)
+    scatter = xp.where(ok, e2, xp.inf)
+    best = int(xp.argmin(scatter))
+    return bool(ok[best]), best, float(above[1][best] / n2[best])
+
+
+def _threshold_gpu(backend: Backend, transformed: Any, lo: float, bin_px: float,
+                   n_bins: int) -> tuple[bool, int, float]:
+    """The two tables by one kernel (shared-memory histograms per block where they fit) and
+    the split search by a one-block kernel; one readback of three numbers."""
+    xp = backend.xp
+    height, width = transformed.shape
+    tables = xp.zeros((2, 4, n_bins), dtype=xp.float64)
+    result = xp.empty(3, dtype=xp.float64)
+    histogram = backend.kernel("threshold.cu", "threshold_tables", {})
+    search = backend.kernel("threshold.cu", "threshold_search", {})
+    shared = tables.nbytes
+    in_shared = shared <= MAX_SHARED_TABLE_BYTES
+    if in_shared and shared > 48 * 1024:
+        histogram.max_dynamic_shared_size_bytes = shared
+    tile = 64
+    histogram(((width + tile - 1) // tile, (height + tile - 1) // tile), (256,),
+              (transformed, tables, np.int32(height), np.int32(width), np.float32(lo),
+               np.float32(bin_px), np.int32(n_bins), np.int32(in_shared)),
+              shared_mem=shared if in_shared else 0)
+    search((1,), (1024,), (tables, result, np.int32(n_bins)))
+    found, best, road_mean = to_host(result)
+    return bool(found), int(best), float(road_mean)
 
 
 def select_superpixels(xp: Any, means: Any, valid_fraction: Any, threshold_px: Any,

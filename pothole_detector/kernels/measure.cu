@@ -1,0 +1,103 @@
+// Per-pothole sums in one pass over the label image. Reference: stages/measure.py
+// (measure_potholes, depth_below_road). sums: float64 [count + 1][7] = pixels, footprint
+// area, valid area, depth x area, x, y, z x area (valid pixels); extremes: int32
+// [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
+// Warps whose labelled pixels share one label add once per warp.
+
+#define SUMS 7
+#define EXTREMES 5
+#define FULL_MASK 0xffffffffu
+
+__device__ __forceinline__ int ordered_bits(float value) {
+    const int bits = __float_as_int(value);
+    return bits >= 0 ? bits : bits ^ 0x7fffffff;
+}
+
+__device__ __forceinline__ bool finite(float x) {
+    return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+extern "C" __global__ void measure_reset(double* sums, int* extremes, int count) {
+    const int label = blockIdx.x * blockDim.x + threadIdx.x;
+    if (label > count) return;
+    for (int k = 0; k < SUMS; ++k) sums[label * SUMS + k] = 0.0;
+    int* row = extremes + label * EXTREMES;
+    row[0] = ordered_bits(__int_as_float(0xff800000));
+    row[1] = row[2] = 0x7fffffff;
+    row[3] = row[4] = -1;
+}
+
+// Road disparity: a0 + a1 (v cos - u sin) + c0 + x (c1 + c3 x + c4 y) + y (c2 + c5 y) with
+// x = u / 1000, y = v / 1000 (the curvature is zero for a planar model).
+extern "C" __global__ void __launch_bounds__(256)
+measure_potholes(const int* labels, const float* disparity, int height, int width,
+                 double f, double cx, double cy, double fb, double normal_x, double normal_y,
+                 double normal_z, double a0, double a1, double cos_phi, double sin_phi,
+                 double c0, double c1, double c2, double c3, double c4, double c5,
+                 double* sums, int* extremes) {
+    const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const bool inside = index < (long long)height * width;
+    const int label = inside ? labels[index] : 0;
+    const unsigned labelled = __ballot_sync(FULL_MASK, label > 0);
+    if (labelled == 0) return;
+    const int u = (int)(index % width), v = (int)(index / width);
+    double values[SUMS] = {0, 0, 0, 0, 0, 0, 0};
+    float depth_value = __int_as_float(0xff800000);
+    if (label > 0) {
+        const double uu = u, vv = v;
+        const double x = uu / 1000.0, y = vv / 1000.0;
+        const double road = a0 + a1 * (vv * cos_phi - uu * sin_phi) + c0
+                            + x * (c1 + c3 * x + c4 * y) + y * (c2 + c5 * y);
+        const double incidence = normal_x * (uu - cx) / f + normal_y * (vv - cy) / f + normal_z;
+        const double road_z = fb / road;
+        const float d = disparity[index];
+        const double z = fb / (double)d;
+        const float depth = (float)((z - road_z) * incidence);
+        const double footprint = (double)(float)(road_z * road_z / (f * f * incidence));
+        values[0] = 1.0;
+        values[1] = footprint;
+        if (finite(depth)) {
+            values[2] = footprint;
+            values[3] = (double)depth * footprint;
+            values[4] = (uu - cx) * z / f * footprint;
+            values[5] = (vv - cy) * z / f * footprint;
+            values[6] = z * footprint;
+            depth_value = depth;
+        }
+    }
+    const int lane = threadIdx.x & 31;
+    const int leader_label = __shfl_sync(FULL_MASK, label, __ffs(labelled) - 1);
+    if (__all_sync(FULL_MASK, label <= 0 || label == leader_label)) {
+        int depth_bits = ordered_bits(depth_value);
+        int u_min = label > 0 ? u : 0x7fffffff, v_min = label > 0 ? v : 0x7fffffff;
+        int u_max = label > 0 ? u : -1, v_max = label > 0 ? v : -1;
+#pragma unroll
+        for (int offset = 16; offset > 0; offset >>= 1) {
+#pragma unroll
+            for (int k = 0; k < SUMS; ++k)
+                values[k] += __shfl_down_sync(FULL_MASK, values[k], offset);
+            depth_bits = max(depth_bits, __shfl_down_sync(FULL_MASK, depth_bits, offset));
+            u_min = min(u_min, __shfl_down_sync(FULL_MASK, u_min, offset));
+            v_min = min(v_min, __shfl_down_sync(FULL_MASK, v_min, offset));
+            u_max = max(u_max, __shfl_down_sync(FULL_MASK, u_max, offset));
+            v_max = max(v_max, __shfl_down_sync(FULL_MASK, v_max, offset));
+        }
+        if (lane == 0) {
+            for (int k = 0; k < SUMS; ++k) atomicAdd(&sums[leader_label * SUMS + k], values[k]);
+            int* row = extremes + leader_label * EXTREMES;
+            atomicMax(&row[0], depth_bits);
+            atomicMin(&row[1], u_min);
+            atomicMin(&row[2], v_min);
+            atomicMax(&row[3], u_max);
+            atomicMax(&row[4], v_max);
+        }
+    } else if (label > 0) {
+        for (int k = 0; k < SUMS; ++k) atomicAdd(&sums[label * SUMS + k], values[k]);
+        int* row = extremes + label * EXTREMES;
+        atomicMax(&row[0], ordered_bits(depth_value));
+        atomicMin(&row[1], u);
+        atomicMin(&row[2], v);
+        atomicMax(&row[3], u);
+        atomicMax(&row[4], v);
+    }
+}

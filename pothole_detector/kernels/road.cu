@@ -1,0 +1,514 @@
+// Robust road fit on the device: one cluster of CLUSTER blocks (one launch) runs every round
+// of stages/road_model.fit_road (planar rounds with the roll solve, then the quadratic rounds),
+// so the only readback is the result. Each block takes every CLUSTER-th group of rows; sums
+// and histograms are combined through distributed shared memory in rank order, so every block
+// holds the same totals and solves the same small systems. Per element of the subsampled
+// map: d = sub * scale at column table u[j], row table v[i]; x = u / 1000, y = v / 1000 come
+// from the same tables. The robust sigma is the exact
+// median of |residual| (as float32) by a three-pass radix select in shared memory.
+//
+// out: [0] status (0 ok, 1 fewer than 3 valid, 2 degenerate), [1] valid count,
+// [2..4] a0, a1, phi, [5] planar inliers, [6] planar sigma, [7..12] curvature c0..c5,
+// [13] quadratic inliers, [14] quadratic sigma.
+
+#define THREADS 512
+#define CLUSTER 8
+#define WARPS (THREADS / 32)
+#define BINS 4096
+#define PER_THREAD_BINS (BINS / THREADS)
+static_assert(PER_THREAD_BINS == 8, "locate reads two 4-bin vectors per thread");
+#define MAX_SUMS 27
+#define NOT_MASKED 0xffffffffu
+
+__device__ __forceinline__ bool finite(float x) {
+    return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+__device__ __forceinline__ unsigned cluster_rank() {
+    unsigned rank;
+    asm volatile("mov.u32 %0, %%cluster_ctarank;" : "=r"(rank));
+    return rank;
+}
+
+// Barrier over every thread of the cluster; orders shared and global memory accesses.
+__device__ __forceinline__ void cluster_sync() {
+    asm volatile("barrier.cluster.arrive.release;\n\tbarrier.cluster.wait.acquire;" ::: "memory");
+}
+
+__device__ __forceinline__ unsigned remote_address(const void* local, unsigned rank) {
+    const unsigned address = (unsigned)__cvta_generic_to_shared(local);
+    unsigned remote;
+    asm volatile("mapa.shared::cluster.u32 %0, %1, %2;" : "=r"(remote) : "r"(address), "r"(rank));
+    return remote;
+}
+
+// Four consecutive words (16-byte aligned) of another block's shared memory.
+__device__ __forceinline__ uint4 remote_u32x4(const unsigned* local, unsigned rank) {
+    uint4 value;
+    asm volatile("ld.shared::cluster.v4.u32 {%0, %1, %2, %3}, [%4];"
+                 : "=r"(value.x), "=r"(value.y), "=r"(value.z), "=r"(value.w)
+                 : "r"(remote_address(local, rank)) : "memory");
+    return value;
+}
+
+__device__ __forceinline__ double remote_f64(const double* local, unsigned rank) {
+    double value;
+    asm volatile("ld.shared::cluster.f64 %0, [%1];"
+                 : "=d"(value) : "r"(remote_address(local, rank)) : "memory");
+    return value;
+}
+
+// Calls f(i, row, col) for this block's elements: each warp of the cluster walks whole rows
+// (coalesced, no division), four columns in flight per lane. Every pass uses this partition,
+// so an element is always handled by the same thread.
+template <typename F>
+__device__ __forceinline__ void for_each_element(int height, int width, F&& f) {
+    const int lane = threadIdx.x & 31;
+    const int warp = cluster_rank() * WARPS + (threadIdx.x >> 5);
+    for (int row = warp; row < height; row += CLUSTER * WARPS) {
+#pragma unroll 4
+        for (int col = lane; col < width; col += 32) f(row * width + col, row, col);
+    }
+}
+
+struct RoadState {
+    double a0, a1, cos_phi, sin_phi, phi;
+    double curvature[6];
+    double threshold;
+    int use_mask;
+    int status;
+    unsigned prefix[2], rank[2];
+    double sums[MAX_SUMS];
+};
+
+// a0 + a1 (v cos(phi) - u sin(phi)), in the reference's order, without FMA.
+__device__ __forceinline__ double planar_at(const RoadState& s, double u, double v) {
+    return __dadd_rn(s.a0, __dmul_rn(s.a1, __dsub_rn(__dmul_rn(v, s.cos_phi),
+                                                    __dmul_rn(u, s.sin_phi))));
+}
+
+// c0 + x (c1 + c3 x + c4 y) + y (c2 + c5 y), in the reference's order, without FMA.
+__device__ __forceinline__ double curvature_at(const double* c, double x, double y) {
+    const double inner_x = __dadd_rn(__dadd_rn(c[1], __dmul_rn(c[3], x)), __dmul_rn(c[4], y));
+    const double inner_y = __dadd_rn(c[2], __dmul_rn(c[5], y));
+    return __dadd_rn(__dadd_rn(c[0], __dmul_rn(x, inner_x)), __dmul_rn(y, inner_y));
+}
+
+// Sum of COUNT per-thread values over the cluster in a fixed order; result in state.sums of
+// every block.
+template <int COUNT>
+__device__ void cluster_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS],
+                             double* block_totals, RoadState& state) {
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+#pragma unroll
+    for (int k = 0; k < COUNT; ++k) {
+        double value = values[k];
+#pragma unroll
+        for (int offset = 16; offset > 0; offset >>= 1)
+            value += __shfl_down_sync(0xffffffffu, value, offset);
+        if (lane == 0) partial[warp][k] = value;
+    }
+    __syncthreads();
+    if (threadIdx.x < COUNT) {
+        double total = 0.0;
+        for (int w = 0; w < WARPS; ++w) total += partial[w][threadIdx.x];
+        block_totals[threadIdx.x] = total;
+    }
+    cluster_sync();
+    if (threadIdx.x < COUNT) {
+        double parts[CLUSTER];
+#pragma unroll
+        for (unsigned r = 0; r < CLUSTER; ++r)
+            parts[r] = remote_f64(&block_totals[threadIdx.x], r);
+        double total = 0.0;
+#pragma unroll
+        for (unsigned r = 0; r < CLUSTER; ++r) total += parts[r];
+        state.sums[threadIdx.x] = total;
+    }
+    cluster_sync();
+}
+
+// Exclusive prefix sum of one unsigned per thread over the block.
+__device__ unsigned block_exclusive_scan(unsigned value, unsigned* warp_totals) {
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+    unsigned inclusive = value;
+#pragma unroll
+    for (int offset = 1; offset < 32; offset <<= 1) {
+        const unsigned other = __shfl_up_sync(0xffffffffu, inclusive, offset);
+        if (lane >= offset) inclusive += other;
+    }
+    if (lane == 31) warp_totals[warp] = inclusive;
+    __syncthreads();
+    unsigned before = 0;
+    for (int w = 0; w < warp; ++w) before += warp_totals[w];
+    __syncthreads();
+    return before + inclusive - value;
+}
+
+// The bin of the cluster's histogram `hist` (summed over the blocks) holding element `rank`
+// (0-based, by ascending bin): state.prefix[which] gains the bin as its low `bits` bits,
+// state.rank[which] becomes the rank inside the bin. Call after a cluster_sync.
+__device__ void locate(const unsigned* hist, int which, int bits, RoadState& state,
+                       unsigned* warp_totals) {
+    const unsigned rank = state.rank[which];
+    const int first = threadIdx.x * PER_THREAD_BINS;
+    uint4 parts[CLUSTER][2];
+#pragma unroll
+    for (unsigned r = 0; r < CLUSTER; ++r) {
+        parts[r][0] = remote_u32x4(hist + first, r);
+        parts[r][1] = remote_u32x4(hist + first + 4, r);
+    }
+    unsigned counts[PER_THREAD_BINS] = {0, 0, 0, 0, 0, 0, 0, 0};
+#pragma unroll
+    for (unsigned r = 0; r < CLUSTER; ++r) {
+#pragma unroll
+        for (int h = 0; h < 2; ++h) {
+            counts[4 * h] += parts[r][h].x;
+            counts[4 * h + 1] += parts[r][h].y;
+            counts[4 * h + 2] += parts[r][h].z;
+            counts[4 * h + 3] += parts[r][h].w;
+        }
+    }
+    unsigned local = 0;
+#pragma unroll
+    for (int b = 0; b < PER_THREAD_BINS; ++b) local += counts[b];
+    const unsigned before = block_exclusive_scan(local, warp_totals);
+    if (rank >= before && rank < before + local) {
+        unsigned below = before;
+        for (int b = 0; b < PER_THREAD_BINS; ++b) {
+            const unsigned count = counts[b];
+            if (rank < below + count) {
+                state.prefix[which] = (state.prefix[which] << bits) | (unsigned)(first + b);
+                state.rank[which] = rank - below;
+                break;
+            }
+            below += count;
+        }
+    }
+    __syncthreads();
+}
+
+// 1.4826 x median of the masked keys (keys[i] = float bits of |residual|, NOT_MASKED else)
+// over the cluster. Each block's pass-0 histogram (key >> 20) is already in its hist[0].
+__device__ double robust_sigma(const unsigned* __restrict__ keys, int height, int width,
+                               unsigned count, unsigned (*hist)[BINS], RoadState& state,
+                               unsigned* warp_totals) {
+    if (count == 0) return 0.0;
+    if (threadIdx.x == 0) {
+        state.prefix[0] = state.prefix[1] = 0;
+        state.rank[0] = (count - 1) / 2;
+        state.rank[1] = count / 2;
+    }
+    cluster_sync();
+    locate(hist[0], 0, 12, state, warp_totals);
+    locate(hist[0], 1, 12, state, warp_totals);
+    for (int pass = 1; pass <= 2; ++pass) {
+        cluster_sync();
+        for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
+        __syncthreads();
+        const unsigned p0 = state.prefix[0], p1 = state.prefix[1];
+        const int known = pass == 1 ? 20 : 8;
+        for_each_element(height, width, [&](int i, int, int) {
+            const unsigned key = keys[i];
+            if (key == NOT_MASKED) return;
+            const unsigned bin = pass == 1 ? (key >> 8) & 0xfffu : key & 0xffu;
+            if ((key >> known) == p0) atomicAdd(&hist[0][bin], 1u);
+            if (p1 != p0 && (key >> known) == p1) atomicAdd(&hist[1][bin], 1u);
+        });
+        cluster_sync();
+        const int bits = pass == 1 ? 12 : 8;
+        locate(hist[0], 0, bits, state, warp_totals);
+        locate(hist[p1 != p0 ? 1 : 0], 1, bits, state, warp_totals);
+    }
+    const float low = __uint_as_float(state.prefix[0]);
+    const float high = __uint_as_float(state.prefix[1]);
+    return 1.4826 * ((double)low + (double)high) / 2.0;
+}
+
+// stages/road_model.solve_roll on the nine moments in state.sums (thread 0).
+__device__ void solve_roll(RoadState& s) {
+    const double* m = s.sums;
+    const double n = m[0], su = m[1], sv = m[2], sd = m[3], suu = m[4], svv = m[5],
+                 suv = m[6], sud = m[7], svd = m[8];
+    if (n < 3.0) {
+        s.status = 1;
+        return;
+    }
+    const double mu = su / n, mv = sv / n, md = sd / n;
+    const double cuu = suu - n * mu * mu, cvv = svv - n * mv * mv, cuv = suv - n * mu * mv;
+    const double cud = sud - n * mu * md, cvd = svd - n * mv * md;
+    const double det = cvv * cuu - cuv * cuv;
+    if (fabs(det) <= 1e-9 * fmax(cuu * cvv, 1e-300)) {
+        s.status = 2;
+        return;
+    }
+    double w[2][2] = {{(cuu * cvd - cuv * cud) / det, (cvv * cud - cuv * cvd) / det},
+                      {-cud, cvd}};
+    if (cvd == 0.0 && cud == 0.0) {
+        w[1][0] = 1.0;
+        w[1][1] = 0.0;
+    }
+    bool have = false;
+    double best_residual = 0.0;
+    for (int k = 0; k < 2; ++k) {
+        const double norm = hypot(w[k][0], w[k][1]);
+        if (norm == 0.0) continue;
+        double c = w[k][0] / norm, sn = -w[k][1] / norm;
+        if (c < 0.0) {
+            c = -c;
+            sn = -sn;
+        }
+        const double var_t = c * c * cvv - 2.0 * c * sn * cuv + sn * sn * cuu;
+        const double cov_td = c * cvd - sn * cud;
+        const double a1 = var_t > 0.0 ? cov_td / var_t : 0.0;
+        const double residual = -a1 * cov_td;
+        if (!have || residual < best_residual) {
+            have = true;
+            best_residual = residual;
+            s.a0 = md - a1 * (c * mv - sn * mu);
+            s.a1 = a1;
+            s.phi = atan2(sn, c);
+        }
+    }
+    s.cos_phi = cos(s.phi);
+    s.sin_phi = sin(s.phi);
+}
+
+// Cholesky solve of the 6x6 normal equations (registers only); false when a pivot is not
+// clearly positive (a rank-deficient or badly conditioned system).
+__device__ __forceinline__ bool solve_cholesky(RoadState& s) {
+    double a[6][6], l[6][6];
+    int k = 0;
+#pragma unroll
+    for (int i = 0; i < 6; ++i)
+#pragma unroll
+        for (int j = i; j < 6; ++j) {
+            a[i][j] = a[j][i] = s.sums[k++];
+        }
+#pragma unroll
+    for (int j = 0; j < 6; ++j) {
+        double pivot = a[j][j];
+#pragma unroll
+        for (int m = 0; m < j; ++m) pivot -= l[j][m] * l[j][m];
+        if (!(pivot > 1e-10 * a[j][j])) return false;
+        l[j][j] = sqrt(pivot);
+#pragma unroll
+        for (int i = j + 1; i < 6; ++i) {
+            double value = a[i][j];
+#pragma unroll
+            for (int m = 0; m < j; ++m) value -= l[i][m] * l[j][m];
+            l[i][j] = value / l[j][j];
+        }
+    }
+    double y[6];
+#pragma unroll
+    for (int i = 0; i < 6; ++i) {
+        double value = s.sums[21 + i];
+#pragma unroll
+        for (int m = 0; m < i; ++m) value -= l[i][m] * y[m];
+        y[i] = value / l[i][i];
+    }
+#pragma unroll
+    for (int i = 5; i >= 0; --i) {
+        double value = y[i];
+#pragma unroll
+        for (int m = i + 1; m < 6; ++m) value -= l[m][i] * s.curvature[m];
+        s.curvature[i] = value / l[i][i];
+    }
+    return true;
+}
+
+// Least-squares (minimum norm, like numpy.linalg.lstsq) solution of the 6x6 normal equations
+// in state.sums (21 upper-triangle entries, then 6 right-hand sides): Cholesky when the system
+// is well conditioned, else a Jacobi eigen-decomposition with lstsq's cutoff (thread 0).
+__device__ void solve_curvature(RoadState& s) {
+    if (solve_cholesky(s)) return;
+    double a[6][6], vectors[6][6];
+    int k = 0;
+    for (int i = 0; i < 6; ++i)
+        for (int j = i; j < 6; ++j) {
+            a[i][j] = a[j][i] = s.sums[k++];
+        }
+    for (int i = 0; i < 6; ++i)
+        for (int j = 0; j < 6; ++j) vectors[i][j] = i == j ? 1.0 : 0.0;
+    for (int sweep = 0; sweep < 50; ++sweep) {
+        double off = 0.0, diagonal = 0.0;
+        for (int i = 0; i < 6; ++i) {
+            diagonal += a[i][i] * a[i][i];
+            for (int j = i + 1; j < 6; ++j) off += a[i][j] * a[i][j];
+        }
+        if (off <= 1e-32 * diagonal) break;
+        for (int p = 0; p < 5; ++p)
+            for (int q = p + 1; q < 6; ++q) {
+                if (a[p][q] == 0.0) continue;
+                const double theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+                const double t = (theta >= 0.0 ? 1.0 : -1.0)
+                                 / (fabs(theta) + sqrt(theta * theta + 1.0));
+                const double c = 1.0 / sqrt(t * t + 1.0), sn = t * c;
+                for (int r = 0; r < 6; ++r) {
+                    const double rp = a[r][p], rq = a[r][q];
+                    a[r][p] = c * rp - sn * rq;
+                    a[r][q] = sn * rp + c * rq;
+                }
+                for (int r = 0; r < 6; ++r) {
+                    const double pr = a[p][r], qr = a[q][r];
+                    a[p][r] = c * pr - sn * qr;
+                    a[q][r] = sn * pr + c * qr;
+                }
+                for (int r = 0; r < 6; ++r) {
+                    const double rp = vectors[r][p], rq = vectors[r][q];
+                    vectors[r][p] = c * rp - sn * rq;
+                    vectors[r][q] = sn * rp + c * rq;
+                }
+            }
+    }
+    double largest = 0.0;
+    for (int i = 0; i < 6; ++i) largest = fmax(largest, fabs(a[i][i]));
+    const double cutoff = 6.0 * 2.220446049250313e-16 * largest;
+    for (int i = 0; i < 6; ++i) s.curvature[i] = 0.0;
+    for (int e = 0; e < 6; ++e) {
+        if (!(fabs(a[e][e]) > cutoff)) continue;
+        double projection = 0.0;
+        for (int r = 0; r < 6; ++r) projection += vectors[r][e] * s.sums[21 + r];
+        projection /= a[e][e];
+        for (int r = 0; r < 6; ++r) s.curvature[r] += projection * vectors[r][e];
+    }
+}
+
+extern "C" __global__ void __launch_bounds__(THREADS) __cluster_dims__(CLUSTER, 1, 1)
+road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int height,
+         int width, double scale, int rounds, double outlier_k, int quadratic,
+         double* __restrict__ residual, double* __restrict__ planar,
+         unsigned* __restrict__ keys, double* __restrict__ out) {
+    __shared__ __align__(16) unsigned hist[2][BINS];
+    __shared__ double partial[WARPS][MAX_SUMS];
+    __shared__ double block_totals[MAX_SUMS];
+    __shared__ unsigned warp_totals[WARPS];
+    __shared__ RoadState state;
+    const double* column_u = tables;
+    const double* row_v = tables + width;
+    const double* column_x = tables + width + height;
+    const double* row_y = tables + 2 * width + height;
+    const bool leader = cluster_rank() == 0;
+    if (threadIdx.x == 0) {
+        state.status = 0;
+        state.use_mask = 0;
+        state.threshold = 0.0;
+        for (int i = 0; i < 6; ++i) state.curvature[i] = 0.0;
+    }
+    __syncthreads();
+    for (int phase = 0; phase < (quadratic ? 2 : 1); ++phase) {
+        for (int round = 0; round <= rounds; ++round) {
+            const bool use_mask = state.use_mask;
+            const double threshold = state.threshold;
+            // sums over the mask of this round
+            if (phase == 0) {
+                double values[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+                for_each_element(height, width, [&](int i, int row, int col) {
+                    const float raw = sub[i];
+                    if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold)))
+                        return;
+                    const double d = (double)raw * scale;
+                    const double u = column_u[col], v = row_v[row];
+                    values[0] += 1.0;
+                    values[1] += u;
+                    values[2] += v;
+                    values[3] += d;
+                    values[4] += u * u;
+                    values[5] += v * v;
+                    values[6] += u * v;
+                    values[7] += u * d;
+                    values[8] += v * d;
+                });
+                cluster_sums<9>(values, partial, block_totals, state);
+                if (threadIdx.x == 0) solve_roll(state);
+            } else {
+                double values[27];
+#pragma unroll
+                for (int k = 0; k < 27; ++k) values[k] = 0.0;
+                for_each_element(height, width, [&](int i, int row, int col) {
+                    const float raw = sub[i];
+                    if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold)))
+                        return;
+                    const double d = (double)raw * scale;
+                    const double x = column_x[col], y = row_y[row];
+                    const double design[6] = {1.0, x, y, x * x, x * y, y * y};
+                    const double target = d - planar[i];
+                    int k = 0;
+#pragma unroll
+                    for (int a = 0; a < 6; ++a)
+#pragma unroll
+                        for (int b = a; b < 6; ++b) values[k++] += design[a] * design[b];
+#pragma unroll
+                    for (int a = 0; a < 6; ++a) values[21 + a] += design[a] * target;
+                });
+                cluster_sums<27>(values, partial, block_totals, state);
+                if (threadIdx.x == 0) solve_curvature(state);
+            }
+            __syncthreads();
+            if (state.status != 0) break;
+            const unsigned count = (unsigned)state.sums[0];
+            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader) out[1] = state.sums[0];
+            // residuals of this round's model, keys of this round's mask, first histogram
+            for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
+            __syncthreads();
+            for_each_element(height, width, [&](int i, int row, int col) {
+                const float raw = sub[i];
+                if (!finite(raw)) {
+                    keys[i] = NOT_MASKED;
+                    return;
+                }
+                const bool masked = !use_mask || fabs(residual[i]) <= threshold;
+                const double d = (double)raw * scale;
+                double model;
+                if (phase == 0) {
+                    model = planar_at(state, column_u[col], row_v[row]);
+                } else {
+                    model = __dadd_rn(planar[i], curvature_at(state.curvature, column_x[col],
+                                                              row_y[row]));
+                }
+                const double r = d - model;
+                residual[i] = r;
+                const unsigned key = masked ? __float_as_uint((float)fabs(r)) : NOT_MASKED;
+                keys[i] = key;
+                if (masked) atomicAdd(&hist[0][key >> 20], 1u);
+            });
+            __syncthreads();
+            const double sigma = robust_sigma(keys, height, width, count, hist, state,
+                                              warp_totals);
+            if (threadIdx.x == 0) {
+                state.threshold = outlier_k * fmax(sigma, 1e-3);
+                state.use_mask = 1;
+                if (leader) out[phase == 0 ? 6 : 14] = sigma;
+            }
+            __syncthreads();
+        }
+        if (state.status != 0) break;
+        // inliers of the final mask; the planar model's values for the quadratic phase
+        const double threshold = state.threshold;
+        double inliers[1] = {0.0};
+        for_each_element(height, width, [&](int i, int row, int col) {
+            if (!finite(sub[i])) return;
+            if (fabs(residual[i]) <= threshold) inliers[0] += 1.0;
+            if (phase == 0 && quadratic) planar[i] = planar_at(state, column_u[col], row_v[row]);
+        });
+        cluster_sums<1>(inliers, partial, block_totals, state);
+        if (threadIdx.x == 0 && leader) {
+            if (phase == 0) {
+                out[2] = state.a0;
+                out[3] = state.a1;
+                out[4] = state.phi;
+                out[5] = state.sums[0];
+            } else {
+                for (int i = 0; i < 6; ++i) out[7 + i] = state.curvature[i];
+                out[13] = state.sums[0];
+            }
+        }
+        if (threadIdx.x == 0) {
+            state.use_mask = 0;
+            state.threshold = 0.0;
+        }
+        __syncthreads();
+    }
+    if (threadIdx.x == 0 && leader) out[0] = state.status;
+}

@@ -1,0 +1,160 @@
+// 2D-histogram threshold on the device. Algorithm and reference: stages/threshold.py
+// (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
+// max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
+
+#define POSITIVE_INFINITY __longlong_as_double(0x7ff0000000000000LL)
+
+__device__ __forceinline__ bool finite(float x) {
+    return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+// One block per 64x64 tile, 256 threads. g2 = mean of the valid 8-neighbours, added in the
+// order of threshold.neighbour_mean (float32, no FMA), so the bins equal the reference's.
+extern "C" __global__ void __launch_bounds__(256)
+threshold_tables(const float* image, double* tables, int height, int width, float lo,
+                 float bin, int n_bins, int in_shared) {
+    extern __shared__ double shared_tables[];
+    double* target = in_shared ? shared_tables : tables;
+    const int entries = 8 * n_bins;
+    if (in_shared) {
+        for (int i = threadIdx.x; i < entries; i += blockDim.x) shared_tables[i] = 0.0;
+        __syncthreads();
+    }
+    const int u0 = blockIdx.x * 64, v0 = blockIdx.y * 64;
+    for (int i = threadIdx.x; i < 64 * 64; i += blockDim.x) {
+        const int u = u0 + (i & 63), v = v0 + (i >> 6);
+        if (u >= width || v >= height) continue;
+        const float g1 = image[v * width + u];
+        float total = 0.0f, number = 0.0f;
+#pragma unroll
+        for (int dv = -1; dv <= 1; ++dv)
+#pragma unroll
+            for (int du = -1; du <= 1; ++du) {
+                if (dv == 0 && du == 0) continue;
+                const int y = v + dv, x = u + du;
+                if (y < 0 || y >= height || x < 0 || x >= width) continue;
+                const float value = image[y * width + x];
+                if (finite(value)) {
+                    total = __fadd_rn(total, value);
+                    number = __fadd_rn(number, 1.0f);
+                }
+            }
+        if (number == 0.0f || !finite(g1)) continue;
+        const float g2 = __fdiv_rn(total, number);
+        const float f1 = floorf(__fdiv_rn(__fsub_rn(g1, lo), bin));
+        const float f2 = floorf(__fdiv_rn(__fsub_rn(g2, lo), bin));
+        if (!(f1 >= 0.0f && f2 >= 0.0f && f1 < (float)n_bins && f2 < (float)n_bins)) continue;
+        const int i1 = (int)f1, i2 = (int)f2;
+        const double a = g1, b = g2;
+        const double square = __dadd_rn(__dmul_rn(a, a), __dmul_rn(b, b));
+        const int high = max(i1, i2), low = min(i1, i2);
+        atomicAdd(&target[high], 1.0);
+        atomicAdd(&target[n_bins + high], a);
+        atomicAdd(&target[2 * n_bins + high], b);
+        atomicAdd(&target[3 * n_bins + high], square);
+        atomicAdd(&target[4 * n_bins + low], 1.0);
+        atomicAdd(&target[5 * n_bins + low], a);
+        atomicAdd(&target[6 * n_bins + low], b);
+        atomicAdd(&target[7 * n_bins + low], square);
+    }
+    if (in_shared) {
+        __syncthreads();
+        for (int i = threadIdx.x; i < entries; i += blockDim.x) {
+            const double value = shared_tables[i];
+            if (value != 0.0) atomicAdd(&tables[i], value);
+        }
+    }
+}
+
+// Inclusive prefix sum over the block (blockDim.x a multiple of 32, at most 1024); `warp_sums`
+// is shared scratch of 32 doubles. Every thread must call it.
+__device__ double block_inclusive_scan(double value, double* warp_sums) {
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+#pragma unroll
+    for (int offset = 1; offset < 32; offset <<= 1) {
+        const double other = __shfl_up_sync(0xffffffffu, value, offset);
+        if (lane >= offset) value += other;
+    }
+    if (lane == 31) warp_sums[warp] = value;
+    __syncthreads();
+    if (warp == 0) {
+        double sum = lane < (int)(blockDim.x >> 5) ? warp_sums[lane] : 0.0;
+#pragma unroll
+        for (int offset = 1; offset < 32; offset <<= 1) {
+            const double other = __shfl_up_sync(0xffffffffu, sum, offset);
+            if (lane >= offset) sum += other;
+        }
+        warp_sums[lane] = sum;
+    }
+    __syncthreads();
+    const double before = warp > 0 ? warp_sums[warp - 1] : 0.0;
+    __syncthreads();
+    return value + before;
+}
+
+// One block of 1024 threads. Table 0 becomes its prefix sums (region 1 of split t = index
+// t), table 1 its suffix sums (region 2 of split t = index t + 1), in place; then the split
+// with the least E2 (first on ties, like argmin). result: found, split index, road mean.
+extern "C" __global__ void __launch_bounds__(1024)
+threshold_search(double* tables, double* result, int n_bins) {
+    __shared__ double warp_sums[32];
+    __shared__ double best_value[32];
+    __shared__ int best_index[32];
+    for (int row = 0; row < 8; ++row) {
+        double* table = tables + row * n_bins;
+        const bool suffix = row >= 4;
+        double carry = 0.0;
+        for (int start = 0; start < n_bins; start += blockDim.x) {
+            const int i = start + threadIdx.x;
+            const int at = suffix ? n_bins - 1 - i : i;
+            const double value = i < n_bins ? table[at] : 0.0;
+            const double scanned = block_inclusive_scan(value, warp_sums) + carry;
+            if (i < n_bins) table[at] = scanned;
+            if (threadIdx.x == blockDim.x - 1) warp_sums[0] = scanned;
+            __syncthreads();
+            carry = warp_sums[0];
+            __syncthreads();
+        }
+    }
+    double least = POSITIVE_INFINITY;
+    int least_index = 0x7fffffff;
+    for (int t = threadIdx.x; t < n_bins - 1; t += blockDim.x) {
+        const double n1 = tables[t], n2 = tables[4 * n_bins + t + 1];
+        if (!(n1 > 0.0 && n2 > 0.0)) continue;
+        const double s1a = tables[n_bins + t], s1b = tables[2 * n_bins + t];
+        const double s2a = tables[5 * n_bins + t + 1], s2b = tables[6 * n_bins + t + 1];
+        const double e2 = tables[3 * n_bins + t] + tables[7 * n_bins + t + 1]
+                          - (s1a * s1a + s1b * s1b) / n1 - (s2a * s2a + s2b * s2b) / n2;
+        if (e2 < least) {
+            least = e2;
+            least_index = t;
+        }
+    }
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+#pragma unroll
+    for (int offset = 16; offset > 0; offset >>= 1) {
+        const double other = __shfl_down_sync(0xffffffffu, least, offset);
+        const int other_index = __shfl_down_sync(0xffffffffu, least_index, offset);
+        if (other < least || (other == least && other_index < least_index)) {
+            least = other;
+            least_index = other_index;
+        }
+    }
+    if (lane == 0) {
+        best_value[warp] = least;
+        best_index[warp] = least_index;
+    }
+    __syncthreads();
+    if (threadIdx.x == 0) {
+        for (int w = 1; w < (int)(blockDim.x >> 5); ++w)
+            if (best_value[w] < least || (best_value[w] == least && best_index[w] < least_index)) {
+                least = best_value[w];
+                least_index = best_index[w];
+            }
+        const bool found = least_index != 0x7fffffff && least < POSITIVE_INFINITY;
+        const int t = found ? least_index : 0;
+        result[0] = found ? 1.0 : 0.0;
+        result[1] = t;
+        result[2] = found ? tables[5 * n_bins + t + 1] / tables[4 * n_bins + t + 1] : 0.0;
+    }
+}
