@@ -4,7 +4,7 @@ Frames: the synthetic road at 1280x720 and 1920x1080 and the real 2079x1040 poth
 (fan_potholes layout under --data). Each frame runs with the GPT band and with the full range
 the frame needs without GPT. Prints a Markdown table for docs/benchmarks.md.
 
-    python benchmarks/bench_gpu.py [--frames 100] [--data DIR] [--long 10000]
+    python benchmarks/bench_gpu.py [--frames 100] [--data DIR] [--long 10000] [--sgm-kernels]
 """
 
 from __future__ import annotations
@@ -23,11 +23,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pothole_detector.backend import get_backend  # noqa: E402
+from pothole_detector.backend import StageClock, get_backend  # noqa: E402
 from pothole_detector.calibration import StereoCalibration  # noqa: E402
 from pothole_detector.imageio import read_image  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
+from pothole_detector.stages import census_sgm  # noqa: E402
 from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E402
 from pothole_detector.stages.perspective import round_up_levels  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
@@ -69,6 +70,31 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
     return medians
 
 
+def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
+                count: int) -> str:
+    """The census matcher kernel by kernel on the GPT band of a frame: median ms of census,
+    paths (four launches on two streams), select and finish over ``count`` calls."""
+    backend = get_backend("gpu")
+    config = Config()
+    pipeline = Pipeline(config, calibration, backend)
+    pipeline.run(left, right)
+    kappa, levels = pipeline._band(left.shape)
+    left_dev, right_dev, kappa_dev = backend.upload_many(left, right, kappa)
+    matcher = census_sgm.GpuMatcher(backend)
+    runs = []
+    for index in range(count + 5):
+        clock = StageClock(backend)
+        matcher(left_dev, right_dev, kappa_dev, levels, config.census_p1, config.census_p2,
+                config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter,
+                clock=clock)
+        if index >= 5:
+            runs.append(clock.timings())
+    parts = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    return (f"{levels} levels, {census_sgm.lanes_for(levels)} lanes: "
+            + ", ".join(f"{key} {value:.3f} ms" for key, value in parts.items())
+            + f", sum {sum(parts.values()):.3f} ms")
+
+
 def opencv_ms(left: np.ndarray, right: np.ndarray, levels: int, threads: int) -> float:
     cv2.setNumThreads(threads)
     config = Config({"lr_max_diff_px": -1, "speckle_window_px": 0, "median_filter": False})
@@ -105,6 +131,8 @@ def main() -> None:
     parser.add_argument("--real", type=int, default=2, help="real frames to time")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--long", type=int, default=0, help="frames of the memory-growth run")
+    parser.add_argument("--sgm-kernels", action="store_true",
+                        help="also time the census matcher kernel by kernel on each frame")
     args = parser.parse_args()
     import cupy  # the benchmark's own device query; the package imports CuPy in backend.py
     device = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
@@ -118,6 +146,7 @@ def main() -> None:
           + " | total GPU | host | pool MiB | OpenCV SGBM | SGBM / our SGM | SGBM / pipeline |")
     print("| --- |" + " --- |" * (len(STAGES) + 10))
     data = args.data if args.data.is_dir() else None
+    kernel_lines: list[str] = []
     for name, left, right, calibration in frames(data, args.real):
         band = measure(Config(), calibration, left, right, args.frames)
         full_levels = round_up_levels(band["range_hi"] + 1)
@@ -130,6 +159,11 @@ def main() -> None:
                   + f" | {row['total']:.3f} | {row['host']:.2f} | {row['memory_mib']:.0f} | "
                   + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / row['sgm']:.0f}x | "
                   + f"{sgbm / row['total']:.0f}x |", flush=True)
+        if args.sgm_kernels:
+            kernel_lines.append(f"- {name}: {sgm_kernels(left, right, calibration, args.frames)}")
+    if kernel_lines:
+        print("\nCensus matcher kernel by kernel (CUDA events, median):\n"
+              + "\n".join(kernel_lines))
     if args.long:
         print("\n" + long_run(args.long))
 

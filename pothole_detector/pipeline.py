@@ -92,11 +92,13 @@ class Pipeline:
                 )
             self._road = road
         with clock.stage("dt"):
-            transformed = transform_disparity(xp, disparity, road, config.delta_dt_px)
+            transformed = transform_disparity(backend, disparity, road, config.delta_dt_px)
         with clock.stage("slic"):
-            sp_labels, n_sp = superpixels.superpixels(
+            sp_grid, n_sp = superpixels.superpixel_grid(
                 backend, transformed, config.slic_region_size_px, config.slic_compactness,
                 config.slic_iterations, config.slic_downsample)
+            sp_labels = superpixels.upsample_labels(xp, sp_grid, config.slic_downsample,
+                                                    transformed.shape)
             sp_means, sp_valid = superpixels.superpixel_means(backend, transformed, sp_labels,
                                                               n_sp)
         with clock.stage("threshold"):
@@ -106,9 +108,9 @@ class Pipeline:
             selected = self._select(sp_labels, n_sp, sp_means, sp_valid, reference, road)
         with clock.stage("components"):
             labels, count = components.pothole_components(
-                backend, selected[sp_labels], xp.isfinite(disparity), sp_labels, n_sp,
-                config.corner_fraction,
-                config.min_pothole_superpixels)
+                backend, selected[sp_grid], xp.isfinite(disparity), sp_labels, n_sp,
+                config.corner_fraction, config.min_pothole_superpixels,
+                factor=config.slic_downsample)
         with clock.stage("measure"):
             with np.errstate(divide="ignore", invalid="ignore"):
                 potholes = measure.measure_potholes(backend, labels, count, disparity, road,

@@ -118,10 +118,9 @@ def test_textureless_patches_are_invalid_and_textured_ones_are_not():
     assert np.nanmedian(textured) == 6
 
 
-def test_lanes_leave_at_most_16_levels_each_in_whole_words_where_possible():
+def test_lanes_leave_at_most_8_levels_each_in_whole_words_where_possible():
     for levels in range(16, 513, 16):
         lanes = census_sgm.lanes_for(levels)
         assert lanes in (4, 8, 16, 32) and levels % lanes == 0
-        if levels <= 256:
-            assert levels // lanes <= 16
-    assert [census_sgm.lanes_for(n) for n in (16, 64, 96, 128, 384)] == [4, 4, 8, 8, 32]
+        assert levels // lanes <= (8 if levels <= 128 else 16 if levels <= 256 else 32)
+    assert [census_sgm.lanes_for(n) for n in (16, 64, 96, 128, 384)] == [4, 8, 16, 16, 32]

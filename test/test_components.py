@@ -39,3 +39,21 @@ def test_relabel_renumbers_in_order():
     new, count = relabel(np, labels, np.array([False, True, False, True]))
     np.testing.assert_array_equal(new, [[0, 1, 0, 2]])
     assert count == 2
+
+
+def test_labelling_the_reduced_grid_gives_the_full_resolution_labels():
+    """A mask enlarged by whole pixels (SLIC grid -> frame) has the same 8-connected
+    components in the same order; odd frame sizes repeat the last row and column."""
+    from pothole_detector.stages.superpixels import upsample_labels
+    rng = np.random.default_rng(5)
+    for factor, (height, width) in ((2, (61, 97)), (3, (90, 120)), (2, (40, 41))):
+        small = rng.random((height // factor, width // factor)) < 0.35
+        full = upsample_labels(np, small, factor, (height, width))
+        valid = np.ones((height, width), bool)
+        valid[:, :7] = False
+        superpixels = (np.arange(height)[:, None] // 8) * 64 + np.arange(width)[None, :] // 8
+        n = int(superpixels.max()) + 1
+        expected = pothole_components(CPU, full, valid, superpixels, n, 0.1, 1)
+        found = pothole_components(CPU, small, valid, superpixels, n, 0.1, 1, factor=factor)
+        assert found[1] == expected[1] > 3
+        np.testing.assert_array_equal(found[0], expected[0])

@@ -47,9 +47,9 @@ CASES = [  # height, width, levels, shift, kappa pattern
     (23, 37, 32, 5, "ramp"),      # odd sizes
     (1, 40, 16, 3, "zero"),       # one row
     (12, 20, 32, 4, "zero"),      # narrower than the band
-    (40, 96, 128, 17, "ramp"),    # 8 lanes of 16 levels
+    (40, 96, 128, 17, "ramp"),    # 16 lanes of 8 levels
     (31, 75, 48, 12, "ramp"),
-    (8, 240, 208, 30, "ramp"),    # 13 levels per lane: byte accesses instead of words
+    (8, 240, 208, 30, "ramp"),    # 13 levels per lane: byte reads instead of words
 ]
 
 
@@ -119,6 +119,21 @@ def test_buffers_are_reused_across_frames(gpu):
                     True)
     assert matcher._buffers[(24, 64, 16)]["paths"] is buffers["paths"]
     np.testing.assert_array_equal(to_host(again), first)
+
+
+def test_matcher_kernel_clock_times_each_kernel_and_changes_nothing(gpu):
+    from pothole_detector.backend import StageClock
+    left, right = random_pair(30, 80, 7, seed=9)
+    kappa = gpu.upload(np.zeros(30, np.int32))
+    matcher = census_sgm.GpuMatcher(gpu)
+    plain = to_host(matcher(gpu.upload(left), gpu.upload(right), kappa, 32, P1, P2, 5, 1, True))
+    clock = StageClock(gpu)
+    timed = matcher(gpu.upload(left), gpu.upload(right), kappa, 32, P1, P2, 5, 1, True,
+                    clock=clock)
+    np.testing.assert_array_equal(to_host(timed), plain)
+    timings = clock.timings()
+    assert set(timings) == {"census", "paths", "select", "finish"}
+    assert all(value > 0 for value in timings.values())
 
 
 def test_upload_many_round_trips(gpu):
@@ -240,6 +255,18 @@ def test_measure_kernel_matches_the_reference(gpu, demo_sample):
                 rtol=1e-4)
 
 
+@pytest.mark.parametrize("kind", ["planar", "quadratic"])
+def test_transform_kernel_matches_the_reference_exactly(gpu, kind):
+    from pothole_detector.stages.road_model import RoadModel
+    model = RoadModel(40.0, 0.25, -0.05, (0.3, -0.2, 0.1, 0.5, -0.4, 0.2), kind=kind)
+    rng = np.random.default_rng(1)
+    disparity = rng.uniform(20, 90, (57, 211)).astype(np.float32)
+    disparity[rng.random(disparity.shape) < 0.1] = np.nan
+    cpu = transform_disparity(CPU, disparity, model, 32.0)
+    dev = transform_disparity(gpu, gpu.upload(disparity), model, 32.0)
+    np.testing.assert_array_equal(to_host(dev), cpu)
+
+
 def test_superpixel_means_kernel_matches_the_reference(gpu):
     rng = np.random.default_rng(8)
     image = rng.normal(30, 3, (61, 203)).astype(np.float32)
@@ -315,8 +342,9 @@ def test_transform_superpixels_threshold_components_measure_match_the_cpu(gpu, d
                                                                           road_disparity):
     config = Config()
     road = fit_road(np, road_disparity, stride=2)
-    d2_cpu = transform_disparity(np, road_disparity, road, config.delta_dt_px)
-    d2_gpu = transform_disparity(gpu.xp, gpu.upload(road_disparity), road, config.delta_dt_px)
+    d2_cpu = transform_disparity(CPU, road_disparity, road, config.delta_dt_px)
+    d2_gpu = transform_disparity(gpu, gpu.upload(road_disparity), road,
+                                 config.delta_dt_px)
     np.testing.assert_allclose(to_host(d2_gpu), d2_cpu, rtol=0, atol=1e-4)
     d2_gpu = gpu.upload(d2_cpu)
     labels_cpu, n = superpixels.superpixels(CPU, d2_cpu, 32, 2.0, 6, 2)

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 
+from pothole_detector.backend import CPU
 from pothole_detector.stages.road_model import RoadModel
 from pothole_detector.stages.transform import transform_disparity
 
@@ -13,7 +14,7 @@ def test_road_becomes_delta_dt_and_a_pothole_stays_below():
     disparity = model.disparity(np, 60, 90)
     disparity[20:30, 40:50] -= 6.0
     disparity[0, 0] = np.nan
-    transformed = transform_disparity(np, disparity, model, 32.0)
+    transformed = transform_disparity(CPU, disparity, model, 32.0)
     assert transformed.dtype == np.float32
     assert np.isnan(transformed[0, 0])
     np.testing.assert_allclose(transformed[40:, :], 32.0, atol=1e-4)

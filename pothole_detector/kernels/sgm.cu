@@ -12,9 +12,8 @@
 // (dx, dy) of the eight path directions: census_sgm.DIRECTIONS.
 __constant__ int DIRECTION_DX[8] = {1, -1, 0, 0, 1, -1, 1, -1};
 __constant__ int DIRECTION_DY[8] = {0, 0, 1, -1, 1, 1, -1, -1};
-// Directions of the first pass (written) and of the second (added to the same slot). Slots 0
-// and 1 (horizontal, then vertical walks) and slots 2 and 3 (diagonals) are independent, so
-// the host runs them on two streams.
+// Directions of the first pass (written) and of the second (added to the same slot): slots 0
+// and 1 take the horizontal, then the vertical walks; slots 2 and 3 the diagonals.
 __constant__ int FIRST_PASS[4] = {0, 1, 4, 5};
 __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 
@@ -86,7 +85,9 @@ extern "C" __global__ void census_pair(const unsigned char* left, const unsigned
     out[v * width + u] = bits;
 }
 
-#define PREFETCH_STEPS 3
+#ifndef PREFETCH_STEPS
+#define PREFETCH_STEPS 4
+#endif
 
 // What one path step reads: the left census word, the right census words of the lane's
 // levels, the lane's first candidate column `start` and, in pass 1, the earlier path sums.
@@ -207,7 +208,10 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
         v += dy;
         return inside(u, v);
     };
-    while (advance(sets[0]) && advance(sets[1]) && advance(sets[2])) {
+    while (true) {
+#pragma unroll
+        for (int s = 0; s < PREFETCH_STEPS; ++s)
+            if (!advance(sets[s])) return;
     }
 }
 

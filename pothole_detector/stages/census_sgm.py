@@ -26,11 +26,12 @@ Disparities are float32 px, NaN where invalid.
 
 from __future__ import annotations
 
-from typing import Any
+from contextlib import contextmanager
+from typing import Any, Iterator
 
 import numpy as np
 
-from ..backend import Backend
+from ..backend import Backend, StageClock
 from ..errors import ConfigError
 
 CENSUS_RADIUS_Y, CENSUS_RADIUS_X = 3, 4
@@ -199,13 +200,13 @@ def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> Non
 
 def lanes_for(levels: int) -> int:
     """Threads per path line and per pixel of the GPU matcher (levels: a multiple of 16): the
-    fewest of 4, 8, 16, 32 that leave each at most 16 levels, a multiple of 4 where possible
-    (32-bit path reads in the winner search); 32 (or 16) for longer ranges. (Measured at 96
-    levels on an H200: 8 lanes 3.6 ms, 32 lanes 4.0 ms per 2079x1040 frame.)"""
+    fewest of 4, 8, 16, 32 that leave each at most 8 levels, a multiple of 4 where possible
+    (32-bit path reads in the winner search); 32 (or 16) for longer ranges. Measured at 96
+    levels, 2079x1040, H200, the four path launches: 16 lanes 3.6 ms, 8 lanes 4.0 ms."""
     for multiple_of_four in (True, False):
         for lanes in (4, 8, 16, 32):
             per_lane = levels // lanes
-            if levels % lanes == 0 and per_lane <= 16 \
+            if levels % lanes == 0 and per_lane <= 8 \
                     and (per_lane % 4 == 0 or not multiple_of_four):
                 return lanes
     return 32 if levels % 32 == 0 else 16
@@ -226,7 +227,6 @@ class GpuMatcher:
         if not backend.is_gpu:
             raise ConfigError("GpuMatcher needs the gpu backend")
         self.backend = backend
-        self._side = backend.xp.cuda.Stream(non_blocking=True)
         self._buffers: dict[tuple[int, int, int], dict[str, Any]] = {}
         self._kernel_sets: dict[int, dict[str, Any]] = {}
 
@@ -257,8 +257,11 @@ class GpuMatcher:
         return self._buffers[key]
 
     def __call__(self, left: Any, right: Any, kappa: Any, levels: int, p1: int, p2: int,
-                 uniqueness_percent: int, lr_max_diff_px: int, median: bool) -> Any:
-        """D1 (float32 HxW px, NaN invalid) of device uint8 HxW images, int32 (H,) kappa."""
+                 uniqueness_percent: int, lr_max_diff_px: int, median: bool,
+                 clock: StageClock | None = None) -> Any:
+        """D1 (float32 HxW px, NaN invalid) of device uint8 HxW images, int32 (H,) kappa.
+        With a ``clock``, its stages census, paths, select and finish time the kernels."""
+        stage = clock.stage if clock is not None else _no_stage
         height, width = left.shape
         check_settings(left.shape, levels, p1, p2)
         xp = self.backend.xp
@@ -267,8 +270,9 @@ class GpuMatcher:
         census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
         out = xp.empty((height, width), dtype=xp.float32)
         i32 = np.int32
-        kernels["census_pair"](((width + 31) // 32, (height + 7) // 8, 2), (32, 8, 1),
-                               (left, right, census[0], census[1], i32(height), i32(width)))
+        with stage("census"):
+            kernels["census_pair"](((width + 31) // 32, (height + 7) // 8, 2), (32, 8, 1),
+                                   (left, right, census[0], census[1], i32(height), i32(width)))
         groups = self.THREADS // kernels["lanes"]
         paths_kernel = kernels["sgm_paths"]
         kappa_bytes = 4 * height
@@ -282,25 +286,24 @@ class GpuMatcher:
                               i32(p1), i32(p2), i32(second), i32(first_slot)),
                              shared_mem=kappa_bytes)
 
-        # slots 2-3 (diagonals) on a side stream beside slots 0-1 (horizontal then vertical)
-        main = xp.cuda.get_current_stream()
-        census_done = xp.cuda.Event(disable_timing=True)
-        census_done.record(main)
-        self._side.wait_event(census_done)
-        with self._side:
+        with stage("paths"):
+            walk(0, max(height, width))
             walk(2, width + height - 1)
-        walk(0, max(height, width))
-        diagonals_done = xp.cuda.Event(disable_timing=True)
-        diagonals_done.record(self._side)
-        main.wait_event(diagonals_done)
         shared = 4 * (2 * width + groups * levels)
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
-        select((height,), (self.THREADS,),
-               (paths, raw, i32(height), i32(width), i32(uniqueness_percent),
-                i32(lr_max_diff_px)), shared_mem=shared)
-        kernels["sgm_finish"](((width + 31) // 32, (height + 7) // 8), (32, 8),
-                              (raw, census[0], kappa, out, i32(height), i32(width),
-                               i32(bool(median))))
+        with stage("select"):
+            select((height,), (self.THREADS,),
+                   (paths, raw, i32(height), i32(width), i32(uniqueness_percent),
+                    i32(lr_max_diff_px)), shared_mem=shared)
+        with stage("finish"):
+            kernels["sgm_finish"](((width + 31) // 32, (height + 7) // 8), (32, 8),
+                                  (raw, census[0], kappa, out, i32(height), i32(width),
+                                   i32(bool(median))))
         return out
+
+
+@contextmanager
+def _no_stage(name: str) -> Iterator[None]:
+    yield

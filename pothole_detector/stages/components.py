@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend, to_host
+from .superpixels import upsample_labels
 
 EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -35,16 +36,22 @@ def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
 
 
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
-                       n_superpixels: int, corner_fraction: float,
-                       min_superpixels: int) -> tuple[Any, int]:
-    """Label the 8-connected components of the HxW bool ``candidate`` mask; drop components
-    that touch a corner region of the HxW bool ``valid`` area (see corner_mask) or hold fewer
-    than ``min_superpixels`` superpixels.
+                       n_superpixels: int, corner_fraction: float, min_superpixels: int,
+                       factor: int = 1) -> tuple[Any, int]:
+    """Label the 8-connected components of the bool ``candidate`` mask; drop components that
+    touch a corner region of the HxW bool ``valid`` area (see corner_mask) or hold fewer than
+    ``min_superpixels`` superpixels (HxW ``superpixel_labels``).
+
+    ``candidate`` is HxW, or the mask on the SLIC grid reduced by ``factor`` whose
+    nearest-neighbour enlargement (superpixels.upsample_labels) is the HxW mask: enlarging by
+    whole pixels keeps 8-connectivity and the raster order of components, so labelling the
+    small mask and enlarging the labels gives the same labels with factor^2 fewer pixels.
 
     Returns (int32 HxW labels numbered 1..k, 0 elsewhere; k).
     """
     xp = backend.xp
     components, count = backend.ndimage.label(candidate, structure=xp.asarray(EIGHT_CONNECTED))
+    components = upsample_labels(xp, components, factor, valid.shape)
     count = int(count)
     if count == 0:
         return components.astype(xp.int32), 0

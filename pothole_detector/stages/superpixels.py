@@ -171,6 +171,19 @@ def superpixels(backend: Backend, transformed: Any, region_size_px: int, compact
     ``region_size_px`` is the superpixel grid step in full-resolution pixels. Returns
     (int32 HxW labels, label count).
     """
+    labels, n_labels = superpixel_grid(backend, transformed, region_size_px, compactness,
+                                       iterations, downsample)
+    if downsample > 1:
+        labels = upsample_labels(backend.xp, labels, downsample, transformed.shape)
+    return labels, n_labels
+
+
+def superpixel_grid(backend: Backend, transformed: Any, region_size_px: int,
+                    compactness: float, iterations: int, downsample: int = 1
+                    ) -> tuple[Any, int]:
+    """SLIC labels of D2 reduced by ``downsample`` (valid-pixel block means): int32
+    (H // downsample, W // downsample) labels and the label count. :func:`upsample_labels`
+    gives the full-resolution labels."""
     xp = backend.xp
     valid = xp.isfinite(transformed)
     if downsample > 1:
@@ -178,15 +191,14 @@ def superpixels(backend: Backend, transformed: Any, region_size_px: int, compact
     else:
         image, image_valid = transformed, valid
     step = max(2, int(round(region_size_px / downsample)))
-    labels, n_labels = slic(backend, image, image_valid, step, compactness, iterations)
-    if downsample > 1:
-        labels = _upsample_labels(xp, labels, downsample, transformed.shape)
-    return labels, n_labels
+    return slic(backend, image, image_valid, step, compactness, iterations)
 
 
-def _upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int]) -> Any:
-    """Nearest-neighbour enlargement to ``shape``; rows/columns past the reduced image repeat
-    the last one."""
+def upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int]) -> Any:
+    """Nearest-neighbour enlargement of a label image by ``factor`` to ``shape``; rows and
+    columns past the enlarged image repeat the last one."""
+    if factor == 1 and labels.shape == tuple(shape):
+        return labels
     height, width = shape
     rows = xp.minimum(xp.arange(height) // factor, labels.shape[0] - 1)
     cols = xp.minimum(xp.arange(width) // factor, labels.shape[1] - 1)

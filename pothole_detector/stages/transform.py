@@ -2,16 +2,34 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
+import numpy as np
+
+from ..backend import Backend
 from .road_model import RoadModel
 
 
-def transform_disparity(xp: Any, disparity: Any, model: RoadModel, delta_dt_px: float) -> Any:
+def transform_disparity(backend: Backend, disparity: Any, model: RoadModel,
+                        delta_dt_px: float) -> Any:
     """D2 = D1 - f(u, v) + delta_DT for an HxW float32 map (px, NaN stays NaN).
 
-    On the road D2 is close to ``delta_dt_px``; potholes are lower, bumps higher.
+    On the road D2 is close to ``delta_dt_px``; potholes are lower, bumps higher. On the GPU
+    one kernel (kernels/transform.cu) with the same arithmetic.
     """
+    xp = backend.xp
     height, width = disparity.shape
+    if backend.is_gpu:
+        transformed = xp.empty((height, width), dtype=xp.float32)
+        curvature = model.curvature if model.kind != "planar" else (0.0,) * 6
+        f64 = np.float64
+        backend.kernel("transform.cu", "transform_disparity", {})(
+            ((width + 31) // 32, (height + 7) // 8), (32, 8),
+            (xp.ascontiguousarray(disparity, dtype=xp.float32), transformed, np.int32(height),
+             np.int32(width), f64(model.a0), f64(model.a1), f64(math.cos(model.roll_rad)),
+             f64(math.sin(model.roll_rad)), *(f64(c) for c in curvature),
+             np.int32(model.kind != "planar"), np.float32(delta_dt_px)))
+        return transformed
     road = model.disparity(xp, height, width, xp.float32)
     return (disparity - road + xp.float32(delta_dt_px)).astype(xp.float32)
