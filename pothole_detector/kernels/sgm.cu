@@ -3,8 +3,8 @@
 // to 32 threads per path line and per pixel in sgm_select), CENSUS_RY, CENSUS_RX,
 // INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8 [4][H][W][LEVELS], slot s holding the
 // sum of the directions FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most
-// INVALID_COST + P2 <= 127, so a pair fits a byte). In sgm_paths lane `sub` of a group holds
-// levels sub + LANES k; in sgm_select levels sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1.
+// INVALID_COST + P2 <= 127, so a pair fits a byte). In sgm_select thread `sub` of a group
+// holds levels sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1; sgm_paths: see PACKED.
 
 #define PER_LANE (LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
@@ -89,40 +89,63 @@ extern "C" __global__ void census_pair(const unsigned char* left, const unsigned
 #define PREFETCH_STEPS 4
 #endif
 
+// With an even number of levels per lane (PACKED) a lane holds consecutive levels
+// sub * PER_LANE + k, two per 32-bit word (16-bit halves), and aggregates them with the
+// halfword min instructions (DPX on sm_90); otherwise it holds levels sub + LANES k one per
+// register, so the group's loads and stores of one k are contiguous.
+#define PACKED (PER_LANE % 2 == 0)
+#define PAIRS (PER_LANE / 2)
+#if PACKED
+#define LANE_FIRST_LEVEL(sub) ((sub) * PER_LANE)
+#define LEVEL_STEP 1
+#else
+#define LANE_FIRST_LEVEL(sub) (sub)
+#define LEVEL_STEP LANES
+#endif
+// Halfword stand-in for "outside the range": above any path cost plus P1, no carry out.
+#define FAR_HALF 0x7fffu
+
 // What one path step reads: the left census word, the right census words of the lane's
-// levels, the lane's first candidate column `start` and, in pass 1, the earlier path sums.
+// levels, the lane's first candidate column `start` and, in pass 1, the earlier path sums
+// (PACKED: two bytes per entry, PAIRS entries).
 struct StepData {
     unsigned left;
     unsigned right[PER_LANE];
-    unsigned char old[PER_LANE];
+    unsigned old[PER_LANE];
     int start;
 };
 
 // Loads of one path step at (u, v): the left census word, the right census words of this
-// lane's levels sub + LANES k (0 where left of the image; start = u - kappa(v) - sub) and, in
-// pass 1, the path sums written by pass 0. Lanes of a group read consecutive words and bytes.
+// lane's levels (0 where left of the image; start = u - kappa(v) - the lane's first level)
+// and, in pass 1, the path sums written by pass 0.
 __device__ __forceinline__ void load_step(const unsigned* census_left,
                                           const unsigned* census_right, const int* row_shift,
                                           const unsigned char* out, int width, int u, int v,
                                           int sub, int pass, StepData& data) {
     data.left = __ldg(census_left + v * width + u);
-    const int start = u - row_shift[v] - sub;
+    const int start = u - row_shift[v] - LANE_FIRST_LEVEL(sub);
     data.start = start;
     const unsigned* right_row = census_right + (size_t)v * width;
 #pragma unroll
     for (int k = 0; k < PER_LANE; ++k)
-        data.right[k] = start - LANES * k >= 0 ? __ldg(right_row + start - LANES * k) : 0u;
+        data.right[k] = start - LEVEL_STEP * k >= 0 ? __ldg(right_row + start - LEVEL_STEP * k)
+                                                    : 0u;
     if (pass == 1) {
         const unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
+#if PACKED
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p)
+            data.old[p] = __ldcs(reinterpret_cast<const unsigned short*>(cell) + p);
+#else
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) data.old[k] = __ldcs(cell + LANES * k);
+#endif
     }
 }
 
 // Slot first_slot + blockIdx.y; the direction is FIRST_PASS[slot] in pass 0 (path costs
 // written) and SECOND_PASS[slot] in pass 1 (added). Each group of LANES threads walks one line
-// of that direction from where it enters the image; lane `sub` holds levels sub + LANES k
-// (interleaved, so the group's loads and stores of one k are contiguous).
+// of that direction from where it enters the image.
 extern "C" __global__ void __launch_bounds__(256)
 sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* kappa,
           unsigned char* paths, int height, int width, int p1, int p2, int pass,
@@ -151,7 +174,7 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
     __syncthreads();
     if (line >= lines) return;
     const unsigned mask = group_mask<LANES>();
-    unsigned char* out = paths + (size_t)slot * height * width * LEVELS + sub;
+    unsigned char* out = paths + (size_t)slot * height * width * LEVELS + LANE_FIRST_LEVEL(sub);
     // census words (and, in pass 1, path sums) are loaded PREFETCH_STEPS steps ahead, into
     // one of PREFETCH_STEPS register sets used in turn
     auto inside = [&](int x, int y) { return x >= 0 && x < width && y >= 0 && y < height; };
@@ -161,7 +184,11 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
         if (inside(u + s * dx, v + s * dy))
             load_step(census_left, census_right, row_shift, out, width, u + s * dx, v + s * dy,
                       sub, pass, sets[s]);
+#if PACKED
+    unsigned previous[PAIRS];
+#else
     int previous[PER_LANE];
+#endif
     int previous_min = 0;
     bool first = true;
     auto advance = [&](StepData& data) -> bool {
@@ -169,6 +196,55 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
         if (inside(u + PREFETCH_STEPS * dx, v + PREFETCH_STEPS * dy))
             load_step(census_left, census_right, row_shift, out, width, u + PREFETCH_STEPS * dx,
                       v + PREFETCH_STEPS * dy, sub, pass, data);
+        unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
+#if PACKED
+        // halfword pairs: level sub * PER_LANE + 2p in the low half, + 2p + 1 in the high
+        unsigned current[PAIRS];
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p) {
+            const unsigned low = here.start - 2 * p >= 0
+                                     ? __popc(here.left ^ here.right[2 * p]) : INVALID_COST;
+            const unsigned high = here.start - 2 * p - 1 >= 0
+                                      ? __popc(here.left ^ here.right[2 * p + 1]) : INVALID_COST;
+            current[p] = low | (high << 16);
+        }
+        if (!first) {
+            // the level below this lane's first is the high half of the lower lane's last
+            // pair; the level above its last is the low half of the upper lane's first pair
+            unsigned below = __shfl_up_sync(mask, previous[PAIRS - 1], 1, LANES);
+            unsigned above = __shfl_down_sync(mask, previous[0], 1, LANES);
+            if (sub == 0) below = FAR_HALF << 16;
+            if (sub == LANES - 1) above = FAR_HALF;
+            const unsigned p1_pair = (unsigned)p1 * 0x10001u;
+            const unsigned jump = (unsigned)(previous_min + p2) * 0x10001u;
+            const unsigned minimum = (unsigned)previous_min * 0x10001u;
+#pragma unroll
+            for (int p = 0; p < PAIRS; ++p) {
+                const unsigned lower = __funnelshift_l(p == 0 ? below : previous[p - 1],
+                                                       previous[p], 16);
+                const unsigned upper = __funnelshift_r(previous[p],
+                                                       p == PAIRS - 1 ? above : previous[p + 1],
+                                                       16);
+                const unsigned best = __vimin3_u16x2(previous[p],
+                                                     __vminu2(lower, upper) + p1_pair, jump);
+                // every half of best is >= the minimum and the sums stay below 256: plain
+                // 32-bit arithmetic cannot borrow or carry across the halves
+                current[p] += best - minimum;
+            }
+        }
+        unsigned least = current[0];
+#pragma unroll
+        for (int p = 1; p < PAIRS; ++p) least = __vminu2(least, current[p]);
+        previous_min = group_min<LANES>((int)min(least & 0xffffu, least >> 16), mask);
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p) {
+            // the two bytes of a pair (every value is below 128, the pass-1 sum below 256)
+            unsigned bytes = __byte_perm(current[p], 0u, 0x3320);
+            if (pass == 1) bytes += here.old[p];
+            __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
+            previous[p] = current[p];
+        }
+#else
         int current[PER_LANE];
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k)
@@ -196,13 +272,13 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
 #pragma unroll
         for (int k = 1; k < PER_LANE; ++k) local = min(local, current[k]);
         previous_min = group_min<LANES>(local, mask);
-        unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) {
-            const int stored = pass == 0 ? current[k] : here.old[k] + current[k];
+            const int stored = pass == 0 ? current[k] : (int)here.old[k] + current[k];
             __stcs(reinterpret_cast<char*>(cell) + LANES * k, (char)stored);
             previous[k] = current[k];
         }
+#endif
         first = false;
         u += dx;
         v += dy;
