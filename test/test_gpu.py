@@ -280,6 +280,20 @@ def test_superpixel_means_kernel_matches_the_reference(gpu):
         np.testing.assert_allclose(to_host(b), a, rtol=1e-6, equal_nan=True)
 
 
+@pytest.mark.parametrize("height,width,density", [(97, 131, 0.45), (1, 300, 0.5), (300, 1, 0.5),
+                                                  (64, 64, 0.0), (50, 70, 1.0), (120, 200, 0.6)])
+def test_label_kernels_match_scipy_numbering(gpu, height, width, density):
+    rng = np.random.default_rng(height + width)
+    mask = rng.random((height, width)) < density
+    if height > 20 and width > 20:
+        rows = np.arange(height)[:, None]
+        mask |= (np.abs(rows - height / 2 - 10 * np.sin(np.arange(width) / 7)) < 1.5)  # a wave
+    expected = components.label_components(CPU, mask)
+    found = components.label_components(gpu, gpu.upload(mask))
+    assert found[1] == expected[1]
+    np.testing.assert_array_equal(to_host(found[0]), expected[0])
+
+
 @pytest.mark.parametrize("corner_fraction,min_superpixels", [(0.1, 2), (0.0, 1), (0.3, 3)])
 def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min_superpixels):
     rng = np.random.default_rng(int(corner_fraction * 10) + min_superpixels)

@@ -42,3 +42,69 @@ extern "C" __global__ void component_marks(const int* components, const int* sup
         touched[component] = 1;
     present[(long long)component * n_superpixels + superpixels[index]] = 1;
 }
+
+// Connected components (8-connectivity) by union-find on parent indices: every pixel of the
+// mask links to its earlier neighbours (west, north-west, north, north-east); a root always
+// links to the smaller root, so each component's root is its first pixel in raster order and
+// numbering roots in index order gives scipy.ndimage.label's numbering.
+__device__ __forceinline__ int find_root(const int* parent, int x) {
+    while (true) {
+        const int up = parent[x];
+        if (up == x) return x;
+        x = up;
+    }
+}
+
+extern "C" __global__ void label_init(const unsigned char* mask, int* parent, int size) {
+    const int index = blockIdx.x * blockDim.x + threadIdx.x;
+    if (index < size) parent[index] = mask[index] ? index : -1;
+}
+
+extern "C" __global__ void label_merge(int* parent, int height, int width) {
+    const int index = blockIdx.x * blockDim.x + threadIdx.x;
+    if (index >= height * width || parent[index] < 0) return;
+    const int row = index / width, col = index % width;
+    const int neighbours[4][2] = {{0, -1}, {-1, -1}, {-1, 0}, {-1, 1}};
+    for (int n = 0; n < 4; ++n) {
+        const int r = row + neighbours[n][0], c = col + neighbours[n][1];
+        if (r < 0 || c < 0 || c >= width) continue;
+        const int other = r * width + c;
+        if (parent[other] < 0) continue;
+        int a = find_root(parent, index), b = find_root(parent, other);
+        while (a != b) {
+            if (a < b) {
+                const int swap = a;
+                a = b;
+                b = swap;
+            }
+            const int seen = atomicCAS(&parent[a], a, b);
+            if (seen == a) break;
+            a = find_root(parent, seen);
+            b = find_root(parent, b);
+        }
+    }
+}
+
+// parent[i] becomes the root of i; is_root[i] = 1 for roots.
+extern "C" __global__ void label_flatten(int* parent, int* is_root, int size) {
+    const int index = blockIdx.x * blockDim.x + threadIdx.x;
+    if (index >= size) return;
+    const int up = parent[index];
+    if (up < 0) {
+        is_root[index] = 0;
+        return;
+    }
+    const int root = find_root(parent, index);
+    is_root[index] = root == index;
+    parent[index] = root;
+}
+
+// labels[i] = number of the root of i (1-based: inclusive count of roots up to it), 0 off
+// the mask.
+extern "C" __global__ void label_number(const int* parent, const int* root_count, int* labels,
+                                        int size) {
+    const int index = blockIdx.x * blockDim.x + threadIdx.x;
+    if (index >= size) return;
+    const int root = parent[index];
+    labels[index] = root < 0 ? 0 : root_count[root];
+}

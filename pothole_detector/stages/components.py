@@ -50,9 +50,8 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
     Returns (int32 HxW labels numbered 1..k, 0 elsewhere; k).
     """
     xp = backend.xp
-    components, count = backend.ndimage.label(candidate, structure=xp.asarray(EIGHT_CONNECTED))
+    components, count = label_components(backend, candidate)
     components = upsample_labels(xp, components, factor, valid.shape)
-    count = int(count)
     if count == 0:
         return components.astype(xp.int32), 0
     if backend.is_gpu:
@@ -76,6 +75,34 @@ def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:
     new_ids = xp.cumsum(keep).astype(xp.int32) * keep
     kept = int(to_host(keep.sum()))
     return new_ids[labels].astype(xp.int32), kept
+
+
+def label_components(backend: Backend, mask: Any) -> tuple[Any, int]:
+    """8-connected components of an HxW bool mask: (int32 HxW labels 1..k in raster order of
+    each component's first pixel, 0 off the mask; k). scipy.ndimage.label on the CPU; on the
+    GPU union-find kernels (kernels/components.cu), one readback of k and no uploads."""
+    if not backend.is_gpu:
+        labels, count = backend.ndimage.label(mask, structure=EIGHT_CONNECTED)
+        return labels.astype(np.int32), int(count)
+    xp = backend.xp
+    height, width = mask.shape
+    size = height * width
+    if size == 0:
+        return xp.zeros((height, width), dtype=xp.int32), 0
+    parent = xp.empty(size, dtype=xp.int32)
+    is_root = xp.empty(size, dtype=xp.int32)
+    labels = xp.empty((height, width), dtype=xp.int32)
+    grid, block = ((size + 255) // 256,), (256,)
+    kernel = backend.kernel
+    kernel("components.cu", "label_init", {})(
+        grid, block, (xp.ascontiguousarray(mask, dtype=xp.bool_), parent, np.int32(size)))
+    kernel("components.cu", "label_merge", {})(
+        grid, block, (parent, np.int32(height), np.int32(width)))
+    kernel("components.cu", "label_flatten", {})(grid, block, (parent, is_root, np.int32(size)))
+    root_count = xp.cumsum(is_root, dtype=xp.int32)
+    kernel("components.cu", "label_number", {})(
+        grid, block, (parent, root_count, labels, np.int32(size)))
+    return labels, int(to_host(root_count[-1]))
 
 
 def _filters_gpu(backend: Backend, components: Any, valid: Any, superpixel_labels: Any,
