@@ -294,12 +294,15 @@ def test_label_kernels_match_scipy_numbering(gpu, height, width, density):
     np.testing.assert_array_equal(to_host(found[0]), expected[0])
 
 
-@pytest.mark.parametrize("corner_fraction,min_superpixels", [(0.1, 2), (0.0, 1), (0.3, 3)])
-def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min_superpixels):
-    rng = np.random.default_rng(int(corner_fraction * 10) + min_superpixels)
-    height, width = 90, 160
-    candidate = rng.random((height // 6, width // 8)) < 0.3
-    candidate = np.kron(candidate, np.ones((6, 8), bool))
+@pytest.mark.parametrize("corner_fraction,min_superpixels,factor",
+                         [(0.1, 2, 1), (0.0, 1, 1), (0.3, 3, 1), (0.1, 2, 2), (0.2, 1, 3)])
+def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min_superpixels,
+                                                       factor):
+    from pothole_detector.stages.superpixels import upsample_labels
+    rng = np.random.default_rng(int(corner_fraction * 10) + min_superpixels + factor)
+    height, width = 90, 161
+    small = rng.random((height // factor, width // factor)) < 0.3
+    candidate = upsample_labels(np, small, factor, (height, width))
     valid = np.ones((height, width), bool)
     valid[:, :13] = False
     valid[40:44, :] = False
@@ -308,9 +311,27 @@ def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min
     n = int(sp.max()) + 1
     cpu = components.pothole_components(CPU, candidate, valid, sp, n, corner_fraction,
                                         min_superpixels)
-    dev = components.pothole_components(gpu, gpu.upload(candidate), gpu.upload(valid),
-                                        gpu.upload(sp), n, corner_fraction, min_superpixels)
+    dev = components.pothole_components(gpu, gpu.upload(small), gpu.upload(valid),
+                                        gpu.upload(sp), n, corner_fraction, min_superpixels,
+                                        factor=factor)
     assert dev[1] == cpu[1] > 0
+    np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
+
+
+def test_component_filters_with_thousands_of_components(gpu):
+    """More components than one block of the renumbering kernel: its chunks must carry."""
+    height, width = 150, 240
+    candidate = np.zeros((height, width), bool)
+    candidate[::3, ::3] = True
+    candidate[::6, ::9] = False
+    valid = np.ones((height, width), bool)
+    sp = ((np.arange(height)[:, None] // 2) * 120 + np.arange(width)[None, :] // 2)
+    sp = sp.astype(np.int32)
+    n = int(sp.max()) + 1
+    cpu = components.pothole_components(CPU, candidate, valid, sp, n, 0.05, 1)
+    dev = components.pothole_components(gpu, gpu.upload(candidate), gpu.upload(valid),
+                                        gpu.upload(sp), n, 0.05, 1)
+    assert dev[1] == cpu[1] > 2000
     np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
 
 

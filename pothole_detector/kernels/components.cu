@@ -25,22 +25,80 @@ extern "C" __global__ void row_extents(const unsigned char* valid, int height, i
     }
 }
 
+// The component of full-resolution pixel (row, col) from labels on a grid reduced by
+// `factor` (pixels past the enlarged grid take the last row or column).
+__device__ __forceinline__ int component_at(const int* small, int row, int col, int factor,
+                                            int small_height, int small_width) {
+    return small[min(row / factor, small_height - 1) * small_width
+                 + min(col / factor, small_width - 1)];
+}
+
 // One thread per pixel of component c > 0: touched[c] = 1 inside a corner region (the top and
 // bottom `side` rows, within `side` columns of the row's valid span), present[c][superpixel]
 // = 1. Plain stores: every writer writes the same 1.
-extern "C" __global__ void component_marks(const int* components, const int* superpixels,
+extern "C" __global__ void component_marks(const int* small, const int* superpixels,
                                            const int* first, const int* last, int height,
-                                           int width, int side, int n_superpixels,
+                                           int width, int factor, int small_height,
+                                           int small_width, int side, int n_superpixels,
                                            unsigned char* touched, unsigned char* present) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     if (index >= (long long)height * width) return;
-    const int component = components[index];
-    if (component <= 0) return;
     const int row = (int)(index / width), col = (int)(index % width);
+    const int component = component_at(small, row, col, factor, small_height, small_width);
+    if (component <= 0) return;
     const bool band = row < side || row >= height - side;
     if (side > 0 && band && (col < first[row] + side || col > last[row] - side))
         touched[component] = 1;
     present[(long long)component * n_superpixels + superpixels[index]] = 1;
+}
+
+// One block: component c (1..count) is kept when it touches no corner and holds at least
+// min_superpixels superpixels; new_id[c] numbers the kept ones 1..m in order (0 otherwise);
+// kept[0] = m.
+extern "C" __global__ void component_keep(const unsigned char* touched,
+                                          const unsigned char* present, int count,
+                                          int n_superpixels, int min_superpixels, int* new_id,
+                                          int* kept) {
+    __shared__ int warp_totals[32];
+    __shared__ int carry;
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+    if (threadIdx.x == 0) carry = 0;
+    __syncthreads();
+    for (int start = 0; start <= count; start += blockDim.x) {
+        const int component = start + threadIdx.x;
+        int flag = 0;
+        if (component > 0 && component <= count && !touched[component]) {
+            const unsigned char* row = present + (long long)component * n_superpixels;
+            int held = 0;
+            for (int s = 0; s < n_superpixels; ++s) held += row[s];
+            flag = held >= min_superpixels;
+        }
+        int inclusive = flag;
+#pragma unroll
+        for (int offset = 1; offset < 32; offset <<= 1) {
+            const int other = __shfl_up_sync(0xffffffffu, inclusive, offset);
+            if (lane >= offset) inclusive += other;
+        }
+        if (lane == 31) warp_totals[warp] = inclusive;
+        __syncthreads();
+        int before = carry;
+        for (int w = 0; w < warp; ++w) before += warp_totals[w];
+        if (component <= count) new_id[component] = flag ? before + inclusive : 0;
+        __syncthreads();
+        if (threadIdx.x == blockDim.x - 1) carry = before + inclusive;
+        __syncthreads();
+    }
+    if (threadIdx.x == 0) kept[0] = carry;
+}
+
+// Final labels: new_id of each full-resolution pixel's component.
+extern "C" __global__ void component_relabel(const int* small, const int* new_id, int* labels,
+                                             int height, int width, int factor,
+                                             int small_height, int small_width) {
+    const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (index >= (long long)height * width) return;
+    const int row = (int)(index / width), col = (int)(index % width);
+    labels[index] = new_id[component_at(small, row, col, factor, small_height, small_width)];
 }
 
 // Connected components (8-connectivity) by union-find on parent indices: every pixel of the
@@ -52,6 +110,19 @@ __device__ __forceinline__ int find_root(const int* parent, int x) {
         const int up = parent[x];
         if (up == x) return x;
         x = up;
+    }
+}
+
+// find_root with path halving: each visited node is pointed at its grandparent. Only nodes
+// that are no longer roots are written, and always to one of their ancestors, so concurrent
+// finds and links stay correct.
+__device__ __forceinline__ int find_root_halving(int* parent, int x) {
+    while (true) {
+        const int up = parent[x];
+        if (up == x) return x;
+        const int grand = parent[up];
+        if (grand != up) parent[x] = grand;
+        x = grand;
     }
 }
 
@@ -70,7 +141,7 @@ extern "C" __global__ void label_merge(int* parent, int height, int width) {
         if (r < 0 || c < 0 || c >= width) continue;
         const int other = r * width + c;
         if (parent[other] < 0) continue;
-        int a = find_root(parent, index), b = find_root(parent, other);
+        int a = find_root_halving(parent, index), b = find_root_halving(parent, other);
         while (a != b) {
             if (a < b) {
                 const int swap = a;
@@ -79,8 +150,8 @@ extern "C" __global__ void label_merge(int* parent, int height, int width) {
             }
             const int seen = atomicCAS(&parent[a], a, b);
             if (seen == a) break;
-            a = find_root(parent, seen);
-            b = find_root(parent, b);
+            a = find_root_halving(parent, seen);
+            b = find_root_halving(parent, b);
         }
     }
 }

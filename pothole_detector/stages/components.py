@@ -50,14 +50,13 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
     Returns (int32 HxW labels numbered 1..k, 0 elsewhere; k).
     """
     xp = backend.xp
+    if backend.is_gpu:
+        return _components_gpu(backend, candidate, valid, superpixel_labels, n_superpixels,
+                               corner_fraction, min_superpixels, factor)
     components, count = label_components(backend, candidate)
     components = upsample_labels(xp, components, factor, valid.shape)
     if count == 0:
         return components.astype(xp.int32), 0
-    if backend.is_gpu:
-        keep = _filters_gpu(backend, components, valid, superpixel_labels, n_superpixels,
-                            count, corner_fraction, min_superpixels)
-        return relabel(xp, components, keep)
     keep = xp.ones(count + 1, dtype=bool)
     keep[0] = False
     touched = components[corner_mask(xp, valid, corner_fraction)]
@@ -105,29 +104,43 @@ def label_components(backend: Backend, mask: Any) -> tuple[Any, int]:
     return labels, int(to_host(root_count[-1]))
 
 
-def _filters_gpu(backend: Backend, components: Any, valid: Any, superpixel_labels: Any,
-                 n_superpixels: int, count: int, corner_fraction: float,
-                 min_superpixels: int) -> Any:
-    """Bool (count + 1,) keep flags of pothole_components by two kernels
-    (kernels/components.cu): per-row valid span, then one pass marking corner contact and
-    the superpixels present in each component."""
+def _components_gpu(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
+                    n_superpixels: int, corner_fraction: float, min_superpixels: int,
+                    factor: int) -> tuple[Any, int]:
+    """pothole_components on the GPU: union-find labels of the (reduced) candidate mask, then
+    kernels/components.cu reads them at full resolution by index arithmetic: per-row valid
+    spans, corner and superpixel marks, the keep/renumber table (one block) and the final
+    labels. Readbacks: the component count and the kept count."""
     xp = backend.xp
-    height, width = components.shape
+    height, width = valid.shape
+    small, count = label_components(backend, candidate)
+    if count == 0:
+        return xp.zeros((height, width), dtype=xp.int32), 0
+    small_height, small_width = small.shape
     i32 = np.int32
+    kernel = backend.kernel
     first = xp.empty(height, dtype=xp.int32)
     last = xp.empty(height, dtype=xp.int32)
-    backend.kernel("components.cu", "row_extents", {})(
+    kernel("components.cu", "row_extents", {})(
         ((height + 7) // 8,), (256,),
         (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
-    touched = xp.zeros(count + 1, dtype=xp.uint8)
-    present = xp.zeros((count + 1, n_superpixels), dtype=xp.uint8)
+    marks = xp.zeros((count + 1) * (1 + n_superpixels), dtype=xp.uint8)
+    touched, present = marks[:count + 1], marks[count + 1:]
     side = int(round(corner_fraction * min(height, width)))
     size = height * width
-    backend.kernel("components.cu", "component_marks", {})(
-        ((size + 255) // 256,), (256,),
-        (xp.ascontiguousarray(components, dtype=xp.int32),
-         xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last, i32(height),
-         i32(width), i32(side), i32(n_superpixels), touched, present))
-    keep = (touched == 0) & (present.sum(axis=1, dtype=xp.int32) >= min_superpixels)
-    keep[0] = False
-    return keep
+    grid = ((size + 255) // 256,)
+    kernel("components.cu", "component_marks", {})(
+        grid, (256,),
+        (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last,
+         i32(height), i32(width), i32(factor), i32(small_height), i32(small_width), i32(side),
+         i32(n_superpixels), touched, present))
+    numbers = xp.empty(count + 2, dtype=xp.int32)
+    new_id, kept = numbers[:count + 1], numbers[count + 1:]
+    kernel("components.cu", "component_keep", {})(
+        (1,), (1024,), (touched, present, i32(count), i32(n_superpixels), i32(min_superpixels),
+                        new_id, kept))
+    labels = xp.empty((height, width), dtype=xp.int32)
+    kernel("components.cu", "component_relabel", {})(
+        grid, (256,), (small, new_id, labels, i32(height), i32(width), i32(factor),
+                       i32(small_height), i32(small_width)))
+    return labels, int(to_host(kept)[0])
