@@ -58,9 +58,7 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
     if count == 0:
         return components.astype(xp.int32), 0
     keep = xp.ones(count + 1, dtype=bool)
-    keep[0] = False
-    touched = components[corner_mask(xp, valid, corner_fraction)]
-    keep[touched] = False
+    keep[components[corner_mask(xp, valid, corner_fraction)]] = False
     keep[0] = False
     pairs = components.ravel().astype(xp.int64) * n_superpixels + superpixel_labels.ravel()
     present = xp.bincount(pairs[components.ravel() > 0], minlength=(count + 1) * n_superpixels)
