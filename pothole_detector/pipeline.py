@@ -73,7 +73,8 @@ class Pipeline:
 
         seeded = self._road is None or not config.gpt_enabled
         disparity, kappa, levels = self._match(left_gray, right_gray, clock)
-        valid_fraction = float(xp.isfinite(disparity).mean())
+        valid = xp.isfinite(disparity)
+        valid_fraction = float(valid.mean())
         if valid_fraction < config.min_valid_fraction:
             self.reset()
             raise NoTextureError(
@@ -108,7 +109,7 @@ class Pipeline:
             selected = self._select(sp_labels, n_sp, sp_means, sp_valid, reference, road)
         with clock.stage("components"):
             labels, count = components.pothole_components(
-                backend, selected[sp_grid], xp.isfinite(disparity), sp_labels, n_sp,
+                backend, selected[sp_grid], valid, sp_labels, n_sp,
                 config.corner_fraction, config.min_pothole_superpixels,
                 factor=config.slic_downsample)
         with clock.stage("measure"):
@@ -171,10 +172,8 @@ class Pipeline:
         if not config.gpt_enabled or self._road is None:
             return np.zeros(height, np.int32), \
                 perspective.round_up_levels(config.max_disparity_px)
-        kappa = perspective.row_shifts(np, self._road, height, width, config.gpt_margin_below_px)
-        levels = perspective.band_levels(np, self._road, kappa, height, width,
-                                         config.gpt_margin_above_px, config.max_disparity_px)
-        return kappa, levels
+        return perspective.band(np, self._road, height, width, config.gpt_margin_below_px,
+                                config.gpt_margin_above_px, config.max_disparity_px)
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
         config = self.config

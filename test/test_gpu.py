@@ -50,6 +50,8 @@ CASES = [  # height, width, levels, shift, kappa pattern
     (40, 96, 128, 17, "ramp"),    # 16 lanes of 8 levels
     (31, 75, 48, 12, "ramp"),
     (8, 240, 208, 30, "ramp"),    # 13 levels per lane: byte reads instead of words
+    (21, 150, 96, 10, "ramp"),    # the real frames' band: 16 lanes of 6 levels
+    (6, 330, 256, 20, "ramp"),    # 32 lanes: one line per warp
 ]
 
 

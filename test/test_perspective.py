@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from pothole_detector.stages.perspective import (band_levels, round_up_levels, row_shifts,
+from pothole_detector.stages.perspective import (band, band_levels, round_up_levels, row_shifts,
                                                  shift_rows)
 from pothole_detector.stages.road_model import RoadModel
 
@@ -34,6 +34,14 @@ def test_band_covers_the_road_and_margins():
     assert (road - kappa[:, None]).max() + 16 <= levels < (road - kappa[:, None]).max() + 32
     assert band_levels(np, model, kappa, 200, 400, 16.0, 48) == 48
     assert round_up_levels(1) == 16 and round_up_levels(17) == 32
+
+
+def test_band_is_row_shifts_and_band_levels_at_once():
+    model = RoadModel(80.0, 0.3, math.radians(-2.0), kind="quadratic",
+                      curvature=(0.5, -1.0, 2.0, 3.0, -1.5, 0.5))
+    kappa, levels = band(np, model, 120, 300, 20.0, 16.0, 384)
+    np.testing.assert_array_equal(kappa, row_shifts(np, model, 120, 300, 20.0))
+    assert levels == band_levels(np, model, kappa, 120, 300, 16.0, 384)
 
 
 def test_matching_the_shifted_pair_recovers_disparity():

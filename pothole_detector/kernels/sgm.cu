@@ -4,7 +4,8 @@
 // INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8 [4][H][W][LEVELS], slot s holding the
 // sum of the directions FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most
 // INVALID_COST + P2 <= 127, so a pair fits a byte). In sgm_select thread `sub` of a group
-// holds levels sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1; sgm_paths: see PACKED.
+// holds levels sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1; sgm_paths_write and
+// sgm_paths_add: see PACKED. Optional: PREFETCH_STEPS, PATH_BLOCKS (tuning).
 
 #define PER_LANE (LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
@@ -22,22 +23,30 @@ __device__ __forceinline__ unsigned group_mask() {
     return N == 32 ? 0xffffffffu : ((1u << N) - 1u) << (threadIdx.x & (32 - N));
 }
 
-// PER_LANE consecutive path bytes of one lane (sgm_select): 32-bit accesses when PER_LANE is a
-// multiple of 4 (the lane's bytes then start on a 4-byte boundary), single bytes otherwise.
-// Path bytes are written once and read once per pass, so they go through the cache as
-// streaming data (evict first), which leaves L2 to the census words every step reads.
-__device__ __forceinline__ void load_bytes(const unsigned char* cell,
-                                           unsigned char (&bytes)[PER_LANE]) {
+// Adds PER_LANE consecutive path bytes of one lane (sgm_select) to its totals. With an even
+// PER_LANE the lane's bytes start on a 2-byte boundary: they are read 4 or 2 at a time, spread
+// to 16-bit halves and added two levels per 32-bit add (a total of four slots is at most
+// 4 x 254, so no half carries into the next). Path bytes are written once and read once per
+// pass, so they go through the cache as streaming data (evict first), which leaves L2 to the
+// census words every step reads.
+__device__ __forceinline__ void add_path_bytes(const unsigned char* cell,
+                                               unsigned (&totals)[(PER_LANE + 1) / 2]) {
 #if PER_LANE % 4 == 0
 #pragma unroll
     for (int w = 0; w < PER_LANE / 4; ++w) {
         const unsigned word = __ldcs(reinterpret_cast<const unsigned*>(cell) + w);
-#pragma unroll
-        for (int b = 0; b < 4; ++b) bytes[4 * w + b] = (unsigned char)(word >> (8 * b));
+        totals[2 * w] += __byte_perm(word, 0u, 0x4140);
+        totals[2 * w + 1] += __byte_perm(word, 0u, 0x4342);
     }
+#elif PER_LANE % 2 == 0
+#pragma unroll
+    for (int h = 0; h < PER_LANE / 2; ++h)
+        totals[h] += __byte_perm(__ldcs(reinterpret_cast<const unsigned short*>(cell) + h), 0u,
+                                 0x4140);
 #else
 #pragma unroll
-    for (int k = 0; k < PER_LANE; ++k) bytes[k] = __ldcs(cell + k);
+    for (int k = 0; k < PER_LANE; ++k)
+        totals[k / 2] += (unsigned)__ldcs(cell + k) << (16 * (k % 2));
 #endif
 }
 
@@ -85,8 +94,9 @@ extern "C" __global__ void census_pair(const unsigned char* left, const unsigned
     out[v * width + u] = bits;
 }
 
-#ifndef PREFETCH_STEPS
-#define PREFETCH_STEPS 4
+// Blocks of 256 threads the path kernels are built to fit on one multiprocessor.
+#ifndef PATH_BLOCKS
+#define PATH_BLOCKS 1
 #endif
 
 // With an even number of levels per lane (PACKED) a lane holds consecutive levels
@@ -98,40 +108,51 @@ extern "C" __global__ void census_pair(const unsigned char* left, const unsigned
 #if PACKED
 #define LANE_FIRST_LEVEL(sub) ((sub) * PER_LANE)
 #define LEVEL_STEP 1
+#define OLD_WORDS PAIRS
 #else
 #define LANE_FIRST_LEVEL(sub) (sub)
 #define LEVEL_STEP LANES
+#define OLD_WORDS PER_LANE
+#endif
+// The lane's highest level is at most `start` (u - kappa - the lane's first level) away:
+// every candidate column of the step lies inside the image.
+#define ALL_INSIDE(start) ((start) >= LEVEL_STEP * (PER_LANE - 1))
+// Steps whose loads are in flight ahead of the one aggregated (measured best at 96 levels,
+// 16 lanes: 6; fewer where unpacked or many levels per lane would crowd the registers).
+#ifndef PREFETCH_STEPS
+#define PREFETCH_STEPS (PACKED && PER_LANE <= 8 ? 6 : 3)
 #endif
 // Halfword stand-in for "outside the range": above any path cost plus P1, no carry out.
 #define FAR_HALF 0x7fffu
 
 // What one path step reads: the left census word, the right census words of the lane's
-// levels, the lane's first candidate column `start` and, in pass 1, the earlier path sums
-// (PACKED: two bytes per entry, PAIRS entries).
+// levels (0 left of the image), the lane's first candidate column `start` and, when adding,
+// the path sums of the first pass (PACKED: two bytes per entry).
 struct StepData {
     unsigned left;
     unsigned right[PER_LANE];
-    unsigned old[PER_LANE];
+    unsigned old[OLD_WORDS];
     int start;
 };
 
-// Loads of one path step at (u, v): the left census word, the right census words of this
-// lane's levels (0 where left of the image; start = u - kappa(v) - the lane's first level)
-// and, in pass 1, the path sums written by pass 0.
-__device__ __forceinline__ void load_step(const unsigned* census_left,
-                                          const unsigned* census_right, const int* row_shift,
-                                          const unsigned char* out, int width, int u, int v,
-                                          int sub, int pass, StepData& data) {
-    data.left = __ldg(census_left + v * width + u);
+template <bool ADD>
+__device__ __forceinline__ void load_step(const unsigned* __restrict__ census_left,
+                                          const unsigned* __restrict__ census_right,
+                                          const int* row_shift, const unsigned char* cell,
+                                          int pixel, int u, int v, int sub, StepData& data) {
+    data.left = __ldg(census_left + pixel);
     const int start = u - row_shift[v] - LANE_FIRST_LEVEL(sub);
     data.start = start;
-    const unsigned* right_row = census_right + (size_t)v * width;
+    const unsigned* right = census_right + (pixel - u) + start;
+    if (ALL_INSIDE(start)) {
 #pragma unroll
-    for (int k = 0; k < PER_LANE; ++k)
-        data.right[k] = start - LEVEL_STEP * k >= 0 ? __ldg(right_row + start - LEVEL_STEP * k)
-                                                    : 0u;
-    if (pass == 1) {
-        const unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
+        for (int k = 0; k < PER_LANE; ++k) data.right[k] = __ldg(right - LEVEL_STEP * k);
+    } else {
+#pragma unroll
+        for (int k = 0; k < PER_LANE; ++k)
+            data.right[k] = start >= LEVEL_STEP * k ? __ldg(right - LEVEL_STEP * k) : 0u;
+    }
+    if (ADD) {
 #if PACKED
 #pragma unroll
         for (int p = 0; p < PAIRS; ++p)
@@ -143,74 +164,150 @@ __device__ __forceinline__ void load_step(const unsigned* census_left,
     }
 }
 
-// Slot first_slot + blockIdx.y; the direction is FIRST_PASS[slot] in pass 0 (path costs
-// written) and SECOND_PASS[slot] in pass 1 (added). Each group of LANES threads walks one line
-// of that direction from where it enters the image.
-extern "C" __global__ void __launch_bounds__(256)
-sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* kappa,
-          unsigned char* paths, int height, int width, int p1, int p2, int pass,
-          int first_slot) {
+// Minimum of `value` over the lane's group. With 16 or 32 lanes by warp reductions (one per
+// group, over the lanes in `walking`, independent of each other); else by shuffles.
+__device__ __forceinline__ unsigned path_minimum(unsigned value, unsigned walking) {
+#if LANES == 32
+    return __reduce_min_sync(walking, value);
+#elif LANES == 16
+    const bool high = threadIdx.x & 16;
+    const unsigned low_min = __reduce_min_sync(walking, high ? 0xffffffffu : value);
+    const unsigned high_min = __reduce_min_sync(walking, high ? value : 0xffffffffu);
+    return high ? high_min : low_min;
+#else
+    return (unsigned)group_min<LANES>((int)value, group_mask<LANES>());
+#endif
+}
+
+// Steps from (u, v) along (dx, dy) until the line leaves the image.
+__device__ __forceinline__ int line_steps(int u, int v, int dx, int dy, int height,
+                                          int width) {
+    const int along_x = dx > 0 ? width - u : dx < 0 ? u + 1 : 1 << 30;
+    const int along_y = dy > 0 ? height - v : dy < 0 ? v + 1 : 1 << 30;
+    return min(along_x, along_y);
+}
+
+__device__ __forceinline__ int lines_of(int direction, int height, int width) {
+    const int dx = DIRECTION_DX[direction], dy = DIRECTION_DY[direction];
+    return dy == 0 ? height : dx == 0 ? width : width + height - 1;
+}
+
+// One launch per pass walks all four slots: slot s takes the direction FIRST_PASS[s] in the
+// first pass (path costs written: ADD false) and SECOND_PASS[s] in the second (added). The
+// blocks of slot 0 come first, then those of slots 1, 2, 3, each slot with just enough blocks
+// for its lines (the horizontal walks, the longest, start first and spread over the
+// multiprocessors). Each group of LANES threads walks one line from where it enters the image.
+template <bool ADD>
+__device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_left,
+                                           const unsigned* __restrict__ census_right,
+                                           const int* kappa, unsigned char* paths, int height,
+                                           int width, int p1, int p2) {
     extern __shared__ int row_shift[];
-    const int slot = first_slot + blockIdx.y;
-    const int direction = pass == 0 ? FIRST_PASS[slot] : SECOND_PASS[slot];
+    const int groups_per_block = blockDim.x / LANES;
+    int slot = 0, block = blockIdx.x, direction = 0;
+#pragma unroll 1
+    for (; slot < 4; ++slot) {
+        direction = ADD ? SECOND_PASS[slot] : FIRST_PASS[slot];
+        const int blocks = (lines_of(direction, height, width) + groups_per_block - 1)
+                           / groups_per_block;
+        if (block < blocks) break;
+        block -= blocks;
+    }
+    if (slot == 4) return;
     const int dx = DIRECTION_DX[direction], dy = DIRECTION_DY[direction];
     const int sub = threadIdx.x % LANES;
-    const int line = blockIdx.x * (blockDim.x / LANES) + threadIdx.x / LANES;
-    int u, v, lines;
+    const int line = block * groups_per_block + threadIdx.x / LANES;
+    int u, v;
     if (dy == 0) {
-        lines = height; v = line; u = dx > 0 ? 0 : width - 1;
+        v = line; u = dx > 0 ? 0 : width - 1;
     } else if (dx == 0) {
-        lines = width; u = line; v = dy > 0 ? 0 : height - 1;
+        u = line; v = dy > 0 ? 0 : height - 1;
+    } else if (line < width) {
+        u = line; v = dy > 0 ? 0 : height - 1;
     } else {
-        lines = width + height - 1;
-        if (line < width) {
-            u = line; v = dy > 0 ? 0 : height - 1;
-        } else {
-            const int along = line - width + 1;
-            u = dx > 0 ? 0 : width - 1; v = dy > 0 ? along : height - 1 - along;
-        }
+        const int along = line - width + 1;
+        u = dx > 0 ? 0 : width - 1; v = dy > 0 ? along : height - 1 - along;
     }
     for (int i = threadIdx.x; i < height; i += blockDim.x) row_shift[i] = kappa[i];
     __syncthreads();
-    if (line >= lines) return;
-    const unsigned mask = group_mask<LANES>();
+    const int steps = line < lines_of(direction, height, width)
+                          ? line_steps(u, v, dx, dy, height, width) : 0;
+#if LANES == 16
+    // the warp's two lines may end at different steps: the walking lanes of each step
+    const int other_steps = __shfl_xor_sync(0xffffffffu, steps, 16);
+    const unsigned own_lanes = 0xffffu << (threadIdx.x & 16);
+#endif
+    if (steps == 0) return;
     unsigned char* out = paths + (size_t)slot * height * width * LEVELS + LANE_FIRST_LEVEL(sub);
-    // census words (and, in pass 1, path sums) are loaded PREFETCH_STEPS steps ahead, into
+    const int delta = dy * width + dx;
+    int pixel = v * width + u;
+    // census words (and, when adding, path sums) are loaded PREFETCH_STEPS steps ahead, into
     // one of PREFETCH_STEPS register sets used in turn
-    auto inside = [&](int x, int y) { return x >= 0 && x < width && y >= 0 && y < height; };
     StepData sets[PREFETCH_STEPS];
 #pragma unroll
     for (int s = 0; s < PREFETCH_STEPS; ++s)
-        if (inside(u + s * dx, v + s * dy))
-            load_step(census_left, census_right, row_shift, out, width, u + s * dx, v + s * dy,
-                      sub, pass, sets[s]);
+        if (s < steps)
+            load_step<ADD>(census_left, census_right, row_shift,
+                           out + (size_t)(pixel + s * delta) * LEVELS, pixel + s * delta,
+                           u + s * dx, v + s * dy, sub, sets[s]);
+    // zero previous costs and minimum make the first step's path cost its matching cost
 #if PACKED
     unsigned previous[PAIRS];
+#pragma unroll
+    for (int p = 0; p < PAIRS; ++p) previous[p] = 0u;
 #else
     int previous[PER_LANE];
+#pragma unroll
+    for (int k = 0; k < PER_LANE; ++k) previous[k] = 0;
 #endif
     int previous_min = 0;
-    bool first = true;
+    const unsigned mask = group_mask<LANES>();
+    int step = 0;
+    // one step with the register set `data`; false once the line has left the image
     auto advance = [&](StepData& data) -> bool {
-        const StepData here = data;
-        if (inside(u + PREFETCH_STEPS * dx, v + PREFETCH_STEPS * dy))
-            load_step(census_left, census_right, row_shift, out, width, u + PREFETCH_STEPS * dx,
-                      v + PREFETCH_STEPS * dy, sub, pass, data);
-        unsigned char* cell = out + ((size_t)v * width + u) * LEVELS;
+        unsigned char* cell = out + (size_t)pixel * LEVELS;
+        unsigned old[OLD_WORDS];
+        if (ADD) {
+#pragma unroll
+            for (int w = 0; w < OLD_WORDS; ++w) old[w] = data.old[w];
+        }
 #if PACKED
         // halfword pairs: level sub * PER_LANE + 2p in the low half, + 2p + 1 in the high
         unsigned current[PAIRS];
+        if (ALL_INSIDE(data.start)) {
 #pragma unroll
-        for (int p = 0; p < PAIRS; ++p) {
-            const unsigned low = here.start - 2 * p >= 0
-                                     ? __popc(here.left ^ here.right[2 * p]) : INVALID_COST;
-            const unsigned high = here.start - 2 * p - 1 >= 0
-                                      ? __popc(here.left ^ here.right[2 * p + 1]) : INVALID_COST;
-            current[p] = low | (high << 16);
+            for (int p = 0; p < PAIRS; ++p)
+                current[p] = __popc(data.left ^ data.right[2 * p])
+                             | (__popc(data.left ^ data.right[2 * p + 1]) << 16);
+        } else {
+#pragma unroll
+            for (int p = 0; p < PAIRS; ++p) {
+                const unsigned low = data.start >= 2 * p
+                                         ? __popc(data.left ^ data.right[2 * p])
+                                         : INVALID_COST;
+                const unsigned high = data.start >= 2 * p + 1
+                                          ? __popc(data.left ^ data.right[2 * p + 1])
+                                          : INVALID_COST;
+                current[p] = low | (high << 16);
+            }
         }
-        if (!first) {
+#else
+        int current[PER_LANE];
+#pragma unroll
+        for (int k = 0; k < PER_LANE; ++k)
+            current[k] = data.start >= LANES * k ? __popc(data.left ^ data.right[k])
+                                                 : INVALID_COST;
+#endif
+        if (step + PREFETCH_STEPS < steps) {
+            const int ahead = pixel + PREFETCH_STEPS * delta;
+            load_step<ADD>(census_left, census_right, row_shift,
+                           out + (size_t)ahead * LEVELS, ahead, u + PREFETCH_STEPS * dx,
+                           v + PREFETCH_STEPS * dy, sub, data);
+        }
+#if PACKED
+        {
             // the level below this lane's first is the high half of the lower lane's last
-            // pair; the level above its last is the low half of the upper lane's first pair
+            // pair; the level above its last is the low half of the upper lane's first
             unsigned below = __shfl_up_sync(mask, previous[PAIRS - 1], 1, LANES);
             unsigned above = __shfl_down_sync(mask, previous[0], 1, LANES);
             if (sub == 0) below = FAR_HALF << 16;
@@ -222,9 +319,8 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
             for (int p = 0; p < PAIRS; ++p) {
                 const unsigned lower = __funnelshift_l(p == 0 ? below : previous[p - 1],
                                                        previous[p], 16);
-                const unsigned upper = __funnelshift_r(previous[p],
-                                                       p == PAIRS - 1 ? above : previous[p + 1],
-                                                       16);
+                const unsigned upper = __funnelshift_r(
+                    previous[p], p == PAIRS - 1 ? above : previous[p + 1], 16);
                 const unsigned best = __vimin3_u16x2(previous[p],
                                                      __vminu2(lower, upper) + p1_pair, jump);
                 // every half of best is >= the minimum and the sums stay below 256: plain
@@ -235,28 +331,25 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
         unsigned least = current[0];
 #pragma unroll
         for (int p = 1; p < PAIRS; ++p) least = __vminu2(least, current[p]);
-        previous_min = group_min<LANES>((int)min(least & 0xffffu, least >> 16), mask);
+        least = min(least & 0xffffu, least >> 16);
 #pragma unroll
         for (int p = 0; p < PAIRS; ++p) {
-            // the two bytes of a pair (every value is below 128, the pass-1 sum below 256)
+            // the two bytes of a pair (every value is below 128, the second pass's sum
+            // below 256)
             unsigned bytes = __byte_perm(current[p], 0u, 0x3320);
-            if (pass == 1) bytes += here.old[p];
+            if (ADD) bytes += old[p];
             __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
             previous[p] = current[p];
         }
 #else
-        int current[PER_LANE];
-#pragma unroll
-        for (int k = 0; k < PER_LANE; ++k)
-            current[k] = here.start - LANES * k >= 0 ? __popc(here.left ^ here.right[k])
-                                                     : INVALID_COST;
-        if (!first) {
+        {
             const int jump = previous_min + p2;
             const int left_lane = (sub + LANES - 1) % LANES, right_lane = (sub + 1) % LANES;
 #pragma unroll
             for (int k = 0; k < PER_LANE; ++k) {
                 // level d - 1: lane sub - 1, or the last lane's previous register for lane 0
-                const int give_lower = sub == LANES - 1 && k > 0 ? previous[k - 1] : previous[k];
+                const int give_lower = sub == LANES - 1 && k > 0 ? previous[k - 1]
+                                                                 : previous[k];
                 int lower = __shfl_sync(mask, give_lower, left_lane, LANES);
                 if (sub == 0 && k == 0) lower = OUTSIDE_COST;
                 // level d + 1: lane sub + 1, or lane 0's next register for the last lane
@@ -268,27 +361,52 @@ sgm_paths(const unsigned* census_left, const unsigned* census_right, const int* 
                 current[k] += best - previous_min;
             }
         }
-        int local = current[0];
+        unsigned least = (unsigned)current[0];
 #pragma unroll
-        for (int k = 1; k < PER_LANE; ++k) local = min(local, current[k]);
-        previous_min = group_min<LANES>(local, mask);
+        for (int k = 1; k < PER_LANE; ++k) least = min(least, (unsigned)current[k]);
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) {
-            const int stored = pass == 0 ? current[k] : (int)here.old[k] + current[k];
+            const int stored = ADD ? (int)old[k] + current[k] : current[k];
             __stcs(reinterpret_cast<char*>(cell) + LANES * k, (char)stored);
             previous[k] = current[k];
         }
 #endif
-        first = false;
+#if LANES == 16
+        const unsigned walking = own_lanes | (step < other_steps ? ~own_lanes : 0u);
+#else
+        const unsigned walking = mask;
+#endif
+        previous_min = (int)path_minimum(least, walking);
+        pixel += delta;
         u += dx;
         v += dy;
-        return inside(u, v);
+        return ++step < steps;
     };
+    // written out: with many levels per lane the compiler would not unroll a loop over the
+    // sets, and a set indexed at run time lives in local memory
+    static_assert(PREFETCH_STEPS >= 1 && PREFETCH_STEPS <= 8, "PREFETCH_STEPS: 1 to 8");
     while (true) {
-#pragma unroll
-        for (int s = 0; s < PREFETCH_STEPS; ++s)
-            if (!advance(sets[s])) return;
+        if (!advance(sets[0])) return;
+        if (PREFETCH_STEPS > 1 && !advance(sets[1 % PREFETCH_STEPS])) return;
+        if (PREFETCH_STEPS > 2 && !advance(sets[2 % PREFETCH_STEPS])) return;
+        if (PREFETCH_STEPS > 3 && !advance(sets[3 % PREFETCH_STEPS])) return;
+        if (PREFETCH_STEPS > 4 && !advance(sets[4 % PREFETCH_STEPS])) return;
+        if (PREFETCH_STEPS > 5 && !advance(sets[5 % PREFETCH_STEPS])) return;
+        if (PREFETCH_STEPS > 6 && !advance(sets[6 % PREFETCH_STEPS])) return;
+        if (PREFETCH_STEPS > 7 && !advance(sets[7 % PREFETCH_STEPS])) return;
     }
+}
+
+extern "C" __global__ void __launch_bounds__(256, PATH_BLOCKS)
+sgm_paths_write(const unsigned* census_left, const unsigned* census_right, const int* kappa,
+                unsigned char* paths, int height, int width, int p1, int p2) {
+    walk_paths<false>(census_left, census_right, kappa, paths, height, width, p1, p2);
+}
+
+extern "C" __global__ void __launch_bounds__(256, PATH_BLOCKS)
+sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const int* kappa,
+              unsigned char* paths, int height, int width, int p1, int p2) {
+    walk_paths<true>(census_left, census_right, kappa, paths, height, width, p1, p2);
 }
 
 // One block per row. Sum of the four slots, winner, uniqueness, subpixel, the right view's
@@ -311,16 +429,14 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
     __syncthreads();
     for (int u = group; u < width; u += groups) {
         const size_t cell = ((size_t)v * width + u) * LEVELS + sub * PER_LANE;
+        unsigned halves[(PER_LANE + 1) / 2];
+#pragma unroll
+        for (int h = 0; h < (PER_LANE + 1) / 2; ++h) halves[h] = 0;
+#pragma unroll
+        for (int slot = 0; slot < 4; ++slot) add_path_bytes(paths + slot * plane + cell, halves);
         unsigned total[PER_LANE];
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k) total[k] = 0;
-#pragma unroll
-        for (int slot = 0; slot < 4; ++slot) {
-            unsigned char bytes[PER_LANE];
-            load_bytes(paths + slot * plane + cell, bytes);
-#pragma unroll
-            for (int k = 0; k < PER_LANE; ++k) total[k] += bytes[k];
-        }
+        for (int k = 0; k < PER_LANE; ++k) total[k] = (halves[k / 2] >> (16 * (k % 2))) & 0xffffu;
         unsigned packed = 0xffffffffu;
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k)
@@ -334,7 +450,11 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
             const int d = sub * PER_LANE + k;
             if (abs(d - best) > 1) second = min(second, total[k]);
             totals[d] = total[k];
-            if (u - d >= 0) atomicMin(&right_best[u - d], (total[k] << 16) | (unsigned)d);
+            // most candidates lose to what the column already holds (values only fall, so a
+            // stale read is never below it): read before the atomic
+            const unsigned candidate = (total[k] << 16) | (unsigned)d;
+            if (u - d >= 0 && candidate < *(volatile unsigned*)&right_best[u - d])
+                atomicMin(&right_best[u - d], candidate);
         }
         second = group_min_u(second, mask);
         __syncwarp(mask);

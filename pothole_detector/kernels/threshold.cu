@@ -8,8 +8,42 @@ __device__ __forceinline__ bool finite(float x) {
     return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
 }
 
-// One block per 64x64 tile, 256 threads. g2 = mean of the valid 8-neighbours, added in the
-// order of threshold.neighbour_mean (float32, no FMA), so the bins equal the reference's.
+// Sums of one table row's bin over a run of pixels, added to the table when the bin changes
+// (neighbouring road pixels mostly share a bin, so a run saves most of the atomics).
+struct BinRun {
+    int bin = -1;
+    double count = 0.0, sum_a = 0.0, sum_b = 0.0, sum_square = 0.0;
+
+    __device__ void add(double* table, int n_bins, int next, double a, double b,
+                        double square) {
+        if (next != bin) {
+            flush(table, n_bins);
+            bin = next;
+        }
+        count += 1.0;
+        sum_a += a;
+        sum_b += b;
+        sum_square += square;
+    }
+
+    __device__ void flush(double* table, int n_bins) {
+        if (bin >= 0) {
+            atomicAdd(&table[bin], count);
+            atomicAdd(&table[n_bins + bin], sum_a);
+            atomicAdd(&table[2 * n_bins + bin], sum_b);
+            atomicAdd(&table[3 * n_bins + bin], sum_square);
+        }
+        bin = -1;
+        count = sum_a = sum_b = sum_square = 0.0;
+    }
+};
+
+#define TILE 64
+#define RUN 16
+
+// One block per TILE x TILE tile, 256 threads, each a run of RUN pixels of one row. g2 = mean
+// of the valid 8-neighbours, added in the order of threshold.neighbour_mean (float32, no FMA),
+// so the bins equal the reference's.
 extern "C" __global__ void __launch_bounds__(256)
 threshold_tables(const float* image, double* tables, int height, int width, float lo,
                  float bin, int n_bins, int in_shared) {
@@ -20,10 +54,12 @@ threshold_tables(const float* image, double* tables, int height, int width, floa
         for (int i = threadIdx.x; i < entries; i += blockDim.x) shared_tables[i] = 0.0;
         __syncthreads();
     }
-    const int u0 = blockIdx.x * 64, v0 = blockIdx.y * 64;
-    for (int i = threadIdx.x; i < 64 * 64; i += blockDim.x) {
-        const int u = u0 + (i & 63), v = v0 + (i >> 6);
-        if (u >= width || v >= height) continue;
+    const int v = blockIdx.y * TILE + threadIdx.x / (TILE / RUN);
+    const int u0 = blockIdx.x * TILE + (threadIdx.x % (TILE / RUN)) * RUN;
+    BinRun by_high, by_low;
+    for (int k = 0; k < RUN && v < height; ++k) {
+        const int u = u0 + k;
+        if (u >= width) break;
         const float g1 = image[v * width + u];
         float total = 0.0f, number = 0.0f;
 #pragma unroll
@@ -47,16 +83,11 @@ threshold_tables(const float* image, double* tables, int height, int width, floa
         const int i1 = (int)f1, i2 = (int)f2;
         const double a = g1, b = g2;
         const double square = __dadd_rn(__dmul_rn(a, a), __dmul_rn(b, b));
-        const int high = max(i1, i2), low = min(i1, i2);
-        atomicAdd(&target[high], 1.0);
-        atomicAdd(&target[n_bins + high], a);
-        atomicAdd(&target[2 * n_bins + high], b);
-        atomicAdd(&target[3 * n_bins + high], square);
-        atomicAdd(&target[4 * n_bins + low], 1.0);
-        atomicAdd(&target[5 * n_bins + low], a);
-        atomicAdd(&target[6 * n_bins + low], b);
-        atomicAdd(&target[7 * n_bins + low], square);
+        by_high.add(target, n_bins, max(i1, i2), a, b, square);
+        by_low.add(target + 4 * n_bins, n_bins, min(i1, i2), a, b, square);
     }
+    by_high.flush(target, n_bins);
+    by_low.flush(target + 4 * n_bins, n_bins);
     if (in_shared) {
         __syncthreads();
         for (int i = threadIdx.x; i < entries; i += blockDim.x) {

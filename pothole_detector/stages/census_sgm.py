@@ -202,8 +202,8 @@ def lanes_for(levels: int) -> int:
     """Threads per path line and per pixel of the GPU matcher (levels: a multiple of 16): the
     fewest of 4, 8, 16, 32 that leave each at most 8 levels, a multiple of 4 where possible
     (32-bit path reads in the winner search); 32 (or 16) for longer ranges. Measured at 96
-    levels, 2079x1040, H200, the four path launches (halfword-packed levels, loads 4 steps
-    ahead): 16 lanes 2.97 ms, 8 lanes 3.39 ms, 32 lanes 3.61 ms, 4 lanes 12.2 ms."""
+    levels, 2079x1040, H200, the two path launches (halfword-packed levels, loads 6 steps
+    ahead, 8 for 32 lanes): 16 lanes 1.93 ms, 8 lanes 2.35 ms, 32 lanes 2.51 ms."""
     for multiple_of_four in (True, False):
         for lanes in (4, 8, 16, 32):
             per_lane = levels // lanes
@@ -217,9 +217,10 @@ class GpuMatcher:
     """Census SGM on the device with buffers kept per (height, width, levels).
 
     Kernels come from kernels/sgm.cu, built once per level count. Memory: 4 bytes per pixel
-    and level for the path costs (the sums of DIRECTION_PAIRS, the second direction of each
-    pair added in place by a second launch), plus 12 bytes per pixel. The path kernel keeps
-    kappa in shared memory and loads each step's census words one step ahead.
+    and level for the path costs (the sums of DIRECTION_PAIRS), plus 12 bytes per pixel. Two
+    path launches: the first walks the first direction of every pair and writes, the second
+    walks the other and adds in place. The path kernels keep kappa in shared memory and load
+    each step's census words several steps ahead.
     """
 
     THREADS = 256
@@ -241,7 +242,8 @@ class GpuMatcher:
         defines = {"LEVELS": levels, "LANES": lanes, "CENSUS_RY": CENSUS_RADIUS_Y,
                    "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
                    "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X}
-        names = ("census_pair", "sgm_paths", "sgm_select", "sgm_finish")
+        names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
+                 "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
             | {"lanes": lanes}
 
@@ -275,21 +277,17 @@ class GpuMatcher:
             kernels["census_pair"](((width + 31) // 32, (height + 7) // 8, 2), (32, 8, 1),
                                    (left, right, census[0], census[1], i32(height), i32(width)))
         groups = self.THREADS // kernels["lanes"]
-        paths_kernel = kernels["sgm_paths"]
         kappa_bytes = 4 * height
-        if kappa_bytes > 48 * 1024:
-            paths_kernel.max_dynamic_shared_size_bytes = kappa_bytes
-
-        def walk(first_slot: int, lines: int) -> None:
-            for second in (0, 1):
-                paths_kernel(((lines + groups - 1) // groups, 2), (self.THREADS,),
-                             (census[0], census[1], kappa, paths, i32(height), i32(width),
-                              i32(p1), i32(p2), i32(second), i32(first_slot)),
-                             shared_mem=kappa_bytes)
-
+        diagonal_blocks = -(-(width + height - 1) // groups)
         with stage("paths"):
-            walk(0, max(height, width))
-            walk(2, width + height - 1)
+            for name, straight_lines in (("sgm_paths_write", height), ("sgm_paths_add", width)):
+                walk = kernels[name]
+                if kappa_bytes > 48 * 1024:
+                    walk.max_dynamic_shared_size_bytes = kappa_bytes
+                blocks = 2 * (-(-straight_lines // groups) + diagonal_blocks)
+                walk((blocks,), (self.THREADS,),
+                     (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
+                      i32(p2)), shared_mem=kappa_bytes)
         shared = 4 * (2 * width + groups * levels)
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
