@@ -167,10 +167,13 @@ def crowned_road(height: int, width: int, seed: int, invalid: float = 0.1) -> np
     return road.astype(np.float32)
 
 
+@pytest.mark.parametrize("keys_in", ["shared", "global"])
 @pytest.mark.parametrize("kind,rounds,stride", [("planar", 3, 1), ("quadratic", 2, 2),
                                                 ("auto", 3, 4), ("planar", 0, 3)])
-def test_road_fit_kernel_matches_the_reference(gpu, kind, rounds, stride):
+def test_road_fit_kernel_matches_the_reference(gpu, kind, rounds, stride, keys_in, monkeypatch):
     from pothole_detector.stages import road_model
+    if keys_in == "global":
+        monkeypatch.setattr(road_model, "MAX_SHARED_KEY_BYTES", 0)
     disparity = crowned_road(150, 260, seed=rounds + stride)
     cpu = road_model.fit_road(np, disparity, stride=stride, rounds=rounds, kind=kind)
     dev = road_model.fit(gpu, gpu.upload(disparity), stride=stride, rounds=rounds, kind=kind)

@@ -5,7 +5,8 @@
 // holds the same totals and solves the same small systems. Per element of the subsampled
 // map: d = sub * scale at column table u[j], row table v[i]; x = u / 1000, y = v / 1000 come
 // from the same tables. The robust sigma is the exact
-// median of |residual| (as float32) by a three-pass radix select in shared memory.
+// median of |residual| (as float32) by a three-pass radix select in shared memory (the keys
+// themselves in shared memory too where the block's share fits).
 //
 // out: [0] status (0 ok, 1 fewer than 3 valid, 2 degenerate), [1] valid count,
 // [2..4] a0, a1, phi, [5] planar inliers, [6] planar sigma, [7..12] curvature c0..c5,
@@ -58,17 +59,25 @@ __device__ __forceinline__ double remote_f64(const double* local, unsigned rank)
     return value;
 }
 
-// Calls f(i, row, col) for this block's elements: each warp of the cluster walks whole rows
-// (coalesced, no division), four columns in flight per lane. Every pass uses this partition,
-// so an element is always handled by the same thread.
+// Calls f(i, row, col, local) for this block's elements (local: the element's index among
+// the block's, rows in walking order): each warp of the cluster walks whole rows (coalesced,
+// no division), four columns in flight per lane. Every pass uses this partition, so an
+// element is always handled by the same thread.
 template <typename F>
 __device__ __forceinline__ void for_each_element(int height, int width, F&& f) {
     const int lane = threadIdx.x & 31;
     const int warp = cluster_rank() * WARPS + (threadIdx.x >> 5);
-    for (int row = warp; row < height; row += CLUSTER * WARPS) {
+    int local_row = threadIdx.x >> 5;
+    for (int row = warp; row < height; row += CLUSTER * WARPS, local_row += WARPS) {
 #pragma unroll 4
-        for (int col = lane; col < width; col += 32) f(row * width + col, row, col);
+        for (int col = lane; col < width; col += 32)
+            f(row * width + col, row, col, local_row * width + col);
     }
+}
+
+// Rows of one block's elements in for_each_element's local numbering.
+__host__ __device__ __forceinline__ int local_rows(int height) {
+    return (height + CLUSTER * WARPS - 1) / (CLUSTER * WARPS) * WARPS;
 }
 
 struct RoadState {
@@ -145,12 +154,13 @@ __device__ unsigned block_exclusive_scan(unsigned value, unsigned* warp_totals) 
     return before + inclusive - value;
 }
 
-// The bin of the cluster's histogram `hist` (summed over the blocks) holding element `rank`
-// (0-based, by ascending bin): state.prefix[which] gains the bin as its low `bits` bits,
+// The bins of the cluster's histogram `hist` (summed over the blocks) holding the elements
+// state.rank[which] (0-based, by ascending bin) for which = first_which..last_which, from one
+// read of the histogram: state.prefix[which] gains the bin as its low `bits` bits,
 // state.rank[which] becomes the rank inside the bin. Call after a cluster_sync.
-__device__ void locate(const unsigned* hist, int which, int bits, RoadState& state,
-                       unsigned* warp_totals) {
-    const unsigned rank = state.rank[which];
+__device__ void locate(const unsigned* hist, int first_which, int last_which, int bits,
+                       RoadState& state, unsigned* warp_totals) {
+    const unsigned ranks[2] = {state.rank[0], state.rank[1]};
     const int first = threadIdx.x * PER_THREAD_BINS;
     uint4 parts[CLUSTER][2];
 #pragma unroll
@@ -173,7 +183,9 @@ __device__ void locate(const unsigned* hist, int which, int bits, RoadState& sta
 #pragma unroll
     for (int b = 0; b < PER_THREAD_BINS; ++b) local += counts[b];
     const unsigned before = block_exclusive_scan(local, warp_totals);
-    if (rank >= before && rank < before + local) {
+    for (int which = first_which; which <= last_which; ++which) {
+        const unsigned rank = ranks[which];
+        if (rank < before || rank >= before + local) continue;
         unsigned below = before;
         for (int b = 0; b < PER_THREAD_BINS; ++b) {
             const unsigned count = counts[b];
@@ -188,9 +200,10 @@ __device__ void locate(const unsigned* hist, int which, int bits, RoadState& sta
     __syncthreads();
 }
 
-// 1.4826 x median of the masked keys (keys[i] = float bits of |residual|, NOT_MASKED else)
-// over the cluster. Each block's pass-0 histogram (key >> 20) is already in its hist[0].
-__device__ double robust_sigma(const unsigned* __restrict__ keys, int height, int width,
+// 1.4826 x median of the masked keys (float bits of |residual|, NOT_MASKED else) over the
+// cluster: keys[local] in shared memory (local_keys) or keys[i] in global memory. Each block's
+// pass-0 histogram (key >> 20) is already in its hist[0].
+__device__ double robust_sigma(const unsigned* keys, bool local_keys, int height, int width,
                                unsigned count, unsigned (*hist)[BINS], RoadState& state,
                                unsigned* warp_totals) {
     if (count == 0) return 0.0;
@@ -200,16 +213,15 @@ __device__ double robust_sigma(const unsigned* __restrict__ keys, int height, in
         state.rank[1] = count / 2;
     }
     cluster_sync();
-    locate(hist[0], 0, 12, state, warp_totals);
-    locate(hist[0], 1, 12, state, warp_totals);
+    locate(hist[0], 0, 1, 12, state, warp_totals);
     for (int pass = 1; pass <= 2; ++pass) {
         cluster_sync();
         for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
         __syncthreads();
         const unsigned p0 = state.prefix[0], p1 = state.prefix[1];
         const int known = pass == 1 ? 20 : 8;
-        for_each_element(height, width, [&](int i, int, int) {
-            const unsigned key = keys[i];
+        for_each_element(height, width, [&](int i, int, int, int local) {
+            const unsigned key = keys[local_keys ? local : i];
             if (key == NOT_MASKED) return;
             const unsigned bin = pass == 1 ? (key >> 8) & 0xfffu : key & 0xffu;
             if ((key >> known) == p0) atomicAdd(&hist[0][bin], 1u);
@@ -217,8 +229,12 @@ __device__ double robust_sigma(const unsigned* __restrict__ keys, int height, in
         });
         cluster_sync();
         const int bits = pass == 1 ? 12 : 8;
-        locate(hist[0], 0, bits, state, warp_totals);
-        locate(hist[p1 != p0 ? 1 : 0], 1, bits, state, warp_totals);
+        if (p1 == p0) {
+            locate(hist[0], 0, 1, bits, state, warp_totals);
+        } else {
+            locate(hist[0], 0, 0, bits, state, warp_totals);
+            locate(hist[1], 1, 1, bits, state, warp_totals);
+        }
     }
     const float low = __uint_as_float(state.prefix[0]);
     const float high = __uint_as_float(state.prefix[1]);
@@ -379,7 +395,11 @@ extern "C" __global__ void __launch_bounds__(THREADS) __cluster_dims__(CLUSTER, 
 road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int height,
          int width, double scale, int rounds, double outlier_k, int quadratic,
          double* __restrict__ residual, double* __restrict__ planar,
-         unsigned* __restrict__ keys, double* __restrict__ out) {
+         unsigned* __restrict__ keys, int local_keys, double* __restrict__ out) {
+    // local_keys: the block's keys (local_rows(height) x width) fit the dynamic shared memory
+    // and the median's passes read them there instead of from `keys`
+    extern __shared__ unsigned shared_keys[];
+    unsigned* key_store = local_keys ? shared_keys : keys;
     __shared__ __align__(16) unsigned hist[2][BINS];
     __shared__ double partial[WARPS][MAX_SUMS];
     __shared__ double block_totals[MAX_SUMS];
@@ -404,7 +424,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             // sums over the mask of this round
             if (phase == 0) {
                 double values[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-                for_each_element(height, width, [&](int i, int row, int col) {
+                for_each_element(height, width, [&](int i, int row, int col, int local) {
                     const float raw = sub[i];
                     if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold)))
                         return;
@@ -426,7 +446,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                 double values[27];
 #pragma unroll
                 for (int k = 0; k < 27; ++k) values[k] = 0.0;
-                for_each_element(height, width, [&](int i, int row, int col) {
+                for_each_element(height, width, [&](int i, int row, int col, int local) {
                     const float raw = sub[i];
                     if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold)))
                         return;
@@ -452,10 +472,10 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             // residuals of this round's model, keys of this round's mask, first histogram
             for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
             __syncthreads();
-            for_each_element(height, width, [&](int i, int row, int col) {
+            for_each_element(height, width, [&](int i, int row, int col, int local) {
                 const float raw = sub[i];
                 if (!finite(raw)) {
-                    keys[i] = NOT_MASKED;
+                    key_store[local_keys ? local : i] = NOT_MASKED;
                     return;
                 }
                 const bool masked = !use_mask || fabs(residual[i]) <= threshold;
@@ -470,12 +490,12 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                 const double r = d - model;
                 residual[i] = r;
                 const unsigned key = masked ? __float_as_uint((float)fabs(r)) : NOT_MASKED;
-                keys[i] = key;
+                key_store[local_keys ? local : i] = key;
                 if (masked) atomicAdd(&hist[0][key >> 20], 1u);
             });
             __syncthreads();
-            const double sigma = robust_sigma(keys, height, width, count, hist, state,
-                                              warp_totals);
+            const double sigma = robust_sigma(key_store, local_keys, height, width, count,
+                                              hist, state, warp_totals);
             if (threadIdx.x == 0) {
                 state.threshold = outlier_k * fmax(sigma, 1e-3);
                 state.use_mask = 1;
@@ -487,7 +507,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
         // inliers of the final mask; the planar model's values for the quadratic phase
         const double threshold = state.threshold;
         double inliers[1] = {0.0};
-        for_each_element(height, width, [&](int i, int row, int col) {
+        for_each_element(height, width, [&](int i, int row, int col, int local) {
             if (!finite(sub[i])) return;
             if (fabs(residual[i]) <= threshold) inliers[0] += 1.0;
             if (phase == 0 && quadratic) planar[i] = planar_at(state, column_u[col], row_v[row]);

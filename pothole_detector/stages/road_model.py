@@ -240,13 +240,22 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
     n = height * width
     residual = xp.empty(n, dtype=xp.float64)
     planar_values = xp.empty(n, dtype=xp.float64)
-    keys = xp.empty(n, dtype=xp.uint32)
+    # each block's median keys in shared memory where they fit (stride 4 at 2079x1040:
+    # 68 KiB), else in global memory
+    block_rows = -(-height // (ROAD_CLUSTER * ROAD_WARPS)) * ROAD_WARPS
+    key_bytes = block_rows * width * 4
+    local_keys = key_bytes <= MAX_SHARED_KEY_BYTES
+    keys = xp.empty(1 if local_keys else n, dtype=xp.uint32)
     out = xp.zeros(15, dtype=xp.float64)
     kernel = backend.kernel("road.cu", "road_fit", {})
-    kernel((8,), (512,), (sub, tables, np.int32(height), np.int32(width),
-                          np.float64(coordinate_scale), np.int32(rounds),
-                          np.float64(outlier_k), np.int32(kind != "planar"), residual,
-                          planar_values, keys, out))
+    if local_keys:
+        # with the kernel's own 36 KiB, even small key tables pass the 48 KiB default
+        kernel.max_dynamic_shared_size_bytes = MAX_SHARED_KEY_BYTES
+    kernel((ROAD_CLUSTER,), (ROAD_WARPS * 32,),
+           (sub, tables, np.int32(height), np.int32(width), np.float64(coordinate_scale),
+            np.int32(rounds), np.float64(outlier_k), np.int32(kind != "planar"), residual,
+            planar_values, keys, np.int32(local_keys), out),
+           shared_mem=key_bytes if local_keys else 0)
     result = to_host(out)
     if result[0] == 1:
         raise NoRoadError("fewer than 3 valid disparities: no road to fit")
@@ -263,6 +272,13 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
     if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
         return planar
     return quadratic
+
+
+# kernels/road.cu: blocks of the cluster (CLUSTER), warps per block (WARPS); shared memory
+# left for the keys beside the kernel's own 36 KiB.
+ROAD_CLUSTER = 8
+ROAD_WARPS = 16
+MAX_SHARED_KEY_BYTES = 160 * 1024
 
 
 def _coordinate_tables(backend: Backend, height: int, width: int, step: float,
