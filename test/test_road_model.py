@@ -89,3 +89,13 @@ def test_no_valid_pixels_raise_no_road():
     line[5] = 10.0
     with pytest.raises(NoRoadError, match="line"):
         fit_road(np, line)
+
+
+def test_kernel_args_carry_the_roll_and_only_a_quadratic_models_curvature():
+    curvature = (0.5, -1.0, 2.0, 3.0, -1.5, 0.25)
+    planar = RoadModel(30.0, 0.4, math.radians(2.0), curvature=curvature)
+    quadratic = RoadModel(30.0, 0.4, math.radians(2.0), curvature=curvature, kind="quadratic")
+    expected_head = [30.0, 0.4, math.cos(math.radians(2.0)), math.sin(math.radians(2.0))]
+    assert list(planar.kernel_args()) == expected_head + [0.0] * 6
+    assert list(quadratic.kernel_args()) == expected_head + list(curvature)
+    assert all(isinstance(value, np.float64) for value in quadratic.kernel_args())

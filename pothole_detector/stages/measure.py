@@ -136,7 +136,6 @@ def _table_gpu(backend: Backend, labels: Any, count: int, disparity: Any, model:
     backend.kernel("measure.cu", "measure_reset", {})(
         ((count + 256) // 256,), (256,), (sums, extremes, np.int32(count)))
     normal = road_normal(model, calibration)
-    curvature = model.curvature if model.kind != "planar" else (0.0,) * 6
     pixels = height * width
     f64 = np.float64
     backend.kernel("measure.cu", "measure_potholes", {})(
@@ -144,9 +143,7 @@ def _table_gpu(backend: Backend, labels: Any, count: int, disparity: Any, model:
         (xp.ascontiguousarray(labels, dtype=xp.int32),
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
          f64(calibration.f), f64(calibration.cx), f64(calibration.cy), f64(calibration.fb),
-         *(f64(c) for c in normal), f64(model.a0), f64(model.a1),
-         f64(math.cos(model.roll_rad)), f64(math.sin(model.roll_rad)),
-         *(f64(c) for c in curvature), sums, extremes))
+         *(f64(c) for c in normal), *model.kernel_args(), sums, extremes))
     host = to_host(buffer)
     sums_host = host[:sums_bytes].view(np.float64).reshape(count + 1, 7)[1:]
     extremes_host = host[sums_bytes:].view(np.int32).reshape(count + 1, 5)[1:]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -73,6 +74,13 @@ class RoadModel:
             ends.append(self.at(xp, u_vertex, v))
         stacked = xp.stack(ends)
         return stacked.min(axis=0), stacked.max(axis=0)
+
+    def kernel_args(self) -> tuple[np.float64, ...]:
+        """The model as the GPU kernels take it: a0, a1, cos(roll), sin(roll), c0..c5 (zeros
+        for a planar model), float64."""
+        curvature = self.curvature if self.kind != "planar" else (0.0,) * 6
+        return tuple(np.float64(value) for value in (
+            self.a0, self.a1, math.cos(self.roll_rad), math.sin(self.roll_rad), *curvature))
 
     def as_dict(self) -> dict:
         return {"a0": self.a0, "a1": self.a1, "roll_deg": self.roll_deg,
@@ -281,19 +289,11 @@ ROAD_WARPS = 16
 MAX_SHARED_KEY_BYTES = 160 * 1024
 
 
+@lru_cache(maxsize=4)
 def _coordinate_tables(backend: Backend, height: int, width: int, step: float,
                        offset: float) -> Any:
     """Device float64 (2 (width + height),): column u, row v, then u / 1000 and v / 1000, as
     fit_road computes them; uploaded once per size."""
-    key = (height, width, step, offset)
-    if key not in _TABLES:
-        u = np.arange(width, dtype=np.float64) * step + offset
-        v = np.arange(height, dtype=np.float64) * step + offset
-        if len(_TABLES) >= 4:
-            _TABLES.pop(next(iter(_TABLES)))
-        _TABLES[key] = backend.upload(np.concatenate(
-            [u, v, u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX]))
-    return _TABLES[key]
-
-
-_TABLES: dict[tuple[int, int, float, float], Any] = {}
+    u = np.arange(width, dtype=np.float64) * step + offset
+    v = np.arange(height, dtype=np.float64) * step + offset
+    return backend.upload(np.concatenate([u, v, u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX]))

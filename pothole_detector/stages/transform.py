@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -22,14 +21,11 @@ def transform_disparity(backend: Backend, disparity: Any, model: RoadModel,
     height, width = disparity.shape
     if backend.is_gpu:
         transformed = xp.empty((height, width), dtype=xp.float32)
-        curvature = model.curvature if model.kind != "planar" else (0.0,) * 6
-        f64 = np.float64
         backend.kernel("transform.cu", "transform_disparity", {})(
             ((width + 31) // 32, (height + 7) // 8), (32, 8),
             (xp.ascontiguousarray(disparity, dtype=xp.float32), transformed, np.int32(height),
-             np.int32(width), f64(model.a0), f64(model.a1), f64(math.cos(model.roll_rad)),
-             f64(math.sin(model.roll_rad)), *(f64(c) for c in curvature),
-             np.int32(model.kind != "planar"), np.float32(delta_dt_px)))
+             np.int32(width), *model.kernel_args(), np.int32(model.kind != "planar"),
+             np.float32(delta_dt_px)))
         return transformed
     road = model.disparity(xp, height, width, xp.float32)
     return (disparity - road + xp.float32(delta_dt_px)).astype(xp.float32)
