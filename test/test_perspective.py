@@ -4,8 +4,7 @@ import math
 
 import numpy as np
 
-from pothole_detector.stages.perspective import (band, band_levels, round_up_levels, row_shifts,
-                                                 shift_rows)
+from pothole_detector.stages.perspective import band, round_up_levels, shift_rows
 from pothole_detector.stages.road_model import RoadModel
 
 
@@ -20,28 +19,19 @@ def test_shift_rows_moves_each_row_right_and_zero_fills():
 
 def test_row_shifts_are_the_floored_row_minimum_less_the_margin():
     model = RoadModel(30.0, 0.5, math.radians(2.0))
-    kappa = row_shifts(np, model, 40, 100, 5.0)
+    kappa, _ = band(np, model, 40, 100, 5.0, 16.0, 384)
     expected = np.maximum(np.floor(model.disparity(np, 40, 100, np.float64).min(axis=1) - 5), 0)
     np.testing.assert_array_equal(kappa, expected)
 
 
 def test_band_covers_the_road_and_margins():
     model = RoadModel(100.0, 0.2, math.radians(3.0))
-    kappa = row_shifts(np, model, 200, 400, 40.0)
-    levels = band_levels(np, model, kappa, 200, 400, 16.0, 384)
+    kappa, levels = band(np, model, 200, 400, 40.0, 16.0, 384)
     road = model.disparity(np, 200, 400, np.float64)
     assert levels % 16 == 0
     assert (road - kappa[:, None]).max() + 16 <= levels < (road - kappa[:, None]).max() + 32
-    assert band_levels(np, model, kappa, 200, 400, 16.0, 48) == 48
+    assert band(np, model, 200, 400, 40.0, 16.0, 48)[1] == 48
     assert round_up_levels(1) == 16 and round_up_levels(17) == 32
-
-
-def test_band_is_row_shifts_and_band_levels_at_once():
-    model = RoadModel(80.0, 0.3, math.radians(-2.0), kind="quadratic",
-                      curvature=(0.5, -1.0, 2.0, 3.0, -1.5, 0.5))
-    kappa, levels = band(np, model, 120, 300, 20.0, 16.0, 384)
-    np.testing.assert_array_equal(kappa, row_shifts(np, model, 120, 300, 20.0))
-    assert levels == band_levels(np, model, kappa, 120, 300, 16.0, 384)
 
 
 def test_matching_the_shifted_pair_recovers_disparity():

@@ -15,36 +15,16 @@ def round_up_levels(levels: float) -> int:
     return max(LEVEL_MULTIPLE, int(math.ceil(levels / LEVEL_MULTIPLE)) * LEVEL_MULTIPLE)
 
 
-def row_shifts(xp: Any, model: RoadModel, height: int, width: int,
-               margin_below_px: float) -> Any:
-    """kappa(v) = floor(min_u f(u, v) - delta_PT), clipped at 0; int32 array (H,) in px."""
-    row_min, _ = model.row_extremes(xp, height, width)
-    return _shifts(xp, row_min, margin_below_px)
-
-
-def band_levels(xp: Any, model: RoadModel, kappa: Any, height: int, width: int,
-                margin_above_px: float, max_levels: int) -> int:
-    """Levels the narrow band needs: the road's highest disparity above kappa in any row plus
-    the margin, rounded up to a multiple of 16 and capped at ``max_levels``."""
-    _, row_max = model.row_extremes(xp, height, width)
-    return _levels(row_max, kappa, margin_above_px, max_levels)
-
-
 def band(xp: Any, model: RoadModel, height: int, width: int, margin_below_px: float,
          margin_above_px: float, max_levels: int) -> tuple[Any, int]:
-    """(row_shifts, band_levels) from one evaluation of the road's row extremes."""
+    """GPT row shifts and the narrow band's level count from one evaluation of the road's row
+    extremes: kappa(v) = floor(min_u f(u, v) - delta_PT), clipped at 0 (int32 (H,), px), and
+    the road's highest disparity above kappa in any row plus the margin, rounded up to a
+    multiple of 16 and capped at ``max_levels``."""
     row_min, row_max = model.row_extremes(xp, height, width)
-    kappa = _shifts(xp, row_min, margin_below_px)
-    return kappa, _levels(row_max, kappa, margin_above_px, max_levels)
-
-
-def _shifts(xp: Any, row_min: Any, margin_below_px: float) -> Any:
-    return xp.maximum(xp.floor(row_min - margin_below_px), 0).astype(xp.int32)
-
-
-def _levels(row_max: Any, kappa: Any, margin_above_px: float, max_levels: int) -> int:
+    kappa = xp.maximum(xp.floor(row_min - margin_below_px), 0).astype(xp.int32)
     needed = float((row_max - kappa).max()) + margin_above_px
-    return min(round_up_levels(needed), round_up_levels(max_levels))
+    return kappa, min(round_up_levels(needed), round_up_levels(max_levels))
 
 
 def shift_rows(xp: Any, image: Any, kappa: Any) -> Any:
