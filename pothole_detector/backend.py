@@ -54,19 +54,19 @@ class Backend:
         return to_host(array)
 
     def upload_many(self, *arrays: np.ndarray) -> tuple[Any, ...]:
-        """Copy several host arrays to the backend in one transfer; returns one array each
-        (views into one device buffer on the GPU)."""
+        """Copy several host arrays into one device buffer; returns one array each (views into
+        that buffer on the GPU). Each array is copied straight from its host memory: the
+        driver's pipelined staging beats a copy into page-locked memory first (measured on the
+        lent H200: 0.28 against 0.38 ms for a 2079x1040 pair)."""
         if not self.is_gpu:
             return arrays
         sizes = [a.nbytes for a in arrays]
         offsets = np.concatenate([[0], np.cumsum([-(-n // 16) * 16 for n in sizes])])
-        staging, copied = _pinned_staging(int(offsets[-1]))
-        copied.synchronize()
+        device = self.xp.empty(int(offsets[-1]), dtype=np.uint8)
+        stream = self.xp.cuda.get_current_stream()
         for array, start, size in zip(arrays, offsets, sizes):
-            staging[start:start + size] = np.ascontiguousarray(array).reshape(-1).view(np.uint8)
-        device = self.xp.empty(staging.shape, dtype=np.uint8)
-        device.set(staging, stream=self.xp.cuda.get_current_stream())
-        copied.record()
+            device[start:start + size].set(
+                np.ascontiguousarray(array).reshape(-1).view(np.uint8), stream=stream)
         return tuple(device[start:start + size].view(a.dtype).reshape(a.shape)
                      for a, start, size in zip(arrays, offsets, sizes))
 
@@ -136,18 +136,6 @@ class StageClock:
 
 
 CPU = Backend("cpu", np, scipy.ndimage)
-
-
-@lru_cache(maxsize=4)
-def _pinned_staging(nbytes: int) -> tuple[np.ndarray, Any]:
-    """A page-locked host buffer of ``nbytes`` (uploads from it run at full bus speed and
-    asynchronously) and the event recorded after its last copy, kept per size."""
-    assert _cupy is not None
-    memory = _cupy.cuda.alloc_pinned_memory(max(nbytes, 1))
-    buffer = np.frombuffer(memory, dtype=np.uint8, count=nbytes)
-    event = _cupy.cuda.Event(block=False, disable_timing=True)
-    event.record()
-    return buffer, event
 
 
 @lru_cache(maxsize=None)

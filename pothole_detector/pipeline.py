@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from .backend import CPU, Backend, StageClock
+from .backend import CPU, Backend, StageClock, to_host
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError
 from .params import Config
@@ -42,6 +42,84 @@ class PipelineResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass
+class _Detection:
+    transformed: Any
+    labels: Any
+    superpixels: Any
+    road: road_model.RoadModel
+    threshold_px: float
+    potholes: list[measure.Pothole]
+
+
+@dataclass
+class _HostReport:
+    header: np.ndarray
+    threshold: np.ndarray
+    components_kept: int
+    overflow: bool
+    sums: np.ndarray
+    extremes: np.ndarray
+
+
+class _DeviceReport:
+    """One device buffer that a frame's stages write their small results into, read back once:
+    float64 road report (ROAD) and kernel parameters, threshold search result, valid pixel
+    count; int32 counts (components, kept, overflow, kept after the area filter); the
+    measure sums and extremes of ``capacity`` labels."""
+
+    ROAD = (0, road_model.ROAD_REPORT)
+    _PARAMS = (ROAD[1], ROAD[1] + road_model.ROAD_PARAMS)
+    _THRESHOLD = (_PARAMS[1], _PARAMS[1] + 3)
+    _VALID = _THRESHOLD[1]
+    _HEADER_BYTES = 8 * (_VALID + 1)
+
+    def __init__(self, xp: Any, capacity: int) -> None:
+        self.capacity = capacity
+        self._counts_at = -(-self._HEADER_BYTES // 16) * 16
+        self._sums_at = self._counts_at + 16
+        self._extremes_at = self._sums_at + (capacity + 1) * measure.MEASURE_SUMS * 8
+        end = self._extremes_at + (capacity + 1) * measure.MEASURE_EXTREMES * 4
+        self.buffer = xp.empty(end, dtype=xp.uint8)
+        header = self.buffer[:self._HEADER_BYTES].view(xp.float64)
+        self.road = header[slice(*self.ROAD)]
+        self.road_params = header[slice(*self._PARAMS)]
+        self.threshold = header[slice(*self._THRESHOLD)]
+        self.valid_count = header[self._VALID:self._VALID + 1]
+        self.counts = self.buffer[self._counts_at:self._sums_at].view(xp.int32)
+        self.sums = self.buffer[self._sums_at:self._extremes_at].view(xp.float64).reshape(
+            capacity + 1, measure.MEASURE_SUMS)
+        self.extremes = self.buffer[self._extremes_at:].view(xp.int32).reshape(
+            capacity + 1, measure.MEASURE_EXTREMES)
+
+    def read_header(self) -> np.ndarray:
+        """Host float64 copy of the header (road report and parameters, threshold, valid
+        count)."""
+        return to_host(self.buffer[:self._HEADER_BYTES]).view(np.float64)
+
+    @classmethod
+    def road_of(cls, header: np.ndarray) -> np.ndarray:
+        return header[slice(*cls.ROAD)]
+
+    @classmethod
+    def valid_count_of(cls, header: np.ndarray) -> float:
+        return float(header[cls._VALID])
+
+    def read(self) -> _HostReport:
+        """The one readback of the frame."""
+        host = to_host(self.buffer)
+        header = host[:self._HEADER_BYTES].view(np.float64)
+        counts = host[self._counts_at:self._sums_at].view(np.int32)
+        return _HostReport(
+            header=header,
+            threshold=header[slice(*self._THRESHOLD)], components_kept=int(counts[1]),
+            overflow=bool(counts[2]),
+            sums=host[self._sums_at:self._extremes_at].view(np.float64).reshape(
+                self.capacity + 1, measure.MEASURE_SUMS),
+            extremes=host[self._extremes_at:].view(np.int32).reshape(
+                self.capacity + 1, measure.MEASURE_EXTREMES))
+
+
 class Pipeline:
     """Stereo pair in, potholes out.
 
@@ -64,44 +142,43 @@ class Pipeline:
 
     def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:
         """Detect potholes in a rectified pair of host images (HxW mono or HxWx3 RGB, uint8 or
-        uint16). Raises InputError, NoTextureError or NoRoadError with a message saying why."""
-        config, backend = self.config, self.backend
-        xp = backend.xp
+        uint16). Raises InputError, NoTextureError or NoRoadError with a message saying why.
+
+        On the GPU nothing is read back between the upload and the frame's one readback of a
+        report (valid count, road fit, threshold, component counts, pothole sums): the checks
+        that raise run on that report, after the stages have been queued."""
+        backend = self.backend
         started = time.perf_counter()
         clock = StageClock(backend)
         left_gray, right_gray = _validate_pair(left, right)
-
-        seeded = self._road is None or not config.gpt_enabled
+        seeded = self._road is None or not self.config.gpt_enabled
         disparity, kappa, levels = self._match(left_gray, right_gray, clock)
-        valid = xp.isfinite(disparity)
-        valid_fraction = float(valid.mean())
-        if valid_fraction < config.min_valid_fraction:
-            self.reset()
-            raise NoTextureError(
-                f"only {valid_fraction:.1%} of pixels got a disparity (need "
-                f"{config.min_valid_fraction:.0%}): the images lack texture, are not a "
-                "rectified pair, or the road is outside max_disparity_px"
-            )
+        if backend.is_gpu:
+            found = self._detect_on_device(disparity, clock)
+        else:
+            found = self._detect_on_host(disparity, clock)
+        timings = clock.timings()
+        timings["total"] = sum(timings.values())
+        timings["host"] = (time.perf_counter() - started) * 1e3
+        return PipelineResult(
+            disparity=disparity, transformed=found.transformed, labels=found.labels,
+            superpixels=found.superpixels, road=found.road, threshold_px=found.threshold_px,
+            band=(int(kappa.min()), int(levels)),
+            disparity_range=(float(kappa.min()), float(kappa.max()) + levels - 1),
+            potholes=found.potholes, backend=backend.name, seeded=seeded, timings_ms=timings,
+        )
+
+    def _detect_on_host(self, disparity: Any, clock: StageClock) -> _Detection:
+        """The stages after matching, each read back where the next needs it (CPU backend)."""
+        config, backend = self.config, self.backend
+        valid = backend.xp.isfinite(disparity)
+        self._check_valid(float(valid.mean()))
         with clock.stage("road"):
-            road = self._fit(disparity, stride=config.road_fit_stride)
-            if road.inlier_fraction < config.min_road_inlier_fraction:
-                self.reset()
-                raise NoRoadError(
-                    f"no road plane: only {road.inlier_fraction:.0%} of the valid disparities "
-                    f"fit one (need {config.min_road_inlier_fraction:.0%}); is the camera "
-                    "looking at the road?"
-                )
-            self._road = road
+            road = self._accept_road(lambda: self._fit(disparity, stride=config.road_fit_stride))
         with clock.stage("dt"):
             transformed = transform_disparity(backend, disparity, road, config.delta_dt_px)
         with clock.stage("slic"):
-            sp_grid, n_sp = superpixels.superpixel_grid(
-                backend, transformed, config.slic_region_size_px, config.slic_compactness,
-                config.slic_iterations, config.slic_downsample)
-            sp_labels = superpixels.upsample_labels(xp, sp_grid, config.slic_downsample,
-                                                    transformed.shape)
-            sp_means, sp_valid = superpixels.superpixel_means(backend, transformed, sp_labels,
-                                                              n_sp)
+            sp_grid, n_sp, sp_labels, sp_means, sp_valid = self._superpixels(transformed)
         with clock.stage("threshold"):
             t_r, road_mean = thresholding.histogram_threshold(
                 backend, transformed, config.histogram_bin_px, config.delta_dt_px)
@@ -113,26 +190,130 @@ class Pipeline:
                 config.corner_fraction, config.min_pothole_superpixels,
                 factor=config.slic_downsample)
         with clock.stage("measure"):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                potholes = measure.measure_potholes(backend, labels, count, disparity, road,
-                                                    self.calibration)
-            keep = [p.area_m2 >= config.min_pothole_area_m2 for p in potholes]
-            if not all(keep):
-                labels, count = components.relabel(
-                    xp, labels, xp.asarray(np.array([False] + keep)))
-                potholes = [measure.Pothole(**{**p.__dict__, "label": i})
-                            for i, p in enumerate((p for p, k in zip(potholes, keep) if k), 1)]
-        timings = clock.timings()
-        timings["total"] = sum(timings.values())
-        timings["host"] = (time.perf_counter() - started) * 1e3
-        return PipelineResult(
-            disparity=disparity, transformed=transformed, labels=labels,
-            superpixels=sp_labels, road=road, threshold_px=reference,
-            band=(int(kappa.min()), int(levels)),
-            disparity_range=(float(kappa.min()), float(kappa.max()) + levels - 1),
-            potholes=potholes,
-            backend=backend.name, seeded=seeded, timings_ms=timings,
-        )
+            labels, potholes = self._measure_exact(labels, count, disparity, road)
+        return _Detection(transformed, labels, sp_labels, road, reference, potholes)
+
+    def _detect_on_device(self, disparity: Any, clock: StageClock) -> _Detection:
+        """The stages after matching queued on the device with nothing read back but one report
+        at the end (see :class:`_DeviceReport`); the checks run on that report."""
+        config, backend = self.config, self.backend
+        xp = backend.xp
+        n_sp = superpixels.grid_count(disparity.shape, config.slic_region_size_px,
+                                      config.slic_downsample)
+        report = _DeviceReport(xp, components.device_capacity(n_sp))
+        valid = xp.isfinite(disparity)
+        with clock.stage("road"):
+            report.valid_count[...] = xp.count_nonzero(valid)
+            road_model.fit_on_device(
+                backend, disparity, stride=config.road_fit_stride,
+                rounds=config.road_fit_rounds, outlier_k=config.road_outlier_k,
+                kind=config.road_model, quadratic_gain=config.road_quadratic_gain,
+                report=report.road, params=report.road_params)
+        with clock.stage("dt"):
+            transformed = transform_disparity(backend, disparity, report.road_params,
+                                              config.delta_dt_px)
+        with clock.stage("slic"):
+            sp_grid, n_sp, sp_labels, sp_means, sp_valid = self._superpixels(transformed)
+        with clock.stage("threshold"):
+            thresholding.threshold_on_device(backend, transformed, config.histogram_bin_px,
+                                             config.delta_dt_px, result=report.threshold)
+            drop: float | Any = config.delta_pd_px
+            if config.threshold_mode != "pixels":
+                # the metric tolerance needs the road model on the host: one early readback
+                road = self._checked_road(report.read_header(), disparity.size)
+                drop = self._metric_drop(sp_labels, n_sp, road)
+            selected = thresholding.select_on_device(
+                backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
+                config.threshold_reference == "road_mean", sp_means, sp_valid, drop,
+                config.superpixel_min_valid_fraction)
+        with clock.stage("components"):
+            labels = components.components_on_device(
+                backend, selected[sp_grid], valid, sp_labels, n_sp, config.corner_fraction,
+                config.min_pothole_superpixels, config.slic_downsample, report.capacity,
+                report.counts[:3])
+        with clock.stage("measure"):
+            measure.measure_on_device(backend, labels, report.capacity, disparity,
+                                      report.road_params, self.calibration,
+                                      sums=report.sums, extremes=report.extremes)
+            labels = measure.area_filter_on_device(
+                backend, labels, report.sums, report.counts[1:2], report.capacity,
+                config.min_pothole_area_m2, report.counts[3:4])
+            host = report.read()
+        road = self._checked_road(host.header, disparity.size)
+        t_r, road_mean = thresholding.split_from_result(host.threshold, config.histogram_bin_px,
+                                                        config.delta_dt_px)
+        reference = road_mean if config.threshold_reference == "road_mean" else t_r
+        if host.overflow:
+            # more components than the report holds: filter and measure again with exact sizes
+            labels, count = components.pothole_components(
+                backend, selected[sp_grid], valid, sp_labels, n_sp, config.corner_fraction,
+                config.min_pothole_superpixels, factor=config.slic_downsample)
+            labels, potholes = self._measure_exact(labels, count, disparity, road)
+        else:
+            potholes, _ = measure.keep_large(
+                measure.potholes_from_sums(host.sums[1:host.components_kept + 1],
+                                           host.extremes[1:host.components_kept + 1]),
+                config.min_pothole_area_m2)
+        return _Detection(transformed, labels, sp_labels, road, reference, potholes)
+
+    def _check_valid(self, valid_fraction: float) -> None:
+        if valid_fraction < self.config.min_valid_fraction:
+            self.reset()
+            raise NoTextureError(
+                f"only {valid_fraction:.1%} of pixels got a disparity (need "
+                f"{self.config.min_valid_fraction:.0%}): the images lack texture, are not a "
+                "rectified pair, or the road is outside max_disparity_px"
+            )
+
+    def _accept_road(self, fit: Any) -> road_model.RoadModel:
+        """The road model ``fit()`` returns, kept for the next frame's band when it holds
+        enough inliers; else the pipeline resets and NoRoadError is raised."""
+        try:
+            road = fit()
+        except NoRoadError:
+            self.reset()
+            raise
+        if road.inlier_fraction < self.config.min_road_inlier_fraction:
+            self.reset()
+            raise NoRoadError(
+                f"no road plane: only {road.inlier_fraction:.0%} of the valid disparities "
+                f"fit one (need {self.config.min_road_inlier_fraction:.0%}); is the camera "
+                "looking at the road?"
+            )
+        self._road = road
+        return road
+
+    def _checked_road(self, header: np.ndarray, pixels: int) -> road_model.RoadModel:
+        """The valid-fraction and road checks of a frame on a host copy of its
+        _DeviceReport header; the accepted road model."""
+        config = self.config
+        self._check_valid(_DeviceReport.valid_count_of(header) / pixels)
+        return self._accept_road(lambda: road_model.model_from_report(
+            _DeviceReport.road_of(header), config.road_model, config.road_quadratic_gain))
+
+    def _superpixels(self, transformed: Any) -> tuple[Any, int, Any, Any, Any]:
+        """SLIC of D2: (labels on the reduced grid, count, full-resolution labels, per-label
+        mean D2, per-label valid fraction)."""
+        config, backend = self.config, self.backend
+        sp_grid, n_sp = superpixels.superpixel_grid(
+            backend, transformed, config.slic_region_size_px, config.slic_compactness,
+            config.slic_iterations, config.slic_downsample)
+        sp_labels = superpixels.upsample_labels(backend.xp, sp_grid, config.slic_downsample,
+                                                transformed.shape)
+        sp_means, sp_valid = superpixels.superpixel_means(backend, transformed, sp_labels, n_sp)
+        return sp_grid, n_sp, sp_labels, sp_means, sp_valid
+
+    def _measure_exact(self, labels: Any, count: int, disparity: Any,
+                       road: road_model.RoadModel) -> tuple[Any, list[measure.Pothole]]:
+        """Measure ``count`` labelled potholes and drop those below min_pothole_area_m2
+        (labels renumbered)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            potholes = measure.measure_potholes(self.backend, labels, count, disparity, road,
+                                                self.calibration)
+        kept, keep = measure.keep_large(potholes, self.config.min_pothole_area_m2)
+        if len(kept) < len(potholes):
+            labels, _ = components.relabel(self.backend.xp, labels, self.backend.xp.asarray(keep))
+        return labels, kept
 
     def match_pair(self, left: np.ndarray, right: np.ndarray) -> tuple[Any, int]:
         """D1 of a host pair (float32 HxW px, NaN invalid, on the backend) and the number of
@@ -212,16 +393,22 @@ class Pipeline:
         if config.threshold_mode == "pixels":
             t_s = t_r - config.delta_pd_px
         else:
-            height, width = sp_labels.shape
-            flat = sp_labels.ravel()
-            count = xp.maximum(xp.bincount(flat, minlength=n_sp), 1)
-            rows = xp.broadcast_to(xp.arange(height, dtype=xp.float64)[:, None], sp_labels.shape)
-            cols = xp.broadcast_to(xp.arange(width, dtype=xp.float64)[None, :], sp_labels.shape)
-            v = xp.bincount(flat, weights=rows.ravel(), minlength=n_sp) / count
-            u = xp.bincount(flat, weights=cols.ravel(), minlength=n_sp) / count
-            t_s = t_r - metric_tolerance_px(xp, u, v, road, self.calibration, config.delta_pd_m)
+            t_s = t_r - self._metric_drop(sp_labels, n_sp, road)
         return thresholding.select_superpixels(xp, means, valid_fraction, t_s,
                                                config.superpixel_min_valid_fraction)
+
+    def _metric_drop(self, sp_labels: Any, n_sp: int, road: road_model.RoadModel) -> Any:
+        """Per-superpixel disparity drop (px, float64 (n,)) of a point delta_PD_m below the road
+        at the superpixel's centroid."""
+        xp = self.backend.xp
+        height, width = sp_labels.shape
+        flat = sp_labels.ravel()
+        count = xp.maximum(xp.bincount(flat, minlength=n_sp), 1)
+        rows = xp.broadcast_to(xp.arange(height, dtype=xp.float64)[:, None], sp_labels.shape)
+        cols = xp.broadcast_to(xp.arange(width, dtype=xp.float64)[None, :], sp_labels.shape)
+        v = xp.bincount(flat, weights=rows.ravel(), minlength=n_sp) / count
+        u = xp.bincount(flat, weights=cols.ravel(), minlength=n_sp) / count
+        return metric_tolerance_px(xp, u, v, road, self.calibration, self.config.delta_pd_m)
 
 
 def metric_tolerance_px(xp: Any, u: Any, v: Any, road: road_model.RoadModel,

@@ -145,8 +145,9 @@ def test_upload_many_round_trips(gpu):
         np.testing.assert_array_equal(to_host(device), host)
 
 
-def test_upload_many_reuses_its_staging_buffer_safely(gpu):
-    first = gpu.upload_many(np.full((64, 64), 7, np.uint8), np.arange(64, dtype=np.int32))
+def test_upload_many_keeps_earlier_uploads_intact(gpu):
+    strided = (np.arange(128, dtype=np.int32) // 2)[::2]  # a view, not contiguous
+    first = gpu.upload_many(np.full((64, 64), 7, np.uint8), strided)
     second = gpu.upload_many(np.full((64, 64), 9, np.uint8), np.arange(64, dtype=np.int32) * 2)
     assert int(to_host(first[0]).max()) == 7 and int(to_host(second[0]).min()) == 9
     np.testing.assert_array_equal(to_host(second[1]), np.arange(64) * 2)
@@ -436,3 +437,141 @@ def test_gpu_pipeline_finds_the_rendered_potholes(demo_sample):
     found = to_host(result.labels) > 0
     assert (found & truth).sum() / max(found.sum(), 1) > 0.8
     assert set(result.timings_ms) >= {"sgm", "slic", "total", "host"}
+
+
+@pytest.mark.parametrize("kind", ["planar", "quadratic", "auto"])
+def test_road_fit_on_device_gives_the_kept_models_kernel_params(gpu, kind):
+    from pothole_detector.stages import road_model
+    disparity = crowned_road(120, 230, seed=11)
+    report, params = road_model.fit_on_device(gpu, gpu.upload(disparity), stride=2, kind=kind)
+    model = road_model.model_from_report(to_host(report), kind, 0.1)
+    np.testing.assert_allclose(to_host(params), model.kernel_params(), rtol=1e-15, atol=1e-17)
+    assert to_host(params)[10] == (model.kind == "quadratic")
+    _, failed = road_model.fit_on_device(gpu, gpu.upload(np.full((20, 20), np.nan, np.float32)))
+    assert np.isnan(to_host(failed)).all()
+
+
+def test_device_road_params_drive_transform_and_measure_like_the_model(gpu, demo_sample):
+    from pothole_detector.stages import road_model
+    disparity = demo_sample.disparity.astype(np.float32)
+    _, params = road_model.fit_on_device(gpu, gpu.upload(disparity), stride=2, kind="auto")
+    host_params = to_host(params)
+    model = road_model.RoadModel(host_params[0], host_params[1],
+                                 float(np.arctan2(host_params[3], host_params[2])),
+                                 tuple(host_params[4:10]),
+                                 kind="quadratic" if host_params[10] else "planar")
+    by_params = transform_disparity(gpu, gpu.upload(disparity), params, 32.0)
+    by_model = transform_disparity(gpu, gpu.upload(disparity), model, 32.0)
+    np.testing.assert_allclose(to_host(by_params), to_host(by_model), atol=1e-5)
+    labels = demo_sample.labels.astype(np.int32)
+    count = int(labels.max())
+    sums, extremes = measure.measure_on_device(gpu, gpu.upload(labels), count,
+                                               gpu.upload(disparity), params,
+                                               demo_sample.calibration)
+    found = measure.potholes_from_sums(to_host(sums)[1:], to_host(extremes)[1:])
+    expected = measure.measure_potholes(CPU, labels, count, disparity, model,
+                                        demo_sample.calibration)
+    assert [p.pixels for p in found] == [p.pixels for p in expected]
+    np.testing.assert_allclose([p.volume_m3 for p in found], [p.volume_m3 for p in expected],
+                               rtol=1e-4)
+
+
+@pytest.mark.parametrize("reference", ["split", "road_mean"])
+def test_select_on_device_matches_select_superpixels(gpu, reference):
+    rng = np.random.default_rng(3)
+    image = (32 + rng.normal(0, 0.4, (90, 170))).astype(np.float32)
+    image[20:50, 30:90] -= 4
+    n = 400
+    means = (32 + rng.normal(0, 2.0, n)).astype(np.float32)
+    means[::17] = np.nan
+    fraction = rng.random(n).astype(np.float32)
+    result = threshold.threshold_on_device(gpu, gpu.upload(image), 0.25, 32.0)
+    t_r, road_mean = threshold.split_from_result(to_host(result), 0.25, 32.0)
+    reference_px = road_mean if reference == "road_mean" else t_r
+    drops = rng.uniform(0.5, 3.0, n)
+    for drop, t_s in ((2.0, reference_px - 2.0), (drops, reference_px - drops)):
+        expected = threshold.select_superpixels(np, means, fraction, t_s, 0.5)
+        found = threshold.select_on_device(
+            gpu, result, 0.25, 32.0, reference == "road_mean", gpu.upload(means),
+            gpu.upload(fraction), drop if isinstance(drop, float) else gpu.upload(drop), 0.5)
+        np.testing.assert_array_equal(to_host(found), expected)
+        assert 0 < expected.sum() < n
+    none_found = threshold.threshold_on_device(
+        gpu, gpu.upload(np.full((30, 40), np.nan, np.float32)), 0.25, 32.0)
+    assert not to_host(threshold.select_on_device(
+        gpu, none_found, 0.25, 32.0, False, gpu.upload(means), gpu.upload(fraction), 2.0,
+        0.5)).any()
+
+
+def test_components_on_device_flags_overflow_and_matches_below_capacity(gpu):
+    rng = np.random.default_rng(4)
+    height, width = 90, 161
+    candidate = rng.random((height, width)) < 0.3
+    valid = np.ones((height, width), bool)
+    sp = (np.arange(height)[:, None] // 10 * 17 + np.arange(width)[None, :] // 10)
+    sp = sp.astype(np.int32)
+    n = int(sp.max()) + 1
+    labels_cpu, kept_cpu = components.pothole_components(CPU, candidate, valid, sp, n, 0.1, 2)
+    found_count = components.label_components(CPU, candidate)[1]
+    for capacity, overflow in ((found_count, 0), (found_count + 40, 0), (found_count - 1, 1)):
+        counts = gpu.xp.full(3, -1, dtype=gpu.xp.int32)
+        labels = components.components_on_device(
+            gpu, gpu.upload(candidate), gpu.upload(valid), gpu.upload(sp), n, 0.1, 2, 1,
+            capacity, counts)
+        assert list(to_host(counts))[0::2] == [found_count, overflow]
+        if not overflow:
+            assert to_host(counts)[1] == kept_cpu > 0
+            np.testing.assert_array_equal(to_host(labels), labels_cpu)
+
+
+def test_area_filter_on_device_keeps_the_rows_keep_large_keeps(gpu, demo_sample):
+    from pothole_detector.stages import road_model
+    disparity = demo_sample.disparity.astype(np.float32)
+    road = road_model.fit_road(np, disparity, stride=2)
+    labels = demo_sample.labels.astype(np.int32)
+    count = int(labels.max())
+    potholes = measure.measure_potholes(CPU, labels, count, disparity, road,
+                                        demo_sample.calibration)
+    areas = sorted(p.area_m2 for p in potholes)
+    min_area = (areas[0] + areas[1]) / 2  # drops the smallest
+    capacity = count + 5
+    sums, _ = measure.measure_on_device(gpu, gpu.upload(labels), capacity,
+                                        gpu.upload(disparity), road_model.device_params(gpu, road),
+                                        demo_sample.calibration)
+    kept_after = gpu.xp.zeros(1, dtype=gpu.xp.int32)
+    filtered = measure.area_filter_on_device(
+        gpu, gpu.upload(labels), sums, gpu.xp.array([count], dtype=gpu.xp.int32), capacity,
+        min_area, kept_after)
+    kept, keep = measure.keep_large(potholes, min_area)
+    assert int(to_host(kept_after)[0]) == len(kept) == count - 1
+    expected, _ = components.relabel(np, labels, keep)
+    np.testing.assert_array_equal(to_host(filtered), expected)
+
+
+def test_gpu_pipeline_overflow_fallback_gives_the_same_result(demo_sample, monkeypatch):
+    config = Config({"matcher": "census"})
+    left, right = to_gray8(demo_sample.left), to_gray8(demo_sample.right)
+    normal = Pipeline(config, demo_sample.calibration, get_backend("gpu")).run(left, right)
+    monkeypatch.setattr(components, "device_capacity", lambda n_superpixels: 1)
+    fallback = Pipeline(config, demo_sample.calibration, get_backend("gpu")).run(left, right)
+    assert len(fallback.potholes) == len(normal.potholes) >= 2
+    for a, b in zip(normal.potholes, fallback.potholes):  # float64 atomics: any order
+        assert (a.label, a.pixels, a.bbox_px) == (b.label, b.pixels, b.bbox_px)
+        np.testing.assert_allclose([b.area_m2, b.volume_m3, *b.centroid_cam_m],
+                                   [a.area_m2, a.volume_m3, *a.centroid_cam_m], rtol=1e-9)
+    np.testing.assert_array_equal(to_host(fallback.labels), to_host(normal.labels))
+
+
+def test_gpu_pipeline_metric_mode_and_road_refusal(demo_sample):
+    from pothole_detector.errors import NoRoadError
+    left, right = to_gray8(demo_sample.left), to_gray8(demo_sample.right)
+    config = Config({"matcher": "census", "threshold_mode": "metres"})
+    cpu = Pipeline(config, demo_sample.calibration, CPU).run(left, right)
+    gpu = Pipeline(config, demo_sample.calibration, get_backend("gpu")).run(left, right)
+    assert len(gpu.potholes) == len(cpu.potholes) >= 2
+    assert ((to_host(gpu.labels) > 0) == (cpu.labels > 0)).mean() > 0.998
+    strict = Pipeline(Config({"matcher": "census", "min_road_inlier_fraction": 1.0}),
+                      demo_sample.calibration, get_backend("gpu"))
+    with pytest.raises(NoRoadError, match="no road plane"):
+        strict.run(left, right)
+    assert strict._road is None

@@ -75,3 +75,23 @@ def test_bad_inputs_raise_clear_errors(demo_sample):
     other = np.random.default_rng(1).integers(0, 255, demo_sample.left.shape, dtype=np.uint8)
     with pytest.raises((NoRoadError, NoTextureError)):
         pipeline.run(noise, other)
+
+
+def test_device_report_views_share_one_buffer_and_read_back_whole():
+    from pothole_detector.pipeline import _DeviceReport
+    report = _DeviceReport(np, capacity=5)
+    report.road[:] = np.arange(15)
+    report.road_params[:] = -1.0
+    report.threshold[:] = (1.0, 7.0, 32.5)
+    report.valid_count[...] = 1234
+    report.counts[:] = (9, 3, 1, 2)
+    report.sums[:] = np.arange(42).reshape(6, 7)
+    report.extremes[:] = np.arange(30).reshape(6, 5)
+    host = report.read()
+    assert list(_DeviceReport.road_of(host.header)) == list(range(15))
+    assert _DeviceReport.valid_count_of(host.header) == 1234
+    assert list(report.read_header()[15:26]) == [-1.0] * 11
+    assert list(host.threshold) == [1.0, 7.0, 32.5]
+    assert (host.components_kept, host.overflow) == (3, True)
+    np.testing.assert_array_equal(host.sums, np.arange(42).reshape(6, 7))
+    np.testing.assert_array_equal(host.extremes, np.arange(30).reshape(6, 5))

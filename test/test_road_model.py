@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pothole_detector.errors import NoRoadError
-from pothole_detector.stages.road_model import RoadModel, fit_road, moments, solve_roll
+from pothole_detector.stages.road_model import (ROAD_PARAMS, ROAD_REPORT, RoadModel, fit_road,
+                                                 model_from_report, moments, solve_roll)
 from pothole_detector.synthetic import Scene, render
 
 
@@ -91,11 +92,38 @@ def test_no_valid_pixels_raise_no_road():
         fit_road(np, line)
 
 
-def test_kernel_args_carry_the_roll_and_only_a_quadratic_models_curvature():
+def test_kernel_params_carry_the_roll_and_only_a_quadratic_models_curvature():
     curvature = (0.5, -1.0, 2.0, 3.0, -1.5, 0.25)
     planar = RoadModel(30.0, 0.4, math.radians(2.0), curvature=curvature)
     quadratic = RoadModel(30.0, 0.4, math.radians(2.0), curvature=curvature, kind="quadratic")
     expected_head = [30.0, 0.4, math.cos(math.radians(2.0)), math.sin(math.radians(2.0))]
-    assert list(planar.kernel_args()) == expected_head + [0.0] * 6
-    assert list(quadratic.kernel_args()) == expected_head + list(curvature)
-    assert all(isinstance(value, np.float64) for value in quadratic.kernel_args())
+    assert list(planar.kernel_params()) == expected_head + [0.0] * 6 + [0.0]
+    assert list(quadratic.kernel_params()) == expected_head + list(curvature) + [1.0]
+    assert quadratic.kernel_params().dtype == np.float64
+    assert len(quadratic.kernel_params()) == ROAD_PARAMS
+
+
+def _report(planar_sigma: float, quadratic_sigma: float, status: int = 0) -> np.ndarray:
+    return np.array([status, 200.0, 30.0, 0.4, 0.03, 150.0, planar_sigma,
+                     0.5, -1.0, 2.0, 3.0, -1.5, 0.25, 180.0, quadratic_sigma])
+
+
+def test_model_from_report_keeps_the_model_fit_road_would_keep():
+    report = _report(1.0, 0.8)
+    assert len(report) == ROAD_REPORT
+    planar = model_from_report(report, "planar", 0.1)
+    assert (planar.kind, planar.a0, planar.a1, planar.roll_rad) == ("planar", 30.0, 0.4, 0.03)
+    assert planar.inlier_fraction == 0.75 and planar.sigma_px == 1.0
+    quadratic = model_from_report(report, "quadratic", 0.1)
+    assert quadratic.kind == "quadratic" and quadratic.curvature == tuple(report[7:13])
+    assert quadratic.inlier_fraction == 0.9 and quadratic.sigma_px == 0.8
+    assert model_from_report(report, "auto", 0.1).kind == "quadratic"
+    assert model_from_report(report, "auto", 0.25).kind == "planar"
+    assert model_from_report(_report(1.0, 0.9), "auto", 0.1).kind == "planar"
+
+
+def test_model_from_report_raises_for_a_failed_fit():
+    with pytest.raises(NoRoadError, match="fewer than 3"):
+        model_from_report(_report(1.0, 0.8, status=1), "auto", 0.1)
+    with pytest.raises(NoRoadError, match="line"):
+        model_from_report(_report(1.0, 0.8, status=2), "planar", 0.1)

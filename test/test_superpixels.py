@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.superpixels import slic, superpixel_means, superpixels
+from pothole_detector.stages.superpixels import (grid_count, slic, superpixel_grid,
+                                                 superpixel_means, superpixels)
 
 
 def disc_image(height=96, width=128):
@@ -57,3 +58,11 @@ def test_means_ignore_invalid_pixels():
     np.testing.assert_allclose(means[:2], [1.0, 4.0])
     assert np.isnan(means[2])
     np.testing.assert_allclose(valid, [0.5, 1.0, 0.0])
+
+
+@pytest.mark.parametrize("shape,region,downsample", [((61, 203), 32, 2), ((40, 41), 8, 1),
+                                                     ((1040, 2079), 32, 2), ((33, 17), 5, 3)])
+def test_grid_count_is_the_count_superpixel_grid_returns(shape, region, downsample):
+    image = np.random.default_rng(0).normal(30, 2, shape).astype(np.float32)
+    _, n = superpixel_grid(CPU, image, region, 2.0, 1, downsample)
+    assert grid_count(shape, region, downsample) == n

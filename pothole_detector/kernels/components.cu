@@ -35,36 +35,43 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
 
 // One thread per pixel of component c > 0: touched[c] = 1 inside a corner region (the top and
 // bottom `side` rows, within `side` columns of the row's valid span), present[c][superpixel]
-// = 1. Plain stores: every writer writes the same 1.
+// = 1. Plain stores: every writer writes the same 1. Components past `capacity` (the tables'
+// size) set touched[0], the overflow flag; the caller then runs again with a larger capacity.
 extern "C" __global__ void component_marks(const int* small, const int* superpixels,
                                            const int* first, const int* last, int height,
                                            int width, int factor, int small_height,
                                            int small_width, int side, int n_superpixels,
-                                           unsigned char* touched, unsigned char* present) {
+                                           int capacity, unsigned char* touched,
+                                           unsigned char* present) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     if (index >= (long long)height * width) return;
     const int row = (int)(index / width), col = (int)(index % width);
     const int component = component_at(small, row, col, factor, small_height, small_width);
     if (component <= 0) return;
+    if (component > capacity) {
+        touched[0] = 1;
+        return;
+    }
     const bool band = row < side || row >= height - side;
     if (side > 0 && band && (col < first[row] + side || col > last[row] - side))
         touched[component] = 1;
     present[(long long)component * n_superpixels + superpixels[index]] = 1;
 }
 
-// One block: component c (1..count) is kept when it touches no corner and holds at least
-// min_superpixels superpixels; new_id[c] numbers the kept ones 1..m in order (0 otherwise);
-// kept[0] = m.
+// One block: component c (1..count, count = min(*components, capacity)) is kept when it
+// touches no corner and holds at least min_superpixels superpixels; new_id[c] (capacity + 1
+// entries) numbers the kept ones 1..m in order (0 otherwise); kept[0] = m.
 extern "C" __global__ void component_keep(const unsigned char* touched,
-                                          const unsigned char* present, int count,
-                                          int n_superpixels, int min_superpixels, int* new_id,
-                                          int* kept) {
+                                          const unsigned char* present, const int* components,
+                                          int capacity, int n_superpixels, int min_superpixels,
+                                          int* new_id, int* kept) {
     __shared__ int warp_totals[32];
     __shared__ int carry;
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+    const int count = min(components[0], capacity);
     if (threadIdx.x == 0) carry = 0;
     __syncthreads();
-    for (int start = 0; start <= count; start += blockDim.x) {
+    for (int start = 0; start <= capacity; start += blockDim.x) {
         const int component = start + threadIdx.x;
         int flag = 0;
         if (component > 0 && component <= count && !touched[component]) {
@@ -83,7 +90,7 @@ extern "C" __global__ void component_keep(const unsigned char* touched,
         __syncthreads();
         int before = carry;
         for (int w = 0; w < warp; ++w) before += warp_totals[w];
-        if (component <= count) new_id[component] = flag ? before + inclusive : 0;
+        if (component <= capacity) new_id[component] = flag ? before + inclusive : 0;
         __syncthreads();
         if (threadIdx.x == blockDim.x - 1) carry = before + inclusive;
         __syncthreads();
@@ -91,14 +98,15 @@ extern "C" __global__ void component_keep(const unsigned char* touched,
     if (threadIdx.x == 0) kept[0] = carry;
 }
 
-// Final labels: new_id of each full-resolution pixel's component.
+// Final labels: new_id of each full-resolution pixel's component (0 past the capacity).
 extern "C" __global__ void component_relabel(const int* small, const int* new_id, int* labels,
                                              int height, int width, int factor,
-                                             int small_height, int small_width) {
+                                             int small_height, int small_width, int capacity) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     if (index >= (long long)height * width) return;
     const int row = (int)(index / width), col = (int)(index % width);
-    labels[index] = new_id[component_at(small, row, col, factor, small_height, small_width)];
+    const int component = component_at(small, row, col, factor, small_height, small_width);
+    labels[index] = component <= capacity ? new_id[component] : 0;
 }
 
 // Connected components (8-connectivity) by union-find on parent indices: every pixel of the

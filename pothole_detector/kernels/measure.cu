@@ -27,13 +27,13 @@ extern "C" __global__ void measure_reset(double* sums, int* extremes, int count)
     row[3] = row[4] = -1;
 }
 
-// Road disparity: a0 + a1 (v cos - u sin) + c0 + x (c1 + c3 x + c4 y) + y (c2 + c5 y) with
-// x = u / 1000, y = v / 1000 (the curvature is zero for a planar model).
+// road: a0, a1, cos(phi), sin(phi), c0..c5, curved (stages/road_model.RoadModel
+// .kernel_params). Road disparity a0 + a1 (v cos - u sin) + c0 + x (c1 + c3 x + c4 y)
+// + y (c2 + c5 y) with x = u / 1000, y = v / 1000; the unit normal of its linear part as
+// measure.road_normal computes it.
 extern "C" __global__ void __launch_bounds__(256)
 measure_potholes(const int* labels, const float* disparity, int height, int width,
-                 double f, double cx, double cy, double fb, double normal_x, double normal_y,
-                 double normal_z, double a0, double a1, double cos_phi, double sin_phi,
-                 double c0, double c1, double c2, double c3, double c4, double c5,
+                 double f, double cx, double cy, double fb, const double* road,
                  double* sums, int* extremes) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     const bool inside = index < (long long)height * width;
@@ -44,12 +44,20 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
     double values[SUMS] = {0, 0, 0, 0, 0, 0, 0};
     float depth_value = __int_as_float(0xff800000);
     if (label > 0) {
+        const double a0 = road[0], a1 = road[1], cos_phi = road[2], sin_phi = road[3];
+        const double beta = -a1 * sin_phi, gamma = a1 * cos_phi;
+        double normal_x = beta * f, normal_y = gamma * f, normal_z = a0 + beta * cx + gamma * cy;
+        const double norm = sqrt(normal_x * normal_x + normal_y * normal_y + normal_z * normal_z);
+        normal_x /= norm;
+        normal_y /= norm;
+        normal_z /= norm;
         const double uu = u, vv = v;
         const double x = uu / 1000.0, y = vv / 1000.0;
-        const double road = a0 + a1 * (vv * cos_phi - uu * sin_phi) + c0
-                            + x * (c1 + c3 * x + c4 * y) + y * (c2 + c5 * y);
+        const double road_d = a0 + a1 * (vv * cos_phi - uu * sin_phi) + road[4]
+                              + x * (road[5] + road[7] * x + road[8] * y)
+                              + y * (road[6] + road[9] * y);
         const double incidence = normal_x * (uu - cx) / f + normal_y * (vv - cy) / f + normal_z;
-        const double road_z = fb / road;
+        const double road_z = fb / road_d;
         const float d = disparity[index];
         const double z = fb / (double)d;
         const float depth = (float)((z - road_z) * incidence);
@@ -100,4 +108,19 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         atomicMax(&row[3], u);
         atomicMax(&row[4], v);
     }
+}
+
+// One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
+// min_area; new_id numbers the ones that stay 1..m in order (0 for the others and for
+// label 0); kept_after[0] = m. The pipeline's area filter; the host repeats the comparison
+// on the same sums when it reads them back.
+extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,
+                                        double min_area, int* new_id, int* kept_after) {
+    if (threadIdx.x != 0 || blockIdx.x != 0) return;
+    const int count = min(kept[0], capacity);
+    int next = 0;
+    new_id[0] = 0;
+    for (int label = 1; label <= count; ++label)
+        new_id[label] = sums[label * SUMS + 1] >= min_area ? ++next : 0;
+    kept_after[0] = next;
 }

@@ -11,6 +11,9 @@
 // out: [0] status (0 ok, 1 fewer than 3 valid, 2 degenerate), [1] valid count,
 // [2..4] a0, a1, phi, [5] planar inliers, [6] planar sigma, [7..12] curvature c0..c5,
 // [13] quadratic inliers, [14] quadratic sigma.
+// model: the chosen model as the other kernels read it (stages/road_model.RoadModel
+// .kernel_params): a0, a1, cos(phi), sin(phi), c0..c5 (zeros unless the quadratic model is
+// chosen), curved (0 or 1); NaN when the fit failed, so later stages find no road.
 
 #define THREADS 512
 #define CLUSTER 8
@@ -20,6 +23,7 @@
 static_assert(PER_THREAD_BINS == 8, "locate reads two 4-bin vectors per thread");
 #define MAX_SUMS 27
 #define NOT_MASKED 0xffffffffu
+#define ROAD_PARAMS 11
 
 __device__ __forceinline__ bool finite(float x) {
     return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
@@ -391,11 +395,33 @@ __device__ void solve_curvature(RoadState& s) {
     }
 }
 
+// The model the pipeline goes on with (stages/road_model.model_from_report picks the same):
+// the quadratic one where it was fitted, unless auto_select and its sigma is not below
+// (1 - gain) x the planar sigma.
+__device__ void write_model(const double* out, int status, int quadratic, int auto_select,
+                            double gain, double* model) {
+    if (status != 0) {
+        const double nan = __longlong_as_double(0x7ff8000000000000ll);
+        for (int i = 0; i < ROAD_PARAMS; ++i) model[i] = nan;
+        return;
+    }
+    const bool curved = quadratic && !(auto_select && !(out[14] < (1.0 - gain) * out[6]));
+    double sin_phi, cos_phi;
+    sincos(out[4], &sin_phi, &cos_phi);
+    model[0] = out[2];
+    model[1] = out[3];
+    model[2] = cos_phi;
+    model[3] = sin_phi;
+    for (int i = 0; i < 6; ++i) model[4 + i] = curved ? out[7 + i] : 0.0;
+    model[10] = curved ? 1.0 : 0.0;
+}
+
 extern "C" __global__ void __launch_bounds__(THREADS) __cluster_dims__(CLUSTER, 1, 1)
 road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int height,
          int width, double scale, int rounds, double outlier_k, int quadratic,
          double* __restrict__ residual, double* __restrict__ planar,
-         unsigned* __restrict__ keys, int local_keys, double* __restrict__ out) {
+         unsigned* __restrict__ keys, int local_keys, int auto_select, double quadratic_gain,
+         double* __restrict__ out, double* __restrict__ model) {
     // local_keys: the block's keys (local_rows(height) x width) fit the dynamic shared memory
     // and the median's passes read them there instead of from `keys`
     extern __shared__ unsigned shared_keys[];
@@ -530,5 +556,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
         }
         __syncthreads();
     }
-    if (threadIdx.x == 0 && leader) out[0] = state.status;
+    if (threadIdx.x == 0 && leader) {
+        out[0] = state.status;
+        write_model(out, state.status, quadratic, auto_select, quadratic_gain, model);
+    }
 }

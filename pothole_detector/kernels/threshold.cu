@@ -189,3 +189,24 @@ threshold_search(double* tables, double* result, int n_bins) {
         result[2] = found ? tables[5 * n_bins + t + 1] / tables[4 * n_bins + t + 1] : 0.0;
     }
 }
+
+// Superpixel selection (stages/threshold.select_superpixels) from the split found by
+// threshold_search without reading it back: t_r = lo + (best + 1) bin_px, the reference is
+// t_r or the road mean, t_s = reference - delta_pd (compared in float32 like the reference's
+// Python scalar) or reference - tolerance[i] (float64 per superpixel, metric mode).
+extern "C" __global__ void threshold_select(const double* result, double lo, double bin_px,
+                                            int road_mean_reference, double delta_pd,
+                                            const double* tolerance, int per_superpixel,
+                                            const float* means, const float* valid_fraction,
+                                            float min_valid_fraction, int n, bool* selected) {
+    const int i = blockIdx.x * blockDim.x + threadIdx.x;
+    if (i >= n) return;
+    const double split = __dadd_rn(lo, __dmul_rn(__dadd_rn(result[1], 1.0), bin_px));
+    const double reference = road_mean_reference ? result[2] : split;
+    const float mean = means[i];
+    const bool below = per_superpixel
+        ? (double)mean < __dsub_rn(reference, tolerance[i])
+        : mean < (float)__dsub_rn(reference, delta_pd);
+    selected[i] = result[0] != 0.0 && finite(mean) && below
+                  && valid_fraction[i] > min_valid_fraction;
+}

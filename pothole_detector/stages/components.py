@@ -77,15 +77,22 @@ def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:
 def label_components(backend: Backend, mask: Any) -> tuple[Any, int]:
     """8-connected components of an HxW bool mask: (int32 HxW labels 1..k in raster order of
     each component's first pixel, 0 off the mask; k). scipy.ndimage.label on the CPU; on the
-    GPU union-find kernels (kernels/components.cu), one readback of k and no uploads."""
+    GPU :func:`label_on_device` and one readback of k."""
     if not backend.is_gpu:
         labels, count = backend.ndimage.label(mask, structure=EIGHT_CONNECTED)
         return labels.astype(np.int32), int(count)
+    labels, count = label_on_device(backend, mask)
+    return labels, int(to_host(count)[0])
+
+
+def label_on_device(backend: Backend, mask: Any) -> tuple[Any, Any]:
+    """:func:`label_components` by union-find kernels (kernels/components.cu), nothing read
+    back: (int32 HxW labels, the component count as a device int32 (1,))."""
     xp = backend.xp
     height, width = mask.shape
     size = height * width
     if size == 0:
-        return xp.zeros((height, width), dtype=xp.int32), 0
+        return xp.zeros((height, width), dtype=xp.int32), xp.zeros(1, dtype=xp.int32)
     parent = xp.empty(size, dtype=xp.int32)
     is_root = xp.empty(size, dtype=xp.int32)
     labels = xp.empty((height, width), dtype=xp.int32)
@@ -99,21 +106,59 @@ def label_components(backend: Backend, mask: Any) -> tuple[Any, int]:
     root_count = xp.cumsum(is_root, dtype=xp.int32)
     kernel("components.cu", "label_number", {})(
         grid, block, (parent, root_count, labels, np.int32(size)))
-    return labels, int(to_host(root_count[-1]))
+    return labels, root_count[-1:]
+
+
+# Components the device filters hold tables for without knowing the count: the superpixel
+# table takes (capacity + 1) x superpixels bytes.
+COMPONENT_CAPACITY = 1023
+COMPONENT_TABLE_BYTES = 8 * 2**20
+
+
+def device_capacity(n_superpixels: int) -> int:
+    """How many components :func:`components_on_device` can filter without a readback for
+    ``n_superpixels`` superpixels (1023, fewer when their table would pass 8 MiB)."""
+    return max(15, min(COMPONENT_CAPACITY, COMPONENT_TABLE_BYTES // max(n_superpixels, 1) - 1))
 
 
 def _components_gpu(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                     n_superpixels: int, corner_fraction: float, min_superpixels: int,
                     factor: int) -> tuple[Any, int]:
-    """pothole_components on the GPU: union-find labels of the (reduced) candidate mask, then
-    kernels/components.cu reads them at full resolution by index arithmetic: per-row valid
-    spans, corner and superpixel marks, the keep/renumber table (one block) and the final
-    labels. Readbacks: the component count and the kept count."""
+    """pothole_components on the GPU with the exact component count as capacity. Readbacks:
+    the component count and the kept count."""
+    xp = backend.xp
+    small, count = label_on_device(backend, candidate)
+    capacity = int(to_host(count)[0])
+    if capacity == 0:
+        return xp.zeros(valid.shape, dtype=xp.int32), 0
+    counts = xp.empty(3, dtype=xp.int32)
+    labels = filter_on_device(backend, small, count, valid, superpixel_labels, n_superpixels,
+                              corner_fraction, min_superpixels, factor, capacity, counts)
+    return labels, int(to_host(counts)[1])
+
+
+def components_on_device(backend: Backend, candidate: Any, valid: Any,
+                         superpixel_labels: Any, n_superpixels: int, corner_fraction: float,
+                         min_superpixels: int, factor: int, capacity: int, counts: Any) -> Any:
+    """:func:`pothole_components` on the GPU with tables for ``capacity`` components and
+    nothing read back: returns the int32 HxW labels and writes the device int32 (3,)
+    ``counts``: components found, components kept, overflow (1 when more than ``capacity``
+    were found: the labels are then incomplete and the caller runs pothole_components)."""
+    small, count = label_on_device(backend, candidate)
+    return filter_on_device(backend, small, count, valid, superpixel_labels, n_superpixels,
+                            corner_fraction, min_superpixels, factor, capacity, counts)
+
+
+def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
+                     superpixel_labels: Any, n_superpixels: int, corner_fraction: float,
+                     min_superpixels: int, factor: int, capacity: int, counts: Any) -> Any:
+    """The corner and superpixel filters of pothole_components on labels ``small`` of the
+    (reduced) candidate mask with the device component ``count``: kernels/components.cu reads
+    them at full resolution by index arithmetic (per-row valid spans, corner and superpixel
+    marks, the keep/renumber table in one block, the final labels). Writes ``counts`` as
+    :func:`components_on_device` does."""
     xp = backend.xp
     height, width = valid.shape
-    small, count = label_components(backend, candidate)
-    if count == 0:
-        return xp.zeros((height, width), dtype=xp.int32), 0
     small_height, small_width = small.shape
     i32 = np.int32
     kernel = backend.kernel
@@ -122,8 +167,8 @@ def _components_gpu(backend: Backend, candidate: Any, valid: Any, superpixel_lab
     kernel("components.cu", "row_extents", {})(
         ((height + 7) // 8,), (256,),
         (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
-    marks = xp.zeros((count + 1) * (1 + n_superpixels), dtype=xp.uint8)
-    touched, present = marks[:count + 1], marks[count + 1:]
+    marks = xp.zeros((capacity + 1) * (1 + n_superpixels), dtype=xp.uint8)
+    touched, present = marks[:capacity + 1], marks[capacity + 1:]
     side = int(round(corner_fraction * min(height, width)))
     size = height * width
     grid = ((size + 255) // 256,)
@@ -131,14 +176,15 @@ def _components_gpu(backend: Backend, candidate: Any, valid: Any, superpixel_lab
         grid, (256,),
         (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last,
          i32(height), i32(width), i32(factor), i32(small_height), i32(small_width), i32(side),
-         i32(n_superpixels), touched, present))
-    numbers = xp.empty(count + 2, dtype=xp.int32)
-    new_id, kept = numbers[:count + 1], numbers[count + 1:]
+         i32(n_superpixels), i32(capacity), touched, present))
+    new_id = xp.empty(capacity + 1, dtype=xp.int32)
     kernel("components.cu", "component_keep", {})(
-        (1,), (1024,), (touched, present, i32(count), i32(n_superpixels), i32(min_superpixels),
-                        new_id, kept))
+        (1,), (1024,), (touched, present, count, i32(capacity), i32(n_superpixels),
+                        i32(min_superpixels), new_id, counts[1:2]))
+    counts[0:1] = count
+    counts[2:3] = touched[0:1]
     labels = xp.empty((height, width), dtype=xp.int32)
     kernel("components.cu", "component_relabel", {})(
         grid, (256,), (small, new_id, labels, i32(height), i32(width), i32(factor),
-                       i32(small_height), i32(small_width)))
-    return labels, int(to_host(kept)[0])
+                       i32(small_height), i32(small_width), i32(capacity)))
+    return labels

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
-from .road_model import RoadModel
+from .road_model import RoadModel, device_params
 
 
 @dataclass(frozen=True)
@@ -73,8 +73,9 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
     if count == 0:
         return []
     if backend.is_gpu:
-        return _potholes_from_table(_table_gpu(backend, labels, count, disparity, model,
-                                               calibration))
+        sums, extremes = measure_on_device(backend, labels, count, disparity,
+                                           device_params(backend, model), calibration)
+        return potholes_from_sums(to_host(sums)[1:], to_host(extremes)[1:])
     xp, ndimage = backend.xp, backend.ndimage
     rows, cols = xp.nonzero(labels > 0)
     label = labels[rows, cols]
@@ -123,19 +124,37 @@ def _potholes_from_table(table: np.ndarray) -> list[Pothole]:
     return potholes
 
 
-def _table_gpu(backend: Backend, labels: Any, count: int, disparity: Any, model: RoadModel,
-               calibration: StereoCalibration) -> np.ndarray:
-    """The (count, 12) table of measure_potholes by one pass of kernels/measure.cu over the
-    label image (per-warp sums, atomics per label); one readback."""
+def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
+    """Potholes 1..k from host copies of rows 1..k of :func:`measure_on_device`'s sums
+    (float64 (k, 7)) and extremes (int32 (k, 5))."""
+    bits = extremes[:, 0]
+    largest = np.where(bits >= 0, bits, bits ^ np.int32(0x7FFFFFFF)).view(np.float32)
+    return _potholes_from_table(np.column_stack(
+        [sums[:, :4], largest.astype(np.float64), sums[:, 4:7],
+         extremes[:, 1:].astype(np.float64)]))
+
+
+MEASURE_SUMS = 7
+MEASURE_EXTREMES = 5
+
+
+def measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
+                      road_params: Any, calibration: StereoCalibration, sums: Any = None,
+                      extremes: Any = None) -> tuple[Any, Any]:
+    """Per-label sums of labels 1..capacity by one pass of kernels/measure.cu over the label
+    image (per-warp sums, atomics per label), nothing read back: float64
+    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, depth x area, x, y, z x area and
+    int32 (capacity + 1, MEASURE_EXTREMES) largest depth (order-preserving bits), u min,
+    v min, u max, v max; row 0 unused. ``road_params``: road_model.device_params. ``sums``
+    and ``extremes`` may be given as device arrays of those shapes to write into."""
     xp = backend.xp
     height, width = labels.shape
-    sums_bytes = (count + 1) * 7 * 8
-    buffer = xp.empty(sums_bytes + (count + 1) * 5 * 4, dtype=xp.uint8)
-    sums = buffer[:sums_bytes].view(xp.float64)
-    extremes = buffer[sums_bytes:].view(xp.int32)
+    if sums is None:
+        sums = xp.empty((capacity + 1, MEASURE_SUMS), dtype=xp.float64)
+    if extremes is None:
+        extremes = xp.empty((capacity + 1, MEASURE_EXTREMES), dtype=xp.int32)
     backend.kernel("measure.cu", "measure_reset", {})(
-        ((count + 256) // 256,), (256,), (sums, extremes, np.int32(count)))
-    normal = road_normal(model, calibration)
+        ((capacity + 256) // 256,), (256,), (sums, extremes, np.int32(capacity)))
     pixels = height * width
     f64 = np.float64
     backend.kernel("measure.cu", "measure_potholes", {})(
@@ -143,11 +162,28 @@ def _table_gpu(backend: Backend, labels: Any, count: int, disparity: Any, model:
         (xp.ascontiguousarray(labels, dtype=xp.int32),
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
          f64(calibration.f), f64(calibration.cx), f64(calibration.cy), f64(calibration.fb),
-         *(f64(c) for c in normal), *model.kernel_args(), sums, extremes))
-    host = to_host(buffer)
-    sums_host = host[:sums_bytes].view(np.float64).reshape(count + 1, 7)[1:]
-    extremes_host = host[sums_bytes:].view(np.int32).reshape(count + 1, 5)[1:]
-    bits = extremes_host[:, 0]
-    largest = np.where(bits >= 0, bits, bits ^ np.int32(0x7FFFFFFF)).view(np.float32)
-    return np.column_stack([sums_host[:, :4], largest.astype(np.float64), sums_host[:, 4:7],
-                            extremes_host[:, 1:].astype(np.float64)])
+         road_params, sums, extremes))
+    return sums, extremes
+
+
+def area_filter_on_device(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: int,
+                          min_area_m2: float, kept_after: Any) -> Any:
+    """Labels 1..kept (device int32 (1,)) of the int32 HxW ``labels`` whose footprint area in
+    :func:`measure_on_device`'s ``sums`` reaches ``min_area_m2``, renumbered 1..m in order
+    (one-thread kernel and a gather, nothing read back); writes m to the device int32 (1,)
+    ``kept_after``. The host keeps the same rows with :func:`keep_large`."""
+    xp = backend.xp
+    new_id = xp.empty(capacity + 1, dtype=xp.int32)
+    backend.kernel("measure.cu", "measure_keep", {})(
+        (1,), (32,), (sums, kept, np.int32(capacity), np.float64(min_area_m2), new_id,
+                      kept_after))
+    return xp.take(new_id, labels)
+
+
+def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothole], np.ndarray]:
+    """The potholes whose area reaches ``min_area_m2``, renumbered 1..m, and the bool (k+1,)
+    keep table over labels 0..k (label 0 never kept)."""
+    keep = np.array([False] + [p.area_m2 >= min_area_m2 for p in potholes])
+    kept = [replace(p, label=i)
+            for i, p in enumerate((p for p, k in zip(potholes, keep[1:]) if k), 1)]
+    return kept, keep

@@ -75,12 +75,13 @@ class RoadModel:
         stacked = xp.stack(ends)
         return stacked.min(axis=0), stacked.max(axis=0)
 
-    def kernel_args(self) -> tuple[np.float64, ...]:
-        """The model as the GPU kernels take it: a0, a1, cos(roll), sin(roll), c0..c5 (zeros
-        for a planar model), float64."""
-        curvature = self.curvature if self.kind != "planar" else (0.0,) * 6
-        return tuple(np.float64(value) for value in (
-            self.a0, self.a1, math.cos(self.roll_rad), math.sin(self.roll_rad), *curvature))
+    def kernel_params(self) -> np.ndarray:
+        """The model as the GPU kernels read it (float64 (ROAD_PARAMS,)): a0, a1, cos(roll),
+        sin(roll), c0..c5 (zeros for a planar model), curved (1.0 for a quadratic model)."""
+        curved = self.kind != "planar"
+        curvature = self.curvature if curved else (0.0,) * 6
+        return np.array([self.a0, self.a1, math.cos(self.roll_rad), math.sin(self.roll_rad),
+                         *curvature, float(curved)], dtype=np.float64)
 
     def as_dict(self) -> dict:
         return {"a0": self.a0, "a1": self.a1, "roll_deg": self.roll_deg,
@@ -233,13 +234,28 @@ def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
 def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
         outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
         coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
-    """:func:`fit_road` on ``backend``: on the GPU every round runs in one launch of one
-    8-block cluster (kernels/road.cu) with one readback of 15 numbers; on the CPU it is
-    fit_road."""
+    """:func:`fit_road` on ``backend``: on the GPU :func:`fit_on_device` and one readback of
+    its report; on the CPU it is fit_road."""
     if not backend.is_gpu:
         return fit_road(backend.xp, disparity, stride=stride, rounds=rounds,
                         outlier_k=outlier_k, kind=kind, quadratic_gain=quadratic_gain,
                         coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset)
+    report, _ = fit_on_device(backend, disparity, stride=stride, rounds=rounds,
+                              outlier_k=outlier_k, kind=kind, quadratic_gain=quadratic_gain,
+                              coordinate_scale=coordinate_scale,
+                              coordinate_offset=coordinate_offset)
+    return model_from_report(to_host(report), kind, quadratic_gain)
+
+
+def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
+                  outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
+                  coordinate_scale: float = 1.0, coordinate_offset: float = 0.0,
+                  report: Any = None, params: Any = None) -> tuple[Any, Any]:
+    """:func:`fit_road` as one launch of one 8-block cluster (kernels/road.cu), nothing read
+    back: returns the device report (float64 (ROAD_REPORT,), see :func:`model_from_report`)
+    and the chosen model's kernel parameters (float64 (ROAD_PARAMS,), as
+    RoadModel.kernel_params; NaN when the fit failed). ``report`` and ``params`` may be given
+    as device arrays to write into. GPU backend only."""
     xp = backend.xp
     sub = xp.ascontiguousarray(disparity[::stride, ::stride], dtype=xp.float32)
     height, width = sub.shape
@@ -254,7 +270,8 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
     key_bytes = block_rows * width * 4
     local_keys = key_bytes <= MAX_SHARED_KEY_BYTES
     keys = xp.empty(1 if local_keys else n, dtype=xp.uint32)
-    out = xp.zeros(15, dtype=xp.float64)
+    report = xp.empty(ROAD_REPORT, dtype=xp.float64) if report is None else report
+    params = xp.empty(ROAD_PARAMS, dtype=xp.float64) if params is None else params
     kernel = backend.kernel("road.cu", "road_fit", {})
     if local_keys:
         # with the kernel's own 36 KiB, even small key tables pass the 48 KiB default
@@ -262,24 +279,40 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
     kernel((ROAD_CLUSTER,), (ROAD_WARPS * 32,),
            (sub, tables, np.int32(height), np.int32(width), np.float64(coordinate_scale),
             np.int32(rounds), np.float64(outlier_k), np.int32(kind != "planar"), residual,
-            planar_values, keys, np.int32(local_keys), out),
+            planar_values, keys, np.int32(local_keys), np.int32(kind == "auto"),
+            np.float64(quadratic_gain), report, params),
            shared_mem=key_bytes if local_keys else 0)
-    result = to_host(out)
-    if result[0] == 1:
+    return report, params
+
+
+def model_from_report(report: np.ndarray, kind: str, quadratic_gain: float) -> RoadModel:
+    """The RoadModel of a host copy of :func:`fit_on_device`'s report: [0] status (0 ok, 1
+    fewer than 3 valid, 2 degenerate), [1] valid count, [2..4] a0, a1, roll, [5] planar
+    inliers, [6] planar sigma, [7..12] curvature, [13] quadratic inliers, [14] quadratic sigma.
+    The quadratic model is kept like fit_road keeps it. Raises NoRoadError for a failed fit."""
+    if report[0] == 1:
         raise NoRoadError("fewer than 3 valid disparities: no road to fit")
-    if result[0] == 2:
+    if report[0] == 2:
         raise NoRoadError("valid disparities lie on a line: the road plane is undetermined")
-    n_valid = max(result[1], 1.0)
-    planar = RoadModel(float(result[2]), float(result[3]), float(result[4]),
-                       inlier_fraction=float(result[5] / n_valid), sigma_px=float(result[6]))
+    n_valid = max(report[1], 1.0)
+    planar = RoadModel(float(report[2]), float(report[3]), float(report[4]),
+                       inlier_fraction=float(report[5] / n_valid), sigma_px=float(report[6]))
     if kind == "planar":
         return planar
-    quadratic = replace(planar, curvature=tuple(float(c) for c in result[7:13]),
-                        kind="quadratic", inlier_fraction=float(result[13] / n_valid),
-                        sigma_px=float(result[14]))
+    quadratic = replace(planar, curvature=tuple(float(c) for c in report[7:13]),
+                        kind="quadratic", inlier_fraction=float(report[13] / n_valid),
+                        sigma_px=float(report[14]))
     if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
         return planar
     return quadratic
+
+
+def device_params(backend: Backend, model: RoadModel | Any) -> Any:
+    """Kernel parameters (device float64 (ROAD_PARAMS,)) of a RoadModel (one small upload) or
+    of a device parameter array from :func:`fit_on_device` (returned as it is)."""
+    if isinstance(model, RoadModel):
+        return backend.upload(model.kernel_params())
+    return model
 
 
 # kernels/road.cu: blocks of the cluster (CLUSTER), warps per block (WARPS); shared memory
@@ -287,6 +320,9 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
 ROAD_CLUSTER = 8
 ROAD_WARPS = 16
 MAX_SHARED_KEY_BYTES = 160 * 1024
+# lengths of the road kernel's report and of the kernel parameters of a model
+ROAD_REPORT = 15
+ROAD_PARAMS = 11
 
 
 @lru_cache(maxsize=4)

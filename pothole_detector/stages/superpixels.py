@@ -190,8 +190,20 @@ def superpixel_grid(backend: Backend, transformed: Any, region_size_px: int,
         image, image_valid = _block_mean(xp, transformed, valid, downsample)
     else:
         image, image_valid = transformed, valid
-    step = max(2, int(round(region_size_px / downsample)))
-    return slic(backend, image, image_valid, step, compactness, iterations)
+    return slic(backend, image, image_valid, _grid_step(region_size_px, downsample),
+                compactness, iterations)
+
+
+def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
+    """The label count :func:`superpixel_grid` returns for an HxW map, from its size alone."""
+    height, width = (shape[0] // downsample, shape[1] // downsample) if downsample > 1 \
+        else shape
+    step = _grid_step(region_size_px, downsample)
+    return -(-height // step) * -(-width // step)
+
+
+def _grid_step(region_size_px: int, downsample: int) -> int:
+    return max(2, int(round(region_size_px / downsample)))
 
 
 def upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int]) -> Any:

@@ -33,6 +33,12 @@ def neighbour_mean(xp: Any, image: Any) -> Any:
     return xp.where(number > 0, total / xp.maximum(number, 1), xp.nan).astype(xp.float32)
 
 
+def histogram_range(bin_px: float, road_level: float) -> tuple[float, int]:
+    """(lowest D2 of the histogram (px), bin count) around ``road_level`` (delta_DT)."""
+    lo = road_level - HISTOGRAM_BELOW_PX
+    return lo, int(math.ceil((HISTOGRAM_BELOW_PX + HISTOGRAM_ABOVE_PX) / bin_px))
+
+
 def histogram_threshold(backend: Backend, transformed: Any, bin_px: float,
                         road_level: float) -> tuple[float, float]:
     """(t_r, road mean) in px: t_r is the diagonal threshold of the 2D histogram that minimises
@@ -45,14 +51,22 @@ def histogram_threshold(backend: Backend, transformed: Any, bin_px: float,
     same sums as cumulative sums over the 2D table. ``road_level`` (delta_DT) centres the
     histogram range. Returns (NaN, NaN) when two clusters cannot be formed.
     """
-    lo = road_level - HISTOGRAM_BELOW_PX
-    n_bins = int(math.ceil((HISTOGRAM_BELOW_PX + HISTOGRAM_ABOVE_PX) / bin_px))
     if backend.is_gpu:
-        found, best, road_mean = _threshold_gpu(backend, transformed, lo, bin_px, n_bins)
+        result = to_host(threshold_on_device(backend, transformed, bin_px, road_level))
     else:
-        found, best, road_mean = _search(np, *_tables(np, transformed, lo, bin_px, n_bins))
+        lo, n_bins = histogram_range(bin_px, road_level)
+        result = np.array(_search(np, *_tables(np, transformed, lo, bin_px, n_bins)), float)
+    return split_from_result(result, bin_px, road_level)
+
+
+def split_from_result(result: np.ndarray, bin_px: float, road_level: float
+                      ) -> tuple[float, float]:
+    """(t_r, road mean) in px from the search result (found, best split index, road mean);
+    (NaN, NaN) when nothing was found."""
+    found, best, road_mean = result
     if not found:
         return float("nan"), float("nan")
+    lo, _ = histogram_range(bin_px, road_level)
     return lo + (int(best) + 1) * bin_px, float(road_mean)
 
 
@@ -90,14 +104,17 @@ def _search(xp: Any, by_high: Any, by_low: Any) -> tuple[bool, int, float]:
     return bool(ok[best]), best, float(above[1][best] / n2[best])
 
 
-def _threshold_gpu(backend: Backend, transformed: Any, lo: float, bin_px: float,
-                   n_bins: int) -> tuple[bool, int, float]:
-    """The two tables by one kernel (shared-memory histograms per block where they fit) and
-    the split search by a one-block kernel; one readback of three numbers."""
+def threshold_on_device(backend: Backend, transformed: Any, bin_px: float, road_level: float,
+                        result: Any = None) -> Any:
+    """The search result (found, best split index, road mean) as a device float64 (3,), nothing
+    read back: the two tables by one kernel (shared-memory histograms per block where they
+    fit) and the split search by a one-block kernel (kernels/threshold.cu). ``result`` may be
+    given as a device array to write into."""
     xp = backend.xp
+    lo, n_bins = histogram_range(bin_px, road_level)
     height, width = transformed.shape
     tables = xp.zeros((2, 4, n_bins), dtype=xp.float64)
-    result = xp.empty(3, dtype=xp.float64)
+    result = xp.empty(3, dtype=xp.float64) if result is None else result
     histogram = backend.kernel("threshold.cu", "threshold_tables", {})
     search = backend.kernel("threshold.cu", "threshold_search", {})
     shared = tables.nbytes
@@ -110,8 +127,31 @@ def _threshold_gpu(backend: Backend, transformed: Any, lo: float, bin_px: float,
                np.float32(bin_px), np.int32(n_bins), np.int32(in_shared)),
               shared_mem=shared if in_shared else 0)
     search((1,), (1024,), (tables, result, np.int32(n_bins)))
-    found, best, road_mean = to_host(result)
-    return bool(found), int(best), float(road_mean)
+    return result
+
+
+def select_on_device(backend: Backend, result: Any, bin_px: float, road_level: float,
+                     road_mean_reference: bool, means: Any, valid_fraction: Any,
+                     threshold_drop: float | Any, min_valid_fraction: float) -> Any:
+    """:func:`select_superpixels` with t_s = reference - ``threshold_drop`` straight from the
+    device search ``result`` of :func:`threshold_on_device` (kernels/threshold.cu), nothing
+    read back. The reference is the road mean or t_r; ``threshold_drop`` is delta_PD (px) or a
+    device float64 (n,) of per-superpixel drops (metric mode). Bool (n,) on the device."""
+    xp = backend.xp
+    lo, _ = histogram_range(bin_px, road_level)
+    n = means.shape[0]
+    per_superpixel = not isinstance(threshold_drop, (float, int))
+    drops = xp.ascontiguousarray(threshold_drop, dtype=xp.float64) if per_superpixel \
+        else result
+    selected = xp.empty(n, dtype=xp.bool_)
+    backend.kernel("threshold.cu", "threshold_select", {})(
+        ((n + 255) // 256,), (256,),
+        (result, np.float64(lo), np.float64(bin_px), np.int32(road_mean_reference),
+         np.float64(0.0 if per_superpixel else threshold_drop), drops,
+         np.int32(per_superpixel), xp.ascontiguousarray(means, dtype=xp.float32),
+         xp.ascontiguousarray(valid_fraction, dtype=xp.float32),
+         np.float32(min_valid_fraction), np.int32(n), selected))
+    return selected
 
 
 def select_superpixels(xp: Any, means: Any, valid_fraction: Any, threshold_px: Any,

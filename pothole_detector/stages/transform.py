@@ -7,15 +7,16 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend
-from .road_model import RoadModel
+from .road_model import RoadModel, device_params
 
 
-def transform_disparity(backend: Backend, disparity: Any, model: RoadModel,
+def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any,
                         delta_dt_px: float) -> Any:
     """D2 = D1 - f(u, v) + delta_DT for an HxW float32 map (px, NaN stays NaN).
 
     On the road D2 is close to ``delta_dt_px``; potholes are lower, bumps higher. On the GPU
-    one kernel (kernels/transform.cu) with the same arithmetic.
+    one kernel (kernels/transform.cu) with the same arithmetic; there ``model`` may also be
+    the device parameters of road_model.fit_on_device.
     """
     xp = backend.xp
     height, width = disparity.shape
@@ -24,8 +25,7 @@ def transform_disparity(backend: Backend, disparity: Any, model: RoadModel,
         backend.kernel("transform.cu", "transform_disparity", {})(
             ((width + 31) // 32, (height + 7) // 8), (32, 8),
             (xp.ascontiguousarray(disparity, dtype=xp.float32), transformed, np.int32(height),
-             np.int32(width), *model.kernel_args(), np.int32(model.kind != "planar"),
-             np.float32(delta_dt_px)))
+             np.int32(width), device_params(backend, model), np.float32(delta_dt_px)))
         return transformed
     road = model.disparity(xp, height, width, xp.float32)
     return (disparity - road + xp.float32(delta_dt_px)).astype(xp.float32)
