@@ -227,8 +227,9 @@ class Pipeline:
                 config.threshold_reference == "road_mean", sp_means, sp_valid, drop,
                 config.superpixel_min_valid_fraction)
         with clock.stage("components"):
+            candidate = xp.take(selected, sp_grid)
             labels = components.components_on_device(
-                backend, selected[sp_grid], valid, sp_labels, n_sp, config.corner_fraction,
+                backend, candidate, valid, sp_labels, n_sp, config.corner_fraction,
                 config.min_pothole_superpixels, config.slic_downsample, report.capacity,
                 report.counts[:3])
         with clock.stage("measure"):
@@ -246,7 +247,7 @@ class Pipeline:
         if host.overflow:
             # more components than the report holds: filter and measure again with exact sizes
             labels, count = components.pothole_components(
-                backend, selected[sp_grid], valid, sp_labels, n_sp, config.corner_fraction,
+                backend, candidate, valid, sp_labels, n_sp, config.corner_fraction,
                 config.min_pothole_superpixels, factor=config.slic_downsample)
             labels, potholes = self._measure_exact(labels, count, disparity, road)
         else:
@@ -299,7 +300,7 @@ class Pipeline:
             backend, transformed, config.slic_region_size_px, config.slic_compactness,
             config.slic_iterations, config.slic_downsample)
         sp_labels = superpixels.upsample_labels(backend.xp, sp_grid, config.slic_downsample,
-                                                transformed.shape)
+                                                transformed.shape, backend)
         sp_means, sp_valid = superpixels.superpixel_means(backend, transformed, sp_labels, n_sp)
         return sp_grid, n_sp, sp_labels, sp_means, sp_valid
 

@@ -575,3 +575,18 @@ def test_gpu_pipeline_metric_mode_and_road_refusal(demo_sample):
     with pytest.raises(NoRoadError, match="no road plane"):
         strict.run(left, right)
     assert strict._road is None
+
+
+@pytest.mark.parametrize("shape,factor", [((61, 203), 2), ((40, 41), 3), ((7, 9), 2)])
+def test_block_mean_and_upsample_kernels_match_the_reference(gpu, shape, factor):
+    rng = np.random.default_rng(shape[0])
+    image = rng.normal(30, 3, shape).astype(np.float32)
+    image[rng.random(shape) < 0.4] = np.nan
+    means, valid = superpixels._block_mean(np, image, np.isfinite(image), factor)
+    filled, valid_gpu = superpixels._block_mean_gpu(gpu, gpu.upload(image), factor)
+    np.testing.assert_array_equal(to_host(valid_gpu).astype(bool), valid)
+    np.testing.assert_allclose(to_host(filled), np.where(valid, means, 0), rtol=1e-6)
+    small = rng.integers(0, 500, (shape[0] // factor, shape[1] // factor)).astype(np.int32)
+    expected = superpixels.upsample_labels(np, small, factor, shape)
+    found = superpixels.upsample_labels(gpu.xp, gpu.upload(small), factor, shape, gpu)
+    np.testing.assert_array_equal(to_host(found), expected)

@@ -34,15 +34,17 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
 }
 
 // One thread per pixel of component c > 0: touched[c] = 1 inside a corner region (the top and
-// bottom `side` rows, within `side` columns of the row's valid span), present[c][superpixel]
-// = 1. Plain stores: every writer writes the same 1. Components past `capacity` (the tables'
-// size) set touched[0], the overflow flag; the caller then runs again with a larger capacity.
+// bottom `side` rows, within `side` columns of the row's valid span); bit s of present[c]
+// (words_per_component words) marks superpixel s, and held[c] counts the distinct ones (the
+// thread whose atomicOr sets the bit adds 1; a plain read first spares the atomic once the
+// bit is set). Components past `capacity` (the tables' size) set touched[0], the overflow
+// flag; the caller then runs again with a larger capacity.
 extern "C" __global__ void component_marks(const int* small, const int* superpixels,
                                            const int* first, const int* last, int height,
                                            int width, int factor, int small_height,
-                                           int small_width, int side, int n_superpixels,
-                                           int capacity, unsigned char* touched,
-                                           unsigned char* present) {
+                                           int small_width, int side, int words_per_component,
+                                           int capacity, int* touched, int* held,
+                                           unsigned* present) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     if (index >= (long long)height * width) return;
     const int row = (int)(index / width), col = (int)(index % width);
@@ -55,16 +57,18 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
     const bool band = row < side || row >= height - side;
     if (side > 0 && band && (col < first[row] + side || col > last[row] - side))
         touched[component] = 1;
-    present[(long long)component * n_superpixels + superpixels[index]] = 1;
+    const int superpixel = superpixels[index];
+    const unsigned bit = 1u << (superpixel & 31);
+    unsigned* word = present + (long long)component * words_per_component + (superpixel >> 5);
+    if (!(*word & bit) && !(atomicOr(word, bit) & bit)) atomicAdd(&held[component], 1);
 }
 
 // One block: component c (1..count, count = min(*components, capacity)) is kept when it
 // touches no corner and holds at least min_superpixels superpixels; new_id[c] (capacity + 1
 // entries) numbers the kept ones 1..m in order (0 otherwise); kept[0] = m.
-extern "C" __global__ void component_keep(const unsigned char* touched,
-                                          const unsigned char* present, const int* components,
-                                          int capacity, int n_superpixels, int min_superpixels,
-                                          int* new_id, int* kept) {
+extern "C" __global__ void component_keep(const int* touched, const int* held,
+                                          const int* components, int capacity,
+                                          int min_superpixels, int* new_id, int* kept) {
     __shared__ int warp_totals[32];
     __shared__ int carry;
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
@@ -73,13 +77,8 @@ extern "C" __global__ void component_keep(const unsigned char* touched,
     __syncthreads();
     for (int start = 0; start <= capacity; start += blockDim.x) {
         const int component = start + threadIdx.x;
-        int flag = 0;
-        if (component > 0 && component <= count && !touched[component]) {
-            const unsigned char* row = present + (long long)component * n_superpixels;
-            int held = 0;
-            for (int s = 0; s < n_superpixels; ++s) held += row[s];
-            flag = held >= min_superpixels;
-        }
+        const int flag = component > 0 && component <= count && !touched[component]
+                         && held[component] >= min_superpixels;
         int inclusive = flag;
 #pragma unroll
         for (int offset = 1; offset < 32; offset <<= 1) {

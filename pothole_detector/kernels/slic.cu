@@ -165,3 +165,39 @@ extern "C" __global__ void superpixel_finish(const double* sums, float* mean, fl
                                     : __int_as_float(0x7fc00000);
     fraction[label] = (float)(count_valid / fmax(count, 1.0));
 }
+
+// The SLIC input of stages/superpixels.superpixel_grid in one pass over D2: the mean of the
+// finite values of each factor x factor block (float32, 0 where the block is not at least
+// half valid) and the block's validity (at least half of its values finite).
+extern "C" __global__ void slic_block_mean(const float* image, int width, int factor,
+                                           int small_height, int small_width, float* filled,
+                                           unsigned char* valid) {
+    const int c = blockIdx.x * blockDim.x + threadIdx.x;
+    const int r = blockIdx.y * blockDim.y + threadIdx.y;
+    if (c >= small_width || r >= small_height) return;
+    float total = 0.0f;
+    int count = 0;
+    for (int dr = 0; dr < factor; ++dr)
+        for (int dc = 0; dc < factor; ++dc) {
+            const float value = image[(long long)(r * factor + dr) * width + c * factor + dc];
+            if ((__float_as_uint(value) & 0x7f800000u) != 0x7f800000u) {
+                total = __fadd_rn(total, value);
+                ++count;
+            }
+        }
+    const bool enough = count * 2 >= factor * factor;
+    const long long index = (long long)r * small_width + c;
+    filled[index] = enough ? (float)((double)total / (double)count) : 0.0f;
+    valid[index] = enough;
+}
+
+// Nearest-neighbour enlargement (stages/superpixels.upsample_labels): pixel (r, c) takes
+// label (min(r / factor, small_height - 1), min(c / factor, small_width - 1)).
+extern "C" __global__ void upsample_labels(const int* small, int small_height, int small_width,
+                                           int factor, int height, int width, int* labels) {
+    const int c = blockIdx.x * blockDim.x + threadIdx.x;
+    const int r = blockIdx.y * blockDim.y + threadIdx.y;
+    if (c >= width || r >= height) return;
+    labels[(long long)r * width + c] =
+        small[min(r / factor, small_height - 1) * small_width + min(c / factor, small_width - 1)];
+}

@@ -109,16 +109,21 @@ def label_on_device(backend: Backend, mask: Any) -> tuple[Any, Any]:
     return labels, root_count[-1:]
 
 
-# Components the device filters hold tables for without knowing the count: the superpixel
-# table takes (capacity + 1) x superpixels bytes.
+# Components the device filters hold tables for without knowing the count: per component two
+# int32 and a bit per superpixel.
 COMPONENT_CAPACITY = 1023
 COMPONENT_TABLE_BYTES = 8 * 2**20
 
 
 def device_capacity(n_superpixels: int) -> int:
     """How many components :func:`components_on_device` can filter without a readback for
-    ``n_superpixels`` superpixels (1023, fewer when their table would pass 8 MiB)."""
-    return max(15, min(COMPONENT_CAPACITY, COMPONENT_TABLE_BYTES // max(n_superpixels, 1) - 1))
+    ``n_superpixels`` superpixels (1023, fewer when their tables would pass 8 MiB)."""
+    row_bytes = 4 * (2 + _words(n_superpixels))
+    return max(15, min(COMPONENT_CAPACITY, COMPONENT_TABLE_BYTES // row_bytes - 1))
+
+
+def _words(n_superpixels: int) -> int:
+    return -(-max(n_superpixels, 1) // 32)
 
 
 def _components_gpu(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
@@ -167,8 +172,10 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
     kernel("components.cu", "row_extents", {})(
         ((height + 7) // 8,), (256,),
         (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
-    marks = xp.zeros((capacity + 1) * (1 + n_superpixels), dtype=xp.uint8)
-    touched, present = marks[:capacity + 1], marks[capacity + 1:]
+    words = _words(n_superpixels)
+    marks = xp.zeros((capacity + 1) * (2 + words), dtype=xp.int32)
+    touched, held = marks[:capacity + 1], marks[capacity + 1:2 * (capacity + 1)]
+    present = marks[2 * (capacity + 1):].view(xp.uint32)
     side = int(round(corner_fraction * min(height, width)))
     size = height * width
     grid = ((size + 255) // 256,)
@@ -176,11 +183,11 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
         grid, (256,),
         (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last,
          i32(height), i32(width), i32(factor), i32(small_height), i32(small_width), i32(side),
-         i32(n_superpixels), i32(capacity), touched, present))
+         i32(words), i32(capacity), touched, held, present))
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     kernel("components.cu", "component_keep", {})(
-        (1,), (1024,), (touched, present, count, i32(capacity), i32(n_superpixels),
-                        i32(min_superpixels), new_id, counts[1:2]))
+        (1,), (1024,), (touched, held, count, i32(capacity), i32(min_superpixels), new_id,
+                        counts[1:2]))
     counts[0:1] = count
     counts[2:3] = touched[0:1]
     labels = xp.empty((height, width), dtype=xp.int32)

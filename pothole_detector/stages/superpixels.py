@@ -116,12 +116,19 @@ def _start(xp: Any, image: Any, valid: Any, region_size: int) -> tuple[Any, ...]
 def _slic_gpu(backend: Backend, image: Any, valid: Any, region_size: int, compactness: float,
               iterations: int) -> tuple[Any, int]:
     xp = backend.xp
-    height, width = image.shape
+    return _slic_gpu_filled(backend, xp.where(valid, image, 0).astype(xp.float32),
+                            valid.astype(xp.uint8), region_size, compactness, iterations)
+
+
+def _slic_gpu_filled(backend: Backend, filled: Any, valid_bytes: Any, region_size: int,
+                     compactness: float, iterations: int) -> tuple[Any, int]:
+    """slic on the GPU from the map with 0 at invalid pixels (float32 HxW) and the valid mask
+    as bytes (uint8 HxW)."""
+    xp = backend.xp
+    height, width = filled.shape
     step = int(region_size)
     cells_y, cells_x = -(-height // step), -(-width // step)
     n_labels = cells_y * cells_x
-    filled = xp.where(valid, image, 0).astype(xp.float32)
-    valid_bytes = valid.astype(xp.uint8)
     centres = xp.empty((3, n_labels), dtype=xp.float32)
     centre_v, centre_u, centre_d = centres
     labels = xp.empty((height, width), dtype=xp.int32)
@@ -174,7 +181,7 @@ def superpixels(backend: Backend, transformed: Any, region_size_px: int, compact
     labels, n_labels = superpixel_grid(backend, transformed, region_size_px, compactness,
                                        iterations, downsample)
     if downsample > 1:
-        labels = upsample_labels(backend.xp, labels, downsample, transformed.shape)
+        labels = upsample_labels(backend.xp, labels, downsample, transformed.shape, backend)
     return labels, n_labels
 
 
@@ -185,13 +192,30 @@ def superpixel_grid(backend: Backend, transformed: Any, region_size_px: int,
     (H // downsample, W // downsample) labels and the label count. :func:`upsample_labels`
     gives the full-resolution labels."""
     xp = backend.xp
+    step = _grid_step(region_size_px, downsample)
+    if backend.is_gpu and downsample > 1:
+        return _slic_gpu_filled(backend, *_block_mean_gpu(backend, transformed, downsample),
+                                step, compactness, iterations)
     valid = xp.isfinite(transformed)
     if downsample > 1:
         image, image_valid = _block_mean(xp, transformed, valid, downsample)
     else:
         image, image_valid = transformed, valid
-    return slic(backend, image, image_valid, _grid_step(region_size_px, downsample),
-                compactness, iterations)
+    return slic(backend, image, image_valid, step, compactness, iterations)
+
+
+def _block_mean_gpu(backend: Backend, image: Any, factor: int) -> tuple[Any, Any]:
+    """_block_mean of the finite values and the SLIC map with 0 where a block is not half
+    valid, in one kernel (kernels/slic.cu): (float32, uint8 (H // factor, W // factor))."""
+    xp = backend.xp
+    height, width = image.shape[0] // factor, image.shape[1] // factor
+    filled = xp.empty((height, width), dtype=xp.float32)
+    valid = xp.empty((height, width), dtype=xp.uint8)
+    backend.kernel("slic.cu", "slic_block_mean", {})(
+        ((width + 31) // 32, (height + 7) // 8), (32, 8),
+        (xp.ascontiguousarray(image, dtype=xp.float32), np.int32(image.shape[1]),
+         np.int32(factor), np.int32(height), np.int32(width), filled, valid))
+    return filled, valid
 
 
 def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
@@ -206,12 +230,22 @@ def _grid_step(region_size_px: int, downsample: int) -> int:
     return max(2, int(round(region_size_px / downsample)))
 
 
-def upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int]) -> Any:
+def upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int],
+                    backend: Backend | None = None) -> Any:
     """Nearest-neighbour enlargement of a label image by ``factor`` to ``shape``; rows and
-    columns past the enlarged image repeat the last one."""
+    columns past the enlarged image repeat the last one. With a GPU ``backend``, one kernel
+    for int32 labels (kernels/slic.cu)."""
     if factor == 1 and labels.shape == tuple(shape):
         return labels
     height, width = shape
+    if backend is not None and backend.is_gpu and labels.dtype == np.int32:
+        result = xp.empty((height, width), dtype=xp.int32)
+        backend.kernel("slic.cu", "upsample_labels", {})(
+            ((width + 31) // 32, (height + 7) // 8), (32, 8),
+            (xp.ascontiguousarray(labels), np.int32(labels.shape[0]),
+             np.int32(labels.shape[1]), np.int32(factor), np.int32(height), np.int32(width),
+             result))
+        return result
     rows = xp.minimum(xp.arange(height) // factor, labels.shape[0] - 1)
     cols = xp.minimum(xp.arange(width) // factor, labels.shape[1] - 1)
     return labels[rows[:, None], cols[None, :]]
