@@ -63,6 +63,7 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
         result = pipeline.run(left, right)
         runs.append(result.timings_ms)
     medians = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    medians["host_busy"] = float(np.median([r["host"] - r["host_wait"] for r in runs]))
     medians["levels"] = result.band[1]
     medians["range_hi"] = result.disparity_range[1]
     medians["memory_mib"] = backend.memory_bytes() / 2**20
@@ -140,11 +141,13 @@ def main() -> None:
           f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores; median "
           f"over {args.frames} frames after 5 warm-up frames (same pair each frame, road model "
           "carried over as in a drive). Stage and total: CUDA events, ms; host: wall time of "
-          f"Pipeline.run, ms. OpenCV SGBM 3WAY on {args.threads} threads, same frame, no LR "
+          "Pipeline.run, ms; host busy: host less the wait for the frame's one readback (the "
+          f"host's own work per frame), ms. OpenCV SGBM 3WAY on {args.threads} threads, same frame, no LR "
           "check.\n")
     print("| frame | range | levels | " + " | ".join(STAGES)
-          + " | total GPU | host | pool MiB | OpenCV SGBM | SGBM / our SGM | SGBM / pipeline |")
-    print("| --- |" + " --- |" * (len(STAGES) + 10))
+          + " | total GPU | host | host busy | pool MiB | OpenCV SGBM | SGBM / our SGM "
+          "| SGBM / pipeline |")
+    print("| --- |" + " --- |" * (len(STAGES) + 9))
     data = args.data if args.data.is_dir() else None
     kernel_lines: list[str] = []
     for name, left, right, calibration in frames(data, args.real):
@@ -156,7 +159,8 @@ def main() -> None:
         for label, row in (("GPT band", band), ("full", full)):
             print(f"| {name} | {label} | {row['levels']} | "
                   + " | ".join(f"{row.get(s, 0.0):.3f}" for s in STAGES)
-                  + f" | {row['total']:.3f} | {row['host']:.2f} | {row['memory_mib']:.0f} | "
+                  + f" | {row['total']:.3f} | {row['host']:.2f} | {row['host_busy']:.2f} | "
+                  + f"{row['memory_mib']:.0f} | "
                   + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / row['sgm']:.0f}x | "
                   + f"{sgbm / row['total']:.0f}x |", flush=True)
         if args.sgm_kernels:

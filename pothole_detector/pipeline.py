@@ -25,7 +25,9 @@ class PipelineResult:
     ``disparity`` (D1) and ``transformed`` (D2) are float32 HxW px, NaN where invalid;
     ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW;
     ``band`` (lowest row shift, levels) and ``disparity_range`` (lowest, highest disparity the
-    matcher could report, px).
+    matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU), ``total``
+    (their sum), ``host`` (wall time of the call) and ``host_wait`` (of it, the wait for the
+    GPU frame's one readback; 0 on the CPU).
     """
 
     disparity: Any
@@ -50,6 +52,7 @@ class _Detection:
     road: road_model.RoadModel
     threshold_px: float
     potholes: list[measure.Pothole]
+    wait_ms: float = 0.0
 
 
 @dataclass
@@ -160,6 +163,7 @@ class Pipeline:
         timings = clock.timings()
         timings["total"] = sum(timings.values())
         timings["host"] = (time.perf_counter() - started) * 1e3
+        timings["host_wait"] = found.wait_ms
         return PipelineResult(
             disparity=disparity, transformed=found.transformed, labels=found.labels,
             superpixels=found.superpixels, road=found.road, threshold_px=found.threshold_px,
@@ -239,7 +243,9 @@ class Pipeline:
             labels = measure.area_filter_on_device(
                 backend, labels, report.sums, report.counts[1:2], report.capacity,
                 config.min_pothole_area_m2, report.counts[3:4])
+            waiting = time.perf_counter()
             host = report.read()
+            wait_ms = (time.perf_counter() - waiting) * 1e3
         road = self._checked_road(host.header, disparity.size)
         t_r, road_mean = thresholding.split_from_result(host.threshold, config.histogram_bin_px,
                                                         config.delta_dt_px)
@@ -255,7 +261,7 @@ class Pipeline:
                 measure.potholes_from_sums(host.sums[1:host.components_kept + 1],
                                            host.extremes[1:host.components_kept + 1]),
                 config.min_pothole_area_m2)
-        return _Detection(transformed, labels, sp_labels, road, reference, potholes)
+        return _Detection(transformed, labels, sp_labels, road, reference, potholes, wait_ms)
 
     def _check_valid(self, valid_fraction: float) -> None:
         if valid_fraction < self.config.min_valid_fraction:

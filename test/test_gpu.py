@@ -437,6 +437,7 @@ def test_gpu_pipeline_finds_the_rendered_potholes(demo_sample):
     found = to_host(result.labels) > 0
     assert (found & truth).sum() / max(found.sum(), 1) > 0.8
     assert set(result.timings_ms) >= {"sgm", "slic", "total", "host"}
+    assert 0 < result.timings_ms["host_wait"] < result.timings_ms["host"]
 
 
 @pytest.mark.parametrize("kind", ["planar", "quadratic", "auto"])

@@ -24,6 +24,7 @@ def test_finds_every_pothole_where_the_generator_put_it(demo_sample):
     assert abs(result.road.roll_deg - 1.5) < 0.3
     for name in ("seed", "sgm", "slic", "threshold", "total"):
         assert result.timings_ms[name] >= 0
+    assert result.timings_ms["host"] > 0 and result.timings_ms["host_wait"] == 0.0
     assert result.seeded
 
 
