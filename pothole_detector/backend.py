@@ -70,12 +70,20 @@ class Backend:
         return tuple(device[start:start + size].view(a.dtype).reshape(a.shape)
                      for a, start, size in zip(arrays, offsets, sizes))
 
-    def kernel(self, source: str, name: str, defines: dict[str, int]) -> Any:
+    def kernel(self, source: str, name: str, defines: dict[str, int],
+               cooperative: bool = False) -> Any:
         """The CUDA kernel ``name`` of kernels/``source`` built with ``defines`` (memoized on
-        the source text and the defines). GPU backend only."""
+        the source text, the defines and ``cooperative``: launched so that every block is
+        resident at once, for kernels with grid-wide barriers). GPU backend only."""
         if not self.is_gpu:
             raise BackendError(f"kernel {name} needs the gpu backend")
-        return _kernel(source, _source_digest(source), tuple(sorted(defines.items())), name)
+        return _kernel(source, _source_digest(source), tuple(sorted(defines.items())), name,
+                       cooperative)
+
+    def multiprocessors(self) -> int:
+        """Streaming multiprocessors of the current device (GPU backend only)."""
+        assert _cupy is not None
+        return _multiprocessors(_cupy.cuda.Device().id)
 
     def memory_bytes(self) -> int:
         """Device memory held by the backend's allocator (bytes; 0 on the CPU backend)."""
@@ -145,17 +153,27 @@ def _source_digest(source: str) -> str:
 
 
 @lru_cache(maxsize=64)
-def _module(source: str, digest: str, defines: tuple[tuple[str, int], ...]) -> Any:
-    """A compiled RawModule of kernels/``source`` (digest: sha1 of its text, part of the key)."""
+def _module(source: str, digest: str, defines: tuple[tuple[str, int], ...],
+            cooperative: bool) -> Any:
+    """A compiled RawModule of kernels/``source`` (digest: sha1 of its text, part of the key);
+    ``cooperative``: its kernels launch cooperatively."""
     assert _cupy is not None
     options = ("--std=c++17",) + tuple(f"-D{key}={value}" for key, value in defines)
-    return _cupy.RawModule(code=(KERNEL_DIR / source).read_text(), options=options)
+    return _cupy.RawModule(code=(KERNEL_DIR / source).read_text(), options=options,
+                           enable_cooperative_groups=cooperative)
 
 
 @lru_cache(maxsize=256)
-def _kernel(source: str, digest: str, defines: tuple[tuple[str, int], ...], name: str) -> Any:
+def _kernel(source: str, digest: str, defines: tuple[tuple[str, int], ...], name: str,
+            cooperative: bool) -> Any:
     """Kernel ``name`` of the module built from kernels/``source`` with ``defines``."""
-    return _module(source, digest, defines).get_function(name)
+    return _module(source, digest, defines, cooperative).get_function(name)
+
+
+@lru_cache(maxsize=None)
+def _multiprocessors(device: int) -> int:
+    assert _cupy is not None
+    return int(_cupy.cuda.Device(device).attributes["MultiProcessorCount"])
 
 
 def gpu_available() -> bool:

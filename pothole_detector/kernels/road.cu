@@ -1,12 +1,14 @@
-// Robust road fit on the device: one cluster of CLUSTER blocks (one launch) runs every round
-// of stages/road_model.fit_road (planar rounds with the roll solve, then the quadratic rounds),
-// so the only readback is the result. Each block takes every CLUSTER-th group of rows; sums
-// and histograms are combined through distributed shared memory in rank order, so every block
-// holds the same totals and solves the same small systems. Per element of the subsampled
-// map: d = sub * scale at column table u[j], row table v[i]; x = u / 1000, y = v / 1000 come
-// from the same tables. The robust sigma is the exact
-// median of |residual| (as float32) by a three-pass radix select in shared memory (the keys
-// themselves in shared memory too where the block's share fits).
+// Robust road fit on the device: one launch of one block per multiprocessor (launched
+// cooperatively, so every block is resident) runs every round of stages/road_model.fit_road
+// (planar rounds with the roll solve, then the quadratic rounds), so the only readback is the
+// result. The elements are cut into segments of 32 columns of a row, dealt to the warps of
+// the grid in turn; sums and histograms are combined through global memory behind grid
+// barriers, block partials summed in block order, so every block holds the same totals and
+// solves the same small systems. Per element of the subsampled map: d = sub * scale at column
+// table u[j], row table v[i]; x = u / 1000, y = v / 1000 come from the same tables. The robust
+// sigma is the exact median of |residual| (as float32) by a three-pass radix select (each
+// block's keys in its shared memory where they fit, per-block histograms added into global
+// ones).
 //
 // out: [0] status (0 ok, 1 fewer than 3 valid, 2 degenerate), [1] valid count,
 // [2..4] a0, a1, phi, [5] planar inliers, [6] planar sigma, [7..12] curvature c0..c5,
@@ -16,7 +18,6 @@
 // chosen), curved (0 or 1); NaN when the fit failed, so later stages find no road.
 
 #define THREADS 512
-#define CLUSTER 8
 #define WARPS (THREADS / 32)
 #define BINS 4096
 #define PER_THREAD_BINS (BINS / THREADS)
@@ -29,59 +30,51 @@ __device__ __forceinline__ bool finite(float x) {
     return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
 }
 
-__device__ __forceinline__ unsigned cluster_rank() {
-    unsigned rank;
-    asm volatile("mov.u32 %0, %%cluster_ctarank;" : "=r"(rank));
-    return rank;
-}
+// Grid-wide state of one thread: the launch's workspace and how many barriers, sums and
+// histograms it has passed (every thread makes the same calls, so the counts agree).
+struct GridWork {
+    unsigned* barrier;   // arrivals at grid barriers, 0 at launch
+    double* partials;    // [2][gridDim.x][MAX_SUMS] block totals, alternate buffers
+    unsigned* hists;     // [HIST_BUFFERS][BINS], 0 at launch, each used once
+    unsigned barriers;
+    int sums;
+    int histograms;
+};
 
-// Barrier over every thread of the cluster; orders shared and global memory accesses.
-__device__ __forceinline__ void cluster_sync() {
-    asm volatile("barrier.cluster.arrive.release;\n\tbarrier.cluster.wait.acquire;" ::: "memory");
-}
-
-__device__ __forceinline__ unsigned remote_address(const void* local, unsigned rank) {
-    const unsigned address = (unsigned)__cvta_generic_to_shared(local);
-    unsigned remote;
-    asm volatile("mapa.shared::cluster.u32 %0, %1, %2;" : "=r"(remote) : "r"(address), "r"(rank));
-    return remote;
-}
-
-// Four consecutive words (16-byte aligned) of another block's shared memory.
-__device__ __forceinline__ uint4 remote_u32x4(const unsigned* local, unsigned rank) {
-    uint4 value;
-    asm volatile("ld.shared::cluster.v4.u32 {%0, %1, %2, %3}, [%4];"
-                 : "=r"(value.x), "=r"(value.y), "=r"(value.z), "=r"(value.w)
-                 : "r"(remote_address(local, rank)) : "memory");
-    return value;
-}
-
-__device__ __forceinline__ double remote_f64(const double* local, unsigned rank) {
-    double value;
-    asm volatile("ld.shared::cluster.f64 %0, [%1];"
-                 : "=d"(value) : "r"(remote_address(local, rank)) : "memory");
-    return value;
+// Barrier over every thread of the grid (all blocks resident: cooperative launch); orders
+// global memory accesses (release before arriving, acquire after the wait).
+__device__ __forceinline__ void grid_sync(GridWork& grid) {
+    __syncthreads();
+    if (threadIdx.x == 0) {
+        grid.barriers += 1;
+        const unsigned target = grid.barriers * gridDim.x;
+        __threadfence();
+        atomicAdd(grid.barrier, 1u);
+        unsigned seen;
+        do {
+            asm volatile("ld.acquire.gpu.global.u32 %0, [%1];" : "=r"(seen) : "l"(grid.barrier)
+                         : "memory");
+        } while (seen < target);
+    }
+    __syncthreads();
 }
 
 // Calls f(i, row, col, local) for this block's elements (local: the element's index among
-// the block's, rows in walking order): each warp of the cluster walks whole rows (coalesced,
-// no division), four columns in flight per lane. Every pass uses this partition, so an
-// element is always handled by the same thread.
+// the block's): segments of 32 columns of a row go to the warps of the grid in turn (coalesced
+// rows); every pass uses this partition, so an element is always handled by the same thread.
 template <typename F>
 __device__ __forceinline__ void for_each_element(int height, int width, F&& f) {
     const int lane = threadIdx.x & 31;
-    const int warp = cluster_rank() * WARPS + (threadIdx.x >> 5);
-    int local_row = threadIdx.x >> 5;
-    for (int row = warp; row < height; row += CLUSTER * WARPS, local_row += WARPS) {
-#pragma unroll 4
-        for (int col = lane; col < width; col += 32)
-            f(row * width + col, row, col, local_row * width + col);
+    const int per_row = (width + 31) >> 5;
+    const int segments = height * per_row;
+    const int stride = gridDim.x * WARPS;
+    int local = threadIdx.x;
+    for (int s = blockIdx.x * WARPS + (threadIdx.x >> 5); s < segments;
+         s += stride, local += THREADS) {
+        const int row = s / per_row;
+        const int col = (s - row * per_row) * 32 + lane;
+        if (col < width) f(row * width + col, row, col, local);
     }
-}
-
-// Rows of one block's elements in for_each_element's local numbering.
-__host__ __device__ __forceinline__ int local_rows(int height) {
-    return (height + CLUSTER * WARPS - 1) / (CLUSTER * WARPS) * WARPS;
 }
 
 struct RoadState {
@@ -107,11 +100,11 @@ __device__ __forceinline__ double curvature_at(const double* c, double x, double
     return __dadd_rn(__dadd_rn(c[0], __dmul_rn(x, inner_x)), __dmul_rn(y, inner_y));
 }
 
-// Sum of COUNT per-thread values over the cluster in a fixed order; result in state.sums of
-// every block.
+// Sum of COUNT per-thread values over the grid in a fixed order (warps, then blocks); result
+// in state.sums of every block.
 template <int COUNT>
-__device__ void cluster_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS],
-                             double* block_totals, RoadState& state) {
+__device__ void grid_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS],
+                          RoadState& state, GridWork& grid) {
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
     for (int k = 0; k < COUNT; ++k) {
@@ -122,23 +115,33 @@ __device__ void cluster_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS
         if (lane == 0) partial[warp][k] = value;
     }
     __syncthreads();
+    double* totals = grid.partials + (grid.sums & 1) * gridDim.x * MAX_SUMS;
+    grid.sums += 1;
     if (threadIdx.x < COUNT) {
         double total = 0.0;
         for (int w = 0; w < WARPS; ++w) total += partial[w][threadIdx.x];
-        block_totals[threadIdx.x] = total;
+        totals[blockIdx.x * MAX_SUMS + threadIdx.x] = total;
     }
-    cluster_sync();
+    grid_sync(grid);
     if (threadIdx.x < COUNT) {
-        double parts[CLUSTER];
-#pragma unroll
-        for (unsigned r = 0; r < CLUSTER; ++r)
-            parts[r] = remote_f64(&block_totals[threadIdx.x], r);
         double total = 0.0;
-#pragma unroll
-        for (unsigned r = 0; r < CLUSTER; ++r) total += parts[r];
+        for (unsigned b = 0; b < gridDim.x; ++b)
+            total += __ldcg(&totals[b * MAX_SUMS + threadIdx.x]);
         state.sums[threadIdx.x] = total;
     }
-    cluster_sync();
+    __syncthreads();
+}
+
+// Adds the block's histogram to the next unused global one (non-zero bins only) and returns
+// that global histogram; read it after a grid_sync.
+__device__ const unsigned* publish_histogram(const unsigned* hist, GridWork& grid) {
+    unsigned* global = grid.hists + (long long)grid.histograms * BINS;
+    grid.histograms += 1;
+    for (int i = threadIdx.x; i < BINS; i += THREADS) {
+        const unsigned count = hist[i];
+        if (count != 0) atomicAdd(&global[i], count);
+    }
+    return global;
 }
 
 // Exclusive prefix sum of one unsigned per thread over the block.
@@ -158,31 +161,18 @@ __device__ unsigned block_exclusive_scan(unsigned value, unsigned* warp_totals) 
     return before + inclusive - value;
 }
 
-// The bins of the cluster's histogram `hist` (summed over the blocks) holding the elements
-// state.rank[which] (0-based, by ascending bin) for which = first_which..last_which, from one
-// read of the histogram: state.prefix[which] gains the bin as its low `bits` bits,
-// state.rank[which] becomes the rank inside the bin. Call after a cluster_sync.
+// The bins of the grid's histogram `hist` (global) holding the elements state.rank[which]
+// (0-based, by ascending bin) for which = first_which..last_which, from one read of the
+// histogram: state.prefix[which] gains the bin as its low `bits` bits, state.rank[which]
+// becomes the rank inside the bin. Call after the grid_sync that follows its publication.
 __device__ void locate(const unsigned* hist, int first_which, int last_which, int bits,
                        RoadState& state, unsigned* warp_totals) {
     const unsigned ranks[2] = {state.rank[0], state.rank[1]};
     const int first = threadIdx.x * PER_THREAD_BINS;
-    uint4 parts[CLUSTER][2];
-#pragma unroll
-    for (unsigned r = 0; r < CLUSTER; ++r) {
-        parts[r][0] = remote_u32x4(hist + first, r);
-        parts[r][1] = remote_u32x4(hist + first + 4, r);
-    }
-    unsigned counts[PER_THREAD_BINS] = {0, 0, 0, 0, 0, 0, 0, 0};
-#pragma unroll
-    for (unsigned r = 0; r < CLUSTER; ++r) {
-#pragma unroll
-        for (int h = 0; h < 2; ++h) {
-            counts[4 * h] += parts[r][h].x;
-            counts[4 * h + 1] += parts[r][h].y;
-            counts[4 * h + 2] += parts[r][h].z;
-            counts[4 * h + 3] += parts[r][h].w;
-        }
-    }
+    const uint4 low = __ldcg(reinterpret_cast<const uint4*>(hist + first));
+    const uint4 high = __ldcg(reinterpret_cast<const uint4*>(hist + first + 4));
+    const unsigned counts[PER_THREAD_BINS] = {low.x, low.y, low.z, low.w,
+                                              high.x, high.y, high.z, high.w};
     unsigned local = 0;
 #pragma unroll
     for (int b = 0; b < PER_THREAD_BINS; ++b) local += counts[b];
@@ -205,21 +195,22 @@ __device__ void locate(const unsigned* hist, int first_which, int last_which, in
 }
 
 // 1.4826 x median of the masked keys (float bits of |residual|, NOT_MASKED else) over the
-// cluster: keys[local] in shared memory (local_keys) or keys[i] in global memory. Each block's
+// grid: keys[local] in shared memory (local_keys) or keys[i] in global memory. Each block's
 // pass-0 histogram (key >> 20) is already in its hist[0].
 __device__ double robust_sigma(const unsigned* keys, bool local_keys, int height, int width,
                                unsigned count, unsigned (*hist)[BINS], RoadState& state,
-                               unsigned* warp_totals) {
+                               unsigned* warp_totals, GridWork& grid) {
+    const unsigned* first = publish_histogram(hist[0], grid);
+    grid_sync(grid);
     if (count == 0) return 0.0;
     if (threadIdx.x == 0) {
         state.prefix[0] = state.prefix[1] = 0;
         state.rank[0] = (count - 1) / 2;
         state.rank[1] = count / 2;
     }
-    cluster_sync();
-    locate(hist[0], 0, 1, 12, state, warp_totals);
+    __syncthreads();
+    locate(first, 0, 1, 12, state, warp_totals);
     for (int pass = 1; pass <= 2; ++pass) {
-        cluster_sync();
         for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
         __syncthreads();
         const unsigned p0 = state.prefix[0], p1 = state.prefix[1];
@@ -231,13 +222,16 @@ __device__ double robust_sigma(const unsigned* keys, bool local_keys, int height
             if ((key >> known) == p0) atomicAdd(&hist[0][bin], 1u);
             if (p1 != p0 && (key >> known) == p1) atomicAdd(&hist[1][bin], 1u);
         });
-        cluster_sync();
+        __syncthreads();
+        const unsigned* low = publish_histogram(hist[0], grid);
+        const unsigned* high = p1 != p0 ? publish_histogram(hist[1], grid) : low;
+        grid_sync(grid);
         const int bits = pass == 1 ? 12 : 8;
         if (p1 == p0) {
-            locate(hist[0], 0, 1, bits, state, warp_totals);
+            locate(low, 0, 1, bits, state, warp_totals);
         } else {
-            locate(hist[0], 0, 0, bits, state, warp_totals);
-            locate(hist[1], 1, 1, bits, state, warp_totals);
+            locate(low, 0, 0, bits, state, warp_totals);
+            locate(high, 1, 1, bits, state, warp_totals);
         }
     }
     const float low = __uint_as_float(state.prefix[0]);
@@ -416,26 +410,30 @@ __device__ void write_model(const double* out, int status, int quadratic, int au
     model[10] = curved ? 1.0 : 0.0;
 }
 
-extern "C" __global__ void __launch_bounds__(THREADS) __cluster_dims__(CLUSTER, 1, 1)
+// workspace: the arrival counter, then float64 [2][gridDim.x][MAX_SUMS] block totals, then
+// uint32 [HIST_BUFFERS][BINS] histograms; counter and histograms zero at launch (see
+// stages/road_model.fit_on_device for the layout).
+extern "C" __global__ void __launch_bounds__(THREADS)
 road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int height,
          int width, double scale, int rounds, double outlier_k, int quadratic,
          double* __restrict__ residual, double* __restrict__ planar,
          unsigned* __restrict__ keys, int local_keys, int auto_select, double quadratic_gain,
-         double* __restrict__ out, double* __restrict__ model) {
-    // local_keys: the block's keys (local_rows(height) x width) fit the dynamic shared memory
-    // and the median's passes read them there instead of from `keys`
+         unsigned* __restrict__ barrier, double* __restrict__ partials,
+         unsigned* __restrict__ hists, double* __restrict__ out, double* __restrict__ model) {
+    // local_keys: the block's keys (for_each_element's local numbering) fit the dynamic
+    // shared memory and the median's passes read them there instead of from `keys`
     extern __shared__ unsigned shared_keys[];
     unsigned* key_store = local_keys ? shared_keys : keys;
     __shared__ __align__(16) unsigned hist[2][BINS];
     __shared__ double partial[WARPS][MAX_SUMS];
-    __shared__ double block_totals[MAX_SUMS];
     __shared__ unsigned warp_totals[WARPS];
     __shared__ RoadState state;
+    GridWork grid{barrier, partials, hists, 0u, 0, 0};
     const double* column_u = tables;
     const double* row_v = tables + width;
     const double* column_x = tables + width + height;
     const double* row_y = tables + 2 * width + height;
-    const bool leader = cluster_rank() == 0;
+    const bool leader = blockIdx.x == 0;
     if (threadIdx.x == 0) {
         state.status = 0;
         state.use_mask = 0;
@@ -466,7 +464,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                     values[7] += u * d;
                     values[8] += v * d;
                 });
-                cluster_sums<9>(values, partial, block_totals, state);
+                grid_sums<9>(values, partial, state, grid);
                 if (threadIdx.x == 0) solve_roll(state);
             } else {
                 double values[27];
@@ -488,7 +486,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
 #pragma unroll
                     for (int a = 0; a < 6; ++a) values[21 + a] += design[a] * target;
                 });
-                cluster_sums<27>(values, partial, block_totals, state);
+                grid_sums<27>(values, partial, state, grid);
                 if (threadIdx.x == 0) solve_curvature(state);
             }
             __syncthreads();
@@ -521,7 +519,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             });
             __syncthreads();
             const double sigma = robust_sigma(key_store, local_keys, height, width, count,
-                                              hist, state, warp_totals);
+                                              hist, state, warp_totals, grid);
             if (threadIdx.x == 0) {
                 state.threshold = outlier_k * fmax(sigma, 1e-3);
                 state.use_mask = 1;
@@ -538,7 +536,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             if (fabs(residual[i]) <= threshold) inliers[0] += 1.0;
             if (phase == 0 && quadratic) planar[i] = planar_at(state, column_u[col], row_v[row]);
         });
-        cluster_sums<1>(inliers, partial, block_totals, state);
+        grid_sums<1>(inliers, partial, state, grid);
         if (threadIdx.x == 0 && leader) {
             if (phase == 0) {
                 out[2] = state.a0;

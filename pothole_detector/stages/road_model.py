@@ -264,23 +264,30 @@ def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: 
     n = height * width
     residual = xp.empty(n, dtype=xp.float64)
     planar_values = xp.empty(n, dtype=xp.float64)
-    # each block's median keys in shared memory where they fit (stride 4 at 2079x1040:
-    # 68 KiB), else in global memory
-    block_rows = -(-height // (ROAD_CLUSTER * ROAD_WARPS)) * ROAD_WARPS
-    key_bytes = block_rows * width * 4
+    blocks = backend.multiprocessors()
+    # each block's median keys in shared memory where they fit (stride 4 at 2079x1040 on 132
+    # multiprocessors: 6 KiB), else in global memory
+    segments = height * -(-width // 32)
+    key_bytes = -(-segments // (blocks * ROAD_WARPS)) * ROAD_WARPS * 32 * 4
     local_keys = key_bytes <= MAX_SHARED_KEY_BYTES
     keys = xp.empty(1 if local_keys else n, dtype=xp.uint32)
+    # workspace: barrier counter (16 bytes), block totals, one histogram per radix pass
+    phases = 2 if kind != "planar" else 1
+    totals_bytes = 2 * blocks * ROAD_MAX_SUMS * 8
+    histogram_count = phases * (rounds + 1) * ROAD_HISTOGRAMS_PER_ROUND
+    workspace = xp.zeros(16 + totals_bytes + histogram_count * ROAD_BINS * 4, dtype=xp.uint8)
     report = xp.empty(ROAD_REPORT, dtype=xp.float64) if report is None else report
     params = xp.empty(ROAD_PARAMS, dtype=xp.float64) if params is None else params
-    kernel = backend.kernel("road.cu", "road_fit", {})
-    if local_keys:
-        # with the kernel's own 36 KiB, even small key tables pass the 48 KiB default
+    kernel = backend.kernel("road.cu", "road_fit", {}, cooperative=True)
+    if local_keys and key_bytes > 48 * 1024 - ROAD_STATIC_SHARED_BYTES:
         kernel.max_dynamic_shared_size_bytes = MAX_SHARED_KEY_BYTES
-    kernel((ROAD_CLUSTER,), (ROAD_WARPS * 32,),
+    kernel((blocks,), (ROAD_WARPS * 32,),
            (sub, tables, np.int32(height), np.int32(width), np.float64(coordinate_scale),
             np.int32(rounds), np.float64(outlier_k), np.int32(kind != "planar"), residual,
             planar_values, keys, np.int32(local_keys), np.int32(kind == "auto"),
-            np.float64(quadratic_gain), report, params),
+            np.float64(quadratic_gain), workspace[:16].view(xp.uint32),
+            workspace[16:16 + totals_bytes].view(xp.float64),
+            workspace[16 + totals_bytes:].view(xp.uint32), report, params),
            shared_mem=key_bytes if local_keys else 0)
     return report, params
 
@@ -315,10 +322,14 @@ def device_params(backend: Backend, model: RoadModel | Any) -> Any:
     return model
 
 
-# kernels/road.cu: blocks of the cluster (CLUSTER), warps per block (WARPS); shared memory
-# left for the keys beside the kernel's own 36 KiB.
-ROAD_CLUSTER = 8
+# kernels/road.cu: warps per block (WARPS), sums (MAX_SUMS), histogram bins (BINS), global
+# histograms one round can use (one per radix pass and median rank), the kernel's own shared
+# memory, and the shared memory left for the keys beside it.
 ROAD_WARPS = 16
+ROAD_MAX_SUMS = 27
+ROAD_BINS = 4096
+ROAD_HISTOGRAMS_PER_ROUND = 5
+ROAD_STATIC_SHARED_BYTES = 36 * 1024
 MAX_SHARED_KEY_BYTES = 160 * 1024
 # lengths of the road kernel's report and of the kernel parameters of a model
 ROAD_REPORT = 15
