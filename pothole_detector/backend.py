@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ except Exception:  # noqa: BLE001 - any import failure means "no GPU backend"
 _log = logging.getLogger(__name__)
 BACKEND_CHOICES = ("auto", "cpu", "gpu")
 KERNEL_DIR = Path(__file__).resolve().parent / "kernels"
+_INCLUDE = re.compile(r'^#include "([A-Za-z0-9_]+\.cuh)"$', re.MULTILINE)
 
 
 @dataclass(frozen=True)
@@ -147,9 +149,18 @@ CPU = Backend("cpu", np, scipy.ndimage)
 
 
 @lru_cache(maxsize=None)
+def _source_text(source: str) -> str:
+    """kernels/``source`` with each ``#include "name.cuh"`` line replaced by that header from
+    kernels/ (one level), read once per process: NVRTC and CuPy's compile cache then see
+    every line the kernel is built from."""
+    return _INCLUDE.sub(lambda match: (KERNEL_DIR / match.group(1)).read_text(),
+                        (KERNEL_DIR / source).read_text())
+
+
+@lru_cache(maxsize=None)
 def _source_digest(source: str) -> str:
-    """sha1 of kernels/``source``, read once per process."""
-    return hashlib.sha1((KERNEL_DIR / source).read_bytes()).hexdigest()
+    """sha1 of kernels/``source`` with its headers (see _source_text)."""
+    return hashlib.sha1(_source_text(source).encode()).hexdigest()
 
 
 @lru_cache(maxsize=64)
@@ -159,7 +170,7 @@ def _module(source: str, digest: str, defines: tuple[tuple[str, int], ...],
     ``cooperative``: its kernels launch cooperatively."""
     assert _cupy is not None
     options = ("--std=c++17",) + tuple(f"-D{key}={value}" for key, value in defines)
-    return _cupy.RawModule(code=(KERNEL_DIR / source).read_text(), options=options,
+    return _cupy.RawModule(code=_source_text(source), options=options,
                            enable_cooperative_groups=cooperative)
 
 

@@ -28,3 +28,25 @@ def test_auto_falls_back_to_cpu_without_a_gpu():
 def test_gpu_request_without_a_gpu_says_what_to_do():
     with pytest.raises(BackendError, match="--backend cpu"):
         get_backend("gpu")
+
+
+def test_kernel_sources_carry_their_headers_and_the_digest_covers_them(tmp_path, monkeypatch):
+    import pothole_detector.backend as backend_module
+    for source in ("road.cu", "threshold.cu", "components.cu"):
+        text = backend_module._source_text(source)
+        assert '#include "' not in text and "block_inclusive_scan(T value" in text
+    (tmp_path / "part.cuh").write_text("#define PART 1\n")
+    (tmp_path / "main.cu").write_text('// top\n#include "part.cuh"\nint x = PART;\n')
+    monkeypatch.setattr(backend_module, "KERNEL_DIR", tmp_path)
+    backend_module._source_text.cache_clear()
+    backend_module._source_digest.cache_clear()
+    try:
+        assert backend_module._source_text("main.cu") == "// top\n#define PART 1\n\nint x = PART;\n"
+        before = backend_module._source_digest("main.cu")
+        (tmp_path / "part.cuh").write_text("#define PART 2\n")
+        backend_module._source_text.cache_clear()
+        backend_module._source_digest.cache_clear()
+        assert backend_module._source_digest("main.cu") != before
+    finally:
+        backend_module._source_text.cache_clear()
+        backend_module._source_digest.cache_clear()

@@ -1,6 +1,8 @@
 // Component filters of stages/components.pothole_components on the device: which components
 // touch a corner region (components.corner_mask) and which superpixels each one holds.
 
+#include "block_scan.cuh"
+
 // One warp per row: first and last column with a disparity (0 and width - 1 without any).
 extern "C" __global__ void row_extents(const unsigned char* valid, int height, int width,
                                        int* first, int* last) {
@@ -71,7 +73,6 @@ extern "C" __global__ void component_keep(const int* touched, const int* held,
                                           int min_superpixels, int* new_id, int* kept) {
     __shared__ int warp_totals[32];
     __shared__ int carry;
-    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
     const int count = min(components[0], capacity);
     if (threadIdx.x == 0) carry = 0;
     __syncthreads();
@@ -79,19 +80,10 @@ extern "C" __global__ void component_keep(const int* touched, const int* held,
         const int component = start + threadIdx.x;
         const int flag = component > 0 && component <= count && !touched[component]
                          && held[component] >= min_superpixels;
-        int inclusive = flag;
-#pragma unroll
-        for (int offset = 1; offset < 32; offset <<= 1) {
-            const int other = __shfl_up_sync(0xffffffffu, inclusive, offset);
-            if (lane >= offset) inclusive += other;
-        }
-        if (lane == 31) warp_totals[warp] = inclusive;
+        const int inclusive = block_inclusive_scan(flag, warp_totals) + carry;
+        if (component <= capacity) new_id[component] = flag ? inclusive : 0;
         __syncthreads();
-        int before = carry;
-        for (int w = 0; w < warp; ++w) before += warp_totals[w];
-        if (component <= capacity) new_id[component] = flag ? before + inclusive : 0;
-        __syncthreads();
-        if (threadIdx.x == blockDim.x - 1) carry = before + inclusive;
+        if (threadIdx.x == blockDim.x - 1) carry = inclusive;
         __syncthreads();
     }
     if (threadIdx.x == 0) kept[0] = carry;

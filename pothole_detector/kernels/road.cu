@@ -17,6 +17,8 @@
 // .kernel_params): a0, a1, cos(phi), sin(phi), c0..c5 (zeros unless the quadratic model is
 // chosen), curved (0 or 1); NaN when the fit failed, so later stages find no road.
 
+#include "block_scan.cuh"
+
 #define THREADS 512
 #define WARPS (THREADS / 32)
 #define BINS 4096
@@ -144,23 +146,6 @@ __device__ const unsigned* publish_histogram(const unsigned* hist, GridWork& gri
     return global;
 }
 
-// Exclusive prefix sum of one unsigned per thread over the block.
-__device__ unsigned block_exclusive_scan(unsigned value, unsigned* warp_totals) {
-    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-    unsigned inclusive = value;
-#pragma unroll
-    for (int offset = 1; offset < 32; offset <<= 1) {
-        const unsigned other = __shfl_up_sync(0xffffffffu, inclusive, offset);
-        if (lane >= offset) inclusive += other;
-    }
-    if (lane == 31) warp_totals[warp] = inclusive;
-    __syncthreads();
-    unsigned before = 0;
-    for (int w = 0; w < warp; ++w) before += warp_totals[w];
-    __syncthreads();
-    return before + inclusive - value;
-}
-
 // The bins of the grid's histogram `hist` (global) holding the elements state.rank[which]
 // (0-based, by ascending bin) for which = first_which..last_which, from one read of the
 // histogram: state.prefix[which] gains the bin as its low `bits` bits, state.rank[which]
@@ -176,7 +161,7 @@ __device__ void locate(const unsigned* hist, int first_which, int last_which, in
     unsigned local = 0;
 #pragma unroll
     for (int b = 0; b < PER_THREAD_BINS; ++b) local += counts[b];
-    const unsigned before = block_exclusive_scan(local, warp_totals);
+    const unsigned before = block_inclusive_scan(local, warp_totals) - local;
     for (int which = first_which; which <= last_which; ++which) {
         const unsigned rank = ranks[which];
         if (rank < before || rank >= before + local) continue;
@@ -426,7 +411,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
     unsigned* key_store = local_keys ? shared_keys : keys;
     __shared__ __align__(16) unsigned hist[2][BINS];
     __shared__ double partial[WARPS][MAX_SUMS];
-    __shared__ unsigned warp_totals[WARPS];
+    __shared__ unsigned warp_totals[32];
     __shared__ RoadState state;
     GridWork grid{barrier, partials, hists, 0u, 0, 0};
     const double* column_u = tables;

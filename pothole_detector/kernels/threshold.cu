@@ -2,6 +2,8 @@
 // (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
 // max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
 
+#include "block_scan.cuh"
+
 #define POSITIVE_INFINITY __longlong_as_double(0x7ff0000000000000LL)
 
 __device__ __forceinline__ bool finite(float x) {
@@ -95,32 +97,6 @@ threshold_tables(const float* image, double* tables, int height, int width, floa
             if (value != 0.0) atomicAdd(&tables[i], value);
         }
     }
-}
-
-// Inclusive prefix sum over the block (blockDim.x a multiple of 32, at most 1024); `warp_sums`
-// is shared scratch of 32 doubles. Every thread must call it.
-__device__ double block_inclusive_scan(double value, double* warp_sums) {
-    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-#pragma unroll
-    for (int offset = 1; offset < 32; offset <<= 1) {
-        const double other = __shfl_up_sync(0xffffffffu, value, offset);
-        if (lane >= offset) value += other;
-    }
-    if (lane == 31) warp_sums[warp] = value;
-    __syncthreads();
-    if (warp == 0) {
-        double sum = lane < (int)(blockDim.x >> 5) ? warp_sums[lane] : 0.0;
-#pragma unroll
-        for (int offset = 1; offset < 32; offset <<= 1) {
-            const double other = __shfl_up_sync(0xffffffffu, sum, offset);
-            if (lane >= offset) sum += other;
-        }
-        warp_sums[lane] = sum;
-    }
-    __syncthreads();
-    const double before = warp > 0 ? warp_sums[warp - 1] : 0.0;
-    __syncthreads();
-    return value + before;
 }
 
 // One block of 1024 threads. Table 0 becomes its prefix sums (region 1 of split t = index
