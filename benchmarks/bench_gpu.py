@@ -142,8 +142,8 @@ def main() -> None:
           f"over {args.frames} frames after 5 warm-up frames (same pair each frame, road model "
           "carried over as in a drive). Stage and total: CUDA events, ms; host: wall time of "
           "Pipeline.run, ms; host busy: host less the wait for the frame's one readback (the "
-          f"host's own work per frame), ms. OpenCV SGBM 3WAY on {args.threads} threads, same frame, no LR "
-          "check.\n")
+          f"host's own work per frame), ms. OpenCV SGBM 3WAY on {args.threads} threads, same "
+          "frame, no LR check.\n")
     print("| frame | range | levels | " + " | ".join(STAGES)
           + " | total GPU | host | host busy | pool MiB | OpenCV SGBM | SGBM / our SGM "
           "| SGBM / pipeline |")

@@ -41,7 +41,8 @@ def test_kernel_sources_carry_their_headers_and_the_digest_covers_them(tmp_path,
     backend_module._source_text.cache_clear()
     backend_module._source_digest.cache_clear()
     try:
-        assert backend_module._source_text("main.cu") == "// top\n#define PART 1\n\nint x = PART;\n"
+        expected = "// top\n#define PART 1\n\nint x = PART;\n"
+        assert backend_module._source_text("main.cu") == expected
         before = backend_module._source_digest("main.cu")
         (tmp_path / "part.cuh").write_text("#define PART 2\n")
         backend_module._source_text.cache_clear()
