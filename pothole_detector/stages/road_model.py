@@ -251,11 +251,11 @@ def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: 
                   outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
                   coordinate_scale: float = 1.0, coordinate_offset: float = 0.0,
                   report: Any = None, params: Any = None) -> tuple[Any, Any]:
-    """:func:`fit_road` as one launch of one 8-block cluster (kernels/road.cu), nothing read
-    back: returns the device report (float64 (ROAD_REPORT,), see :func:`model_from_report`)
-    and the chosen model's kernel parameters (float64 (ROAD_PARAMS,), as
-    RoadModel.kernel_params; NaN when the fit failed). ``report`` and ``params`` may be given
-    as device arrays to write into. GPU backend only."""
+    """:func:`fit_road` as one cooperative launch of one block per multiprocessor
+    (kernels/road.cu), nothing read back: returns the device report (float64 (ROAD_REPORT,),
+    see :func:`model_from_report`) and the chosen model's kernel parameters (float64
+    (ROAD_PARAMS,), as RoadModel.kernel_params; NaN when the fit failed). ``report`` and
+    ``params`` may be given as device arrays to write into. GPU backend only."""
     xp = backend.xp
     sub = xp.ascontiguousarray(disparity[::stride, ::stride], dtype=xp.float32)
     height, width = sub.shape
