@@ -122,61 +122,102 @@ extern "C" __global__ void census_pair(const unsigned char* left, const unsigned
 #ifndef PREFETCH_STEPS
 #define PREFETCH_STEPS (PACKED && PER_LANE <= 8 ? 6 : 3)
 #endif
+// Steps ahead that the second pass loads the first pass's sums into registers (measured at
+// 96 levels: 6 ahead 1.03 ms, 2 ahead 1.17 ms, also with the L2 requests below).
+#ifndef OLD_AHEAD
+#define OLD_AHEAD PREFETCH_STEPS
+#endif
+static_assert(OLD_AHEAD >= 1 && OLD_AHEAD <= PREFETCH_STEPS, "OLD_AHEAD: 1 to PREFETCH_STEPS");
+// Steps ahead that the second pass asks L2 for the first pass's sums (0: never), so that
+// the loads OLD_AHEAD steps ahead find them there (measured at 96 levels: 24 ahead 1.03 ->
+// 0.95 ms).
+#ifndef SUMS_L2_AHEAD
+#define SUMS_L2_AHEAD 24
+#endif
+// A right census word that costs INVALID_COST against `left` (the census bits are the low
+// INVALID_COST bits): stands in for the columns left of the image.
+static_assert(INVALID_COST >= 1 && INVALID_COST <= 31, "census words of 1 to 31 bits");
+__device__ __forceinline__ unsigned invalid_word(unsigned left) {
+    return ~left & ((1u << INVALID_COST) - 1u);
+}
 // Halfword stand-in for "outside the range": above any path cost plus P1, no carry out.
 #define FAR_HALF 0x7fffu
 
 // What one path step reads: the left census word, the right census words of the lane's
-// levels (0 left of the image), the lane's first candidate column `start` and, when adding,
-// the path sums of the first pass (PACKED: two bytes per entry).
+// levels (invalid_word(left) left of the image) and, when adding, the path sums of the first
+// pass (PACKED: two bytes per entry).
 struct StepData {
     unsigned left;
     unsigned right[PER_LANE];
     unsigned old[OLD_WORDS];
-    int start;
 };
 
-template <bool ADD>
-__device__ __forceinline__ void load_step(const unsigned* __restrict__ census_left,
-                                          const unsigned* __restrict__ census_right,
-                                          const int* row_shift, const unsigned char* cell,
-                                          int pixel, int u, int v, int sub, StepData& data) {
-    data.left = __ldg(census_left + pixel);
-    const int start = u - row_shift[v] - LANE_FIRST_LEVEL(sub);
-    data.start = start;
-    const unsigned* right = census_right + (pixel - u) + start;
+// Where a walk's loads are: the pixel index, the column less the lane's first level and
+// kappa's entry for the row in shared memory.
+struct Cursor {
+    unsigned pixel;
+    int column;
+    const int* shift;
+};
+
+__device__ __forceinline__ void load_census(const unsigned* __restrict__ census_left,
+                                            const unsigned* __restrict__ census_right,
+                                            const Cursor& at, int first, StepData& data) {
+    data.left = __ldg(census_left + at.pixel);
+    const int shift = *at.shift;
+    // the lane's highest level's column is `start` less than its lowest level's
+    const int start = at.column - shift;
+    // unsigned: where the index is negative (left of row 0) no word is read
+    const unsigned* right = census_right + (at.pixel - first - shift);
     if (ALL_INSIDE(start)) {
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) data.right[k] = __ldg(right - LEVEL_STEP * k);
     } else {
+        const unsigned outside = invalid_word(data.left);
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k)
-            data.right[k] = start >= LEVEL_STEP * k ? __ldg(right - LEVEL_STEP * k) : 0u;
-    }
-    if (ADD) {
-#if PACKED
-#pragma unroll
-        for (int p = 0; p < PAIRS; ++p)
-            data.old[p] = __ldcs(reinterpret_cast<const unsigned short*>(cell) + p);
-#else
-#pragma unroll
-        for (int k = 0; k < PER_LANE; ++k) data.old[k] = __ldcs(cell + LANES * k);
-#endif
+            data.right[k] = start >= LEVEL_STEP * k ? __ldg(right - LEVEL_STEP * k) : outside;
     }
 }
 
-// Minimum of `value` over the lane's group. With 16 or 32 lanes by warp reductions (one per
-// group, over the lanes in `walking`, independent of each other); else by shuffles.
-__device__ __forceinline__ unsigned path_minimum(unsigned value, unsigned walking) {
+__device__ __forceinline__ void prefetch_sums(const unsigned char* cells, unsigned pixel) {
+    asm volatile("prefetch.global.L2 [%0];" : : "l"(cells + (size_t)pixel * LEVELS));
+}
+
+__device__ __forceinline__ void load_sums(const unsigned char* cells, unsigned pixel,
+                                          StepData& data) {
+    const unsigned char* cell = cells + (size_t)pixel * LEVELS;
+#if PACKED
+#pragma unroll
+    for (int p = 0; p < PAIRS; ++p)
+        data.old[p] = __ldcs(reinterpret_cast<const unsigned short*>(cell) + p);
+#else
+#pragma unroll
+    for (int k = 0; k < PER_LANE; ++k) data.old[k] = __ldcs(cell + LANES * k);
+#endif
+}
+
+// Minimum of `value` over the lane's group (all lanes of the warp take part). With 16 or 32
+// lanes by warp reductions (one per group, independent of each other); else by shuffles.
+__device__ __forceinline__ unsigned path_minimum(unsigned value) {
 #if LANES == 32
-    return __reduce_min_sync(walking, value);
+    return __reduce_min_sync(0xffffffffu, value);
 #elif LANES == 16
     const bool high = threadIdx.x & 16;
-    const unsigned low_min = __reduce_min_sync(walking, high ? 0xffffffffu : value);
-    const unsigned high_min = __reduce_min_sync(walking, high ? value : 0xffffffffu);
+    const unsigned low_min = __reduce_min_sync(0xffffffffu, high ? 0xffffffffu : value);
+    const unsigned high_min = __reduce_min_sync(0xffffffffu, high ? value : 0xffffffffu);
     return high ? high_min : low_min;
 #else
-    return (unsigned)group_min<LANES>((int)value, group_mask<LANES>());
+    return group_min_u(value, 0xffffffffu);
 #endif
+}
+
+// `pointer` as a value the compiler cannot take apart, so that an address from it is one
+// wide multiply-add instead of a sum rebuilt from its parts at every use.
+template <typename T>
+__device__ __forceinline__ T* opaque(T* pointer) {
+    asm("" : "+l"(pointer));
+    return pointer;
 }
 
 // Steps from (u, v) along (dx, dy) until the line leaves the image.
@@ -196,7 +237,10 @@ __device__ __forceinline__ int lines_of(int direction, int height, int width) {
 // first pass (path costs written: ADD false) and SECOND_PASS[s] in the second (added). The
 // blocks of slot 0 come first, then those of slots 1, 2, 3, each slot with just enough blocks
 // for its lines (the horizontal walks, the longest, start first and spread over the
-// multiprocessors). Each group of LANES threads walks one line from where it enters the image.
+// multiprocessors). Each group of LANES threads walks one line from where it enters the image;
+// the groups of a warp step together as long as the longest of their lines (a group whose
+// line has ended, or that has none, computes on stale registers and stores nothing), so the
+// group exchanges are whole-warp operations.
 template <bool ADD>
 __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_left,
                                            const unsigned* __restrict__ census_right,
@@ -232,115 +276,126 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     __syncthreads();
     const int steps = line < lines_of(direction, height, width)
                           ? line_steps(u, v, dx, dy, height, width) : 0;
-#if LANES == 16
-    // the warp's two lines may end at different steps: the walking lanes of each step
-    const int other_steps = __shfl_xor_sync(0xffffffffu, steps, 16);
-    const unsigned own_lanes = 0xffffu << (threadIdx.x & 16);
-#endif
-    if (steps == 0) return;
-    unsigned char* out = paths + (size_t)slot * height * width * LEVELS + LANE_FIRST_LEVEL(sub);
+    const int warp_steps = __reduce_max_sync(0xffffffffu, (unsigned)steps);
+    if (warp_steps == 0) return;
+    const int first = LANE_FIRST_LEVEL(sub);
+    // this lane's first path byte of pixel 0 in the slot
+    unsigned char* cells = opaque(paths + (size_t)slot * height * width * LEVELS + first);
     const int delta = dy * width + dx;
-    int pixel = v * width + u;
-    // census words (and, when adding, path sums) are loaded PREFETCH_STEPS steps ahead, into
-    // one of PREFETCH_STEPS register sets used in turn
+    // the census loads run PREFETCH_STEPS steps ahead of the step aggregated (the sums
+    // OLD_AHEAD), into one of PREFETCH_STEPS register sets used in turn
+    unsigned pixel = (unsigned)(v * width + u);
+    Cursor ahead = {pixel, u - first, row_shift + v};
     StepData sets[PREFETCH_STEPS];
+    if (ADD && SUMS_L2_AHEAD > 0) {
+#pragma unroll 1
+        for (int s = OLD_AHEAD; s < min(steps, SUMS_L2_AHEAD); ++s)
+            prefetch_sums(cells, pixel + s * delta);
+    }
 #pragma unroll
-    for (int s = 0; s < PREFETCH_STEPS; ++s)
-        if (s < steps)
-            load_step<ADD>(census_left, census_right, row_shift,
-                           out + (size_t)(pixel + s * delta) * LEVELS, pixel + s * delta,
-                           u + s * dx, v + s * dy, sub, sets[s]);
+    for (int s = 0; s < PREFETCH_STEPS; ++s) {
+        if (s < steps) {
+            load_census(census_left, census_right, ahead, first, sets[s]);
+            if (ADD && s < OLD_AHEAD) load_sums(cells, ahead.pixel, sets[s]);
+        }
+        ahead.pixel += delta;
+        ahead.column += dx;
+        ahead.shift += dy;
+    }
     // zero previous costs and minimum make the first step's path cost its matching cost
 #if PACKED
     unsigned previous[PAIRS];
 #pragma unroll
     for (int p = 0; p < PAIRS; ++p) previous[p] = 0u;
+    unsigned minimum = 0u;  // the path minimum in both halves
+    const unsigned p1_pair = (unsigned)p1 * 0x10001u;
+    const unsigned p2_pair = (unsigned)p2 * 0x10001u;
 #else
     int previous[PER_LANE];
 #pragma unroll
     for (int k = 0; k < PER_LANE; ++k) previous[k] = 0;
-#endif
     int previous_min = 0;
-    const unsigned mask = group_mask<LANES>();
+#endif
+    const int sums_delta = OLD_AHEAD * delta;
+    const int l2_delta = SUMS_L2_AHEAD * delta;
     int step = 0;
-    // one step with the register set `data`; false once the line has left the image
-    auto advance = [&](StepData& data) -> bool {
-        unsigned char* cell = out + (size_t)pixel * LEVELS;
+    // one step with the register set `data` (and the sums into `later`, the set OLD_AHEAD
+    // steps on); false once the warp's lines have all ended
+    auto advance = [&](StepData& data, StepData& later) -> bool {
         unsigned old[OLD_WORDS];
         if (ADD) {
 #pragma unroll
             for (int w = 0; w < OLD_WORDS; ++w) old[w] = data.old[w];
         }
 #if PACKED
-        // halfword pairs: level sub * PER_LANE + 2p in the low half, + 2p + 1 in the high
+        // halfword pairs: level first + 2p in the low half, first + 2p + 1 in the high
         unsigned current[PAIRS];
-        if (ALL_INSIDE(data.start)) {
 #pragma unroll
-            for (int p = 0; p < PAIRS; ++p)
-                current[p] = __popc(data.left ^ data.right[2 * p])
-                             | (__popc(data.left ^ data.right[2 * p + 1]) << 16);
-        } else {
-#pragma unroll
-            for (int p = 0; p < PAIRS; ++p) {
-                const unsigned low = data.start >= 2 * p
-                                         ? __popc(data.left ^ data.right[2 * p])
-                                         : INVALID_COST;
-                const unsigned high = data.start >= 2 * p + 1
-                                          ? __popc(data.left ^ data.right[2 * p + 1])
-                                          : INVALID_COST;
-                current[p] = low | (high << 16);
-            }
-        }
+        for (int p = 0; p < PAIRS; ++p)
+            current[p] = __byte_perm(__popc(data.left ^ data.right[2 * p]),
+                                     __popc(data.left ^ data.right[2 * p + 1]), 0x5410);
 #else
         int current[PER_LANE];
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k)
-            current[k] = data.start >= LANES * k ? __popc(data.left ^ data.right[k])
-                                                 : INVALID_COST;
+        for (int k = 0; k < PER_LANE; ++k) current[k] = __popc(data.left ^ data.right[k]);
 #endif
-        if (step + PREFETCH_STEPS < steps) {
-            const int ahead = pixel + PREFETCH_STEPS * delta;
-            load_step<ADD>(census_left, census_right, row_shift,
-                           out + (size_t)ahead * LEVELS, ahead, u + PREFETCH_STEPS * dx,
-                           v + PREFETCH_STEPS * dy, sub, data);
-        }
+        if (step + PREFETCH_STEPS < steps)
+            load_census(census_left, census_right, ahead, first, data);
+        if (ADD && step + OLD_AHEAD < steps)
+            load_sums(cells, pixel + sums_delta, later);
+        if (ADD && SUMS_L2_AHEAD > 0 && step + SUMS_L2_AHEAD < steps)
+            prefetch_sums(cells, pixel + l2_delta);
+        ahead.pixel += delta;
+        ahead.column += dx;
+        ahead.shift += dy;
+        const bool store = step < steps;
 #if PACKED
+        unsigned least;
         {
-            // the level below this lane's first is the high half of the lower lane's last
-            // pair; the level above its last is the low half of the upper lane's first
-            unsigned below = __shfl_up_sync(mask, previous[PAIRS - 1], 1, LANES);
-            unsigned above = __shfl_down_sync(mask, previous[0], 1, LANES);
+            // shifted[p]: levels first + 2p - 1 (low half) and first + 2p (high half); the
+            // level below this lane's first is the high half of the lower lane's last pair,
+            // the one above its last the low half of the upper lane's first
+            unsigned below = __shfl_up_sync(0xffffffffu, previous[PAIRS - 1], 1, LANES);
+            unsigned above = __shfl_down_sync(0xffffffffu, previous[0], 1, LANES);
             if (sub == 0) below = FAR_HALF << 16;
             if (sub == LANES - 1) above = FAR_HALF;
-            const unsigned p1_pair = (unsigned)p1 * 0x10001u;
-            const unsigned jump = (unsigned)(previous_min + p2) * 0x10001u;
-            const unsigned minimum = (unsigned)previous_min * 0x10001u;
+            unsigned shifted[PAIRS + 1];
+            shifted[0] = __funnelshift_l(below, previous[0], 16);
+#pragma unroll
+            for (int p = 1; p < PAIRS; ++p)
+                shifted[p] = __funnelshift_l(previous[p - 1], previous[p], 16);
+            shifted[PAIRS] = __funnelshift_l(previous[PAIRS - 1], above, 16);
+            const unsigned jump_less_p1 = minimum + p2_pair - p1_pair;
 #pragma unroll
             for (int p = 0; p < PAIRS; ++p) {
-                const unsigned lower = __funnelshift_l(p == 0 ? below : previous[p - 1],
-                                                       previous[p], 16);
-                const unsigned upper = __funnelshift_r(
-                    previous[p], p == PAIRS - 1 ? above : previous[p + 1], 16);
-                const unsigned best = __vimin3_u16x2(previous[p],
-                                                     __vminu2(lower, upper) + p1_pair, jump);
+                // min(previous, lower + P1, upper + P1, minimum + P2)
+                const unsigned neighbours = __vimin3_u16x2(shifted[p], shifted[p + 1],
+                                                           jump_less_p1);
+                const unsigned best = __viaddmin_u16x2(neighbours, p1_pair, previous[p]);
                 // every half of best is >= the minimum and the sums stay below 256: plain
                 // 32-bit arithmetic cannot borrow or carry across the halves
-                current[p] += best - minimum;
+                current[p] = current[p] + best - minimum;
+            }
+            least = current[0];
+#pragma unroll
+            for (int p = 1; p < PAIRS; ++p) least = __vminu2(least, current[p]);
+            // both halves: the lane's least
+            least = __vminu2(least, __byte_perm(least, 0u, 0x1032));
+        }
+        unsigned char* cell = cells + (size_t)pixel * LEVELS;
+        if (store) {
+#pragma unroll
+            for (int p = 0; p < PAIRS; ++p) {
+                // the two bytes of a pair (every value is below 128, the second pass's sum
+                // below 256)
+                unsigned bytes = __byte_perm(current[p], 0u, 0x3320);
+                if (ADD) bytes += old[p];
+                __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
             }
         }
-        unsigned least = current[0];
 #pragma unroll
-        for (int p = 1; p < PAIRS; ++p) least = __vminu2(least, current[p]);
-        least = min(least & 0xffffu, least >> 16);
-#pragma unroll
-        for (int p = 0; p < PAIRS; ++p) {
-            // the two bytes of a pair (every value is below 128, the second pass's sum
-            // below 256)
-            unsigned bytes = __byte_perm(current[p], 0u, 0x3320);
-            if (ADD) bytes += old[p];
-            __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
-            previous[p] = current[p];
-        }
+        for (int p = 0; p < PAIRS; ++p) previous[p] = current[p];
+        minimum = path_minimum(least);
 #else
         {
             const int jump = previous_min + p2;
@@ -350,12 +405,12 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
                 // level d - 1: lane sub - 1, or the last lane's previous register for lane 0
                 const int give_lower = sub == LANES - 1 && k > 0 ? previous[k - 1]
                                                                  : previous[k];
-                int lower = __shfl_sync(mask, give_lower, left_lane, LANES);
+                int lower = __shfl_sync(0xffffffffu, give_lower, left_lane, LANES);
                 if (sub == 0 && k == 0) lower = OUTSIDE_COST;
                 // level d + 1: lane sub + 1, or lane 0's next register for the last lane
                 const int give_upper = sub == 0 && k < PER_LANE - 1 ? previous[k + 1]
                                                                     : previous[k];
-                int upper = __shfl_sync(mask, give_upper, right_lane, LANES);
+                int upper = __shfl_sync(0xffffffffu, give_upper, right_lane, LANES);
                 if (sub == LANES - 1 && k == PER_LANE - 1) upper = OUTSIDE_COST;
                 const int best = min(min(previous[k], min(lower, upper) + p1), jump);
                 current[k] += best - previous_min;
@@ -364,37 +419,36 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         unsigned least = (unsigned)current[0];
 #pragma unroll
         for (int k = 1; k < PER_LANE; ++k) least = min(least, (unsigned)current[k]);
+        unsigned char* cell = cells + (size_t)pixel * LEVELS;
+        if (store) {
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k) {
-            const int stored = ADD ? (int)old[k] + current[k] : current[k];
-            __stcs(reinterpret_cast<char*>(cell) + LANES * k, (char)stored);
-            previous[k] = current[k];
+            for (int k = 0; k < PER_LANE; ++k) {
+                const int stored = ADD ? (int)old[k] + current[k] : current[k];
+                __stcs(reinterpret_cast<char*>(cell) + LANES * k, (char)stored);
+            }
         }
+#pragma unroll
+        for (int k = 0; k < PER_LANE; ++k) previous[k] = current[k];
+        previous_min = (int)path_minimum(least);
 #endif
-#if LANES == 16
-        const unsigned walking = own_lanes | (step < other_steps ? ~own_lanes : 0u);
-#else
-        const unsigned walking = mask;
-#endif
-        previous_min = (int)path_minimum(least, walking);
         pixel += delta;
-        u += dx;
-        v += dy;
-        return ++step < steps;
+        return ++step < warp_steps;
     };
     // written out: with many levels per lane the compiler would not unroll a loop over the
     // sets, and a set indexed at run time lives in local memory
     static_assert(PREFETCH_STEPS >= 1 && PREFETCH_STEPS <= 8, "PREFETCH_STEPS: 1 to 8");
+#define SET(i) sets[(i) % PREFETCH_STEPS], sets[((i) + OLD_AHEAD) % PREFETCH_STEPS]
     while (true) {
-        if (!advance(sets[0])) return;
-        if (PREFETCH_STEPS > 1 && !advance(sets[1 % PREFETCH_STEPS])) return;
-        if (PREFETCH_STEPS > 2 && !advance(sets[2 % PREFETCH_STEPS])) return;
-        if (PREFETCH_STEPS > 3 && !advance(sets[3 % PREFETCH_STEPS])) return;
-        if (PREFETCH_STEPS > 4 && !advance(sets[4 % PREFETCH_STEPS])) return;
-        if (PREFETCH_STEPS > 5 && !advance(sets[5 % PREFETCH_STEPS])) return;
-        if (PREFETCH_STEPS > 6 && !advance(sets[6 % PREFETCH_STEPS])) return;
-        if (PREFETCH_STEPS > 7 && !advance(sets[7 % PREFETCH_STEPS])) return;
+        if (!advance(SET(0))) return;
+        if (PREFETCH_STEPS > 1 && !advance(SET(1))) return;
+        if (PREFETCH_STEPS > 2 && !advance(SET(2))) return;
+        if (PREFETCH_STEPS > 3 && !advance(SET(3))) return;
+        if (PREFETCH_STEPS > 4 && !advance(SET(4))) return;
+        if (PREFETCH_STEPS > 5 && !advance(SET(5))) return;
+        if (PREFETCH_STEPS > 6 && !advance(SET(6))) return;
+        if (PREFETCH_STEPS > 7 && !advance(SET(7))) return;
     }
+#undef SET
 }
 
 extern "C" __global__ void __launch_bounds__(256, PATH_BLOCKS)
