@@ -91,7 +91,8 @@ def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibrat
         if index >= 5:
             runs.append(clock.timings())
     parts = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
-    return (f"{levels} levels, {census_sgm.lanes_for(levels)} lanes: "
+    lanes = matcher.lanes(left.shape[0], left.shape[1], levels)
+    return (f"{levels} levels, {lanes} lanes: "
             + ", ".join(f"{key} {value:.3f} ms" for key, value in parts.items())
             + f", sum {sum(parts.values()):.3f} ms")
 

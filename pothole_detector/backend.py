@@ -87,6 +87,12 @@ class Backend:
         assert _cupy is not None
         return _multiprocessors(_cupy.cuda.Device().id)
 
+    def resident_threads(self) -> int:
+        """Threads the current device holds at once: multiprocessors times the threads one
+        multiprocessor holds (GPU backend only)."""
+        assert _cupy is not None
+        return _resident_threads(_cupy.cuda.Device().id)
+
     def memory_bytes(self) -> int:
         """Device memory held by the backend's allocator (bytes; 0 on the CPU backend)."""
         if not self.is_gpu:
@@ -185,6 +191,14 @@ def _kernel(source: str, digest: str, defines: tuple[tuple[str, int], ...], name
 def _multiprocessors(device: int) -> int:
     assert _cupy is not None
     return int(_cupy.cuda.Device(device).attributes["MultiProcessorCount"])
+
+
+@lru_cache(maxsize=None)
+def _resident_threads(device: int) -> int:
+    assert _cupy is not None
+    attributes = _cupy.cuda.Device(device).attributes
+    return int(attributes["MultiProcessorCount"]) * int(
+        attributes["MaxThreadsPerMultiProcessor"])
 
 
 def gpu_available() -> bool:

@@ -123,4 +123,23 @@ def test_lanes_leave_at_most_8_levels_each_in_whole_words_where_possible():
         lanes = census_sgm.lanes_for(levels)
         assert lanes in (4, 8, 16, 32) and levels % lanes == 0
         assert levels // lanes <= (8 if levels <= 128 else 16 if levels <= 256 else 32)
-    assert [census_sgm.lanes_for(n) for n in (16, 64, 96, 128, 384)] == [4, 8, 16, 16, 32]
+    assert [census_sgm.lanes_for(n) for n in (16, 48, 64, 96, 128, 384)] == [4, 8, 16, 16, 32, 32]
+
+
+def test_winner_search_lanes_hold_whole_words_of_at_most_12_levels():
+    assert [census_sgm.select_lanes_for(n) for n in (16, 48, 64, 96, 128, 208, 384)] \
+        == [4, 4, 8, 8, 16, 16, 32]
+    for levels in range(16, 513, 16):
+        lanes = census_sgm.select_lanes_for(levels)
+        assert lanes in (4, 8, 16, 32) and levels % lanes == 0
+
+
+def test_lanes_double_while_the_lines_leave_the_device_underfilled():
+    resident = 132 * 2048
+    lines_720p = census_sgm.path_lines(720, 1280)
+    assert census_sgm.lanes_for(64, lines_720p, resident) == 32
+    assert census_sgm.lanes_for(64, census_sgm.path_lines(1080, 1920), resident) == 16
+    assert census_sgm.lanes_for(96, 10, resident) == 16      # 3 levels a lane would be odd
+    assert census_sgm.lanes_for(16, 10, resident) == 8       # 2 levels a lane, not 1
+    assert census_sgm.lanes_for(128, 10, resident) == 32     # at most 32
+    assert census_sgm.lanes_for(64, lines_720p, 0) == 16

@@ -34,33 +34,37 @@ def random_pair(height: int, width: int, shift: int, seed: int):
     return np.ascontiguousarray(wide[:, shift:]), np.ascontiguousarray(wide[:, :width]) + noise
 
 
-def run_both(gpu, left, right, kappa, levels, uniqueness=5, lr=1, median=True):
-    matcher = census_sgm.GpuMatcher(gpu)
+def run_both(gpu, left, right, kappa, levels, uniqueness=5, lr=1, median=True,
+             fill_device=True):
+    matcher = census_sgm.GpuMatcher(gpu, fill_device)
     device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa.astype(np.int32)),
                      levels, P1, P2, uniqueness, lr, median)
     buffers = matcher._buffers[(left.shape[0], left.shape[1], levels)]
     return matcher, buffers, to_host(device)
 
 
-CASES = [  # height, width, levels, shift, kappa pattern
-    (24, 64, 16, 9, "zero"),
-    (23, 37, 32, 5, "ramp"),      # odd sizes
+CASES = [  # height, width, levels, shift, kappa pattern; lanes x levels each (small images:
+    # lanes doubled / fill_device False)
+    (24, 64, 16, 9, "zero"),      # 8 x 2 / 4 x 4
+    (23, 37, 32, 5, "ramp"),      # odd sizes; 16 x 2 / 8 x 4
     (1, 40, 16, 3, "zero"),       # one row
     (12, 20, 32, 4, "zero"),      # narrower than the band
-    (40, 96, 128, 17, "ramp"),    # 16 lanes of 8 levels
-    (31, 75, 48, 12, "ramp"),
-    (8, 240, 208, 30, "ramp"),    # 13 levels per lane: byte reads instead of words
-    (21, 150, 96, 10, "ramp"),    # the real frames' band: 16 lanes of 6 levels
-    (6, 330, 256, 20, "ramp"),    # 32 lanes: one line per warp
+    (40, 96, 128, 17, "ramp"),    # 32 x 4
+    (33, 70, 64, 11, "ramp"),     # 32 x 2 / 16 x 4
+    (31, 75, 48, 12, "ramp"),     # 8 x 6
+    (8, 240, 208, 30, "ramp"),    # 16 x 13: one level per register, byte reads
+    (21, 150, 96, 10, "ramp"),    # the real frames' band: 16 x 6
+    (6, 330, 256, 20, "ramp"),    # 32 x 8: one line per warp
 ]
 
 
+@pytest.mark.parametrize("fill_device", [True, False])
 @pytest.mark.parametrize("height,width,levels,shift,pattern", CASES)
 def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, levels, shift,
-                                                        pattern):
+                                                        pattern, fill_device):
     left, right = random_pair(height, width, shift, seed=height * width)
     kappa = (np.arange(height) // 7 if pattern == "ramp" else np.zeros(height)).astype(np.int32)
-    _, buffers, disparity = run_both(gpu, left, right, kappa, levels)
+    _, buffers, disparity = run_both(gpu, left, right, kappa, levels, fill_device=fill_device)
     census_left = census_sgm.census_transform(left)
     census_right = census_sgm.census_transform(right)
     np.testing.assert_array_equal(to_host(buffers["census"][0]), census_left)

@@ -1,11 +1,12 @@
 // Census semi-global matching on the device. Algorithm and reference:
 // pothole_detector/stages/census_sgm.py. Compile-time: LEVELS (a multiple of LANES), LANES (4
-// to 32 threads per path line and per pixel in sgm_select), CENSUS_RY, CENSUS_RX,
-// INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8 [4][H][W][LEVELS], slot s holding the
-// sum of the directions FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most
-// INVALID_COST + P2 <= 127, so a pair fits a byte). In sgm_select thread `sub` of a group
-// holds levels sub * PER_LANE .. sub * PER_LANE + PER_LANE - 1; sgm_paths_write and
-// sgm_paths_add: see PACKED. Optional: PREFETCH_STEPS, PATH_BLOCKS (tuning).
+// to 32 threads per path line), SELECT_LANES (threads per pixel in sgm_select; LANES if not
+// given), CENSUS_RY, CENSUS_RX, INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8
+// [4][H][W][LEVELS], slot s holding the sum of the directions FIRST_PASS[s] and
+// SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a pair fits a byte).
+// In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE and the next
+// SELECT_PER_LANE - 1; sgm_paths_write and sgm_paths_add: see PACKED. Optional:
+// PREFETCH_STEPS, OLD_AHEAD, SUMS_L2_AHEAD, PATH_BLOCKS (tuning).
 
 #define PER_LANE (LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
@@ -18,50 +19,55 @@ __constant__ int DIRECTION_DY[8] = {0, 0, 1, -1, 1, 1, -1, -1};
 __constant__ int FIRST_PASS[4] = {0, 1, 4, 5};
 __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 
-template <int N>
-__device__ __forceinline__ unsigned group_mask() {
-    return N == 32 ? 0xffffffffu : ((1u << N) - 1u) << (threadIdx.x & (32 - N));
-}
+// sgm_select's own lane count (the path kernels' LANES by default): SELECT_LANES threads take
+// one pixel, SELECT_PER_LANE levels each.
+#ifndef SELECT_LANES
+#define SELECT_LANES LANES
+#endif
+#define SELECT_PER_LANE (LEVELS / SELECT_LANES)
 
-// Adds PER_LANE consecutive path bytes of one lane (sgm_select) to its totals. With an even
-// PER_LANE the lane's bytes start on a 2-byte boundary: they are read 4 or 2 at a time, spread
-// to 16-bit halves and added two levels per 32-bit add (a total of four slots is at most
-// 4 x 254, so no half carries into the next). Path bytes are written once and read once per
-// pass, so they go through the cache as streaming data (evict first), which leaves L2 to the
-// census words every step reads.
+// Adds SELECT_PER_LANE consecutive path bytes of one lane (sgm_select) to its totals. With an
+// even count the lane's bytes start on a 2-byte boundary: they are read 4 or 2 at a time,
+// spread to 16-bit halves and added two levels per 32-bit add (a total of four slots is at
+// most 4 x 254, so no half carries into the next). Path bytes are written once and read once
+// per pass, so they go through the cache as streaming data (evict first), which leaves L2 to
+// the census words every step reads.
 __device__ __forceinline__ void add_path_bytes(const unsigned char* cell,
-                                               unsigned (&totals)[(PER_LANE + 1) / 2]) {
-#if PER_LANE % 4 == 0
+                                               unsigned (&totals)[(SELECT_PER_LANE + 1) / 2]) {
+#if SELECT_PER_LANE % 4 == 0
 #pragma unroll
-    for (int w = 0; w < PER_LANE / 4; ++w) {
+    for (int w = 0; w < SELECT_PER_LANE / 4; ++w) {
         const unsigned word = __ldcs(reinterpret_cast<const unsigned*>(cell) + w);
         totals[2 * w] += __byte_perm(word, 0u, 0x4140);
         totals[2 * w + 1] += __byte_perm(word, 0u, 0x4342);
     }
-#elif PER_LANE % 2 == 0
+#elif SELECT_PER_LANE % 2 == 0
 #pragma unroll
-    for (int h = 0; h < PER_LANE / 2; ++h)
+    for (int h = 0; h < SELECT_PER_LANE / 2; ++h)
         totals[h] += __byte_perm(__ldcs(reinterpret_cast<const unsigned short*>(cell) + h), 0u,
                                  0x4140);
 #else
 #pragma unroll
-    for (int k = 0; k < PER_LANE; ++k)
+    for (int k = 0; k < SELECT_PER_LANE; ++k)
         totals[k / 2] += (unsigned)__ldcs(cell + k) << (16 * (k % 2));
 #endif
 }
 
-template <int N>
-__device__ __forceinline__ int group_min(int value, unsigned mask) {
+// Minimum of `value` over groups of GROUP lanes (every lane of the warp takes part). With 16
+// or 32 lanes by warp reductions (one per group, independent of each other); else by
+// shuffles.
+template <int GROUP>
+__device__ __forceinline__ unsigned group_minimum(unsigned value) {
+    if (GROUP == 32) return __reduce_min_sync(0xffffffffu, value);
+    if (GROUP == 16) {
+        const bool high = threadIdx.x & 16;
+        const unsigned low_min = __reduce_min_sync(0xffffffffu, high ? 0xffffffffu : value);
+        const unsigned high_min = __reduce_min_sync(0xffffffffu, high ? value : 0xffffffffu);
+        return high ? high_min : low_min;
+    }
 #pragma unroll
-    for (int offset = N / 2; offset > 0; offset >>= 1)
-        value = min(value, __shfl_xor_sync(mask, value, offset, N));
-    return value;
-}
-
-__device__ __forceinline__ unsigned group_min_u(unsigned value, unsigned mask) {
-#pragma unroll
-    for (int offset = LANES / 2; offset > 0; offset >>= 1)
-        value = min(value, __shfl_xor_sync(mask, value, offset, LANES));
+    for (int offset = GROUP / 2; offset > 0; offset >>= 1)
+        value = min(value, __shfl_xor_sync(0xffffffffu, value, offset, GROUP));
     return value;
 }
 
@@ -194,21 +200,6 @@ __device__ __forceinline__ void load_sums(const unsigned char* cells, unsigned p
 #else
 #pragma unroll
     for (int k = 0; k < PER_LANE; ++k) data.old[k] = __ldcs(cell + LANES * k);
-#endif
-}
-
-// Minimum of `value` over the lane's group (all lanes of the warp take part). With 16 or 32
-// lanes by warp reductions (one per group, independent of each other); else by shuffles.
-__device__ __forceinline__ unsigned path_minimum(unsigned value) {
-#if LANES == 32
-    return __reduce_min_sync(0xffffffffu, value);
-#elif LANES == 16
-    const bool high = threadIdx.x & 16;
-    const unsigned low_min = __reduce_min_sync(0xffffffffu, high ? 0xffffffffu : value);
-    const unsigned high_min = __reduce_min_sync(0xffffffffu, high ? value : 0xffffffffu);
-    return high ? high_min : low_min;
-#else
-    return group_min_u(value, 0xffffffffu);
 #endif
 }
 
@@ -395,7 +386,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         }
 #pragma unroll
         for (int p = 0; p < PAIRS; ++p) previous[p] = current[p];
-        minimum = path_minimum(least);
+        minimum = group_minimum<LANES>(least);
 #else
         {
             const int jump = previous_min + p2;
@@ -429,7 +420,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         }
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) previous[k] = current[k];
-        previous_min = (int)path_minimum(least);
+        previous_min = (int)group_minimum<LANES>(least);
 #endif
         pixel += delta;
         return ++step < warp_steps;
@@ -465,54 +456,59 @@ sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const i
 
 // One block per row. Sum of the four slots, winner, uniqueness, subpixel, the right view's
 // winners (shared-memory atomicMin of cost << 16 | d per right column) and the left-right
-// check. raw: D0, -1 invalid.
+// check. A group of SELECT_LANES threads takes one pixel at a time; the groups of a warp go
+// through the row together (a group past the row's end reads the last pixel and writes
+// nothing), so the group minima are whole-warp operations. raw: D0, -1 invalid.
 extern "C" __global__ void __launch_bounds__(256)
 sgm_select(const unsigned char* paths, float* raw, int height, int width, int uniqueness,
            int lr_max_diff) {
     extern __shared__ unsigned shared[];
     unsigned* right_best = shared;
     int* left_best = (int*)(shared + width);
-    const int groups = blockDim.x / LANES;
-    const int group = threadIdx.x / LANES;
-    const int sub = threadIdx.x % LANES;
+    const int groups = blockDim.x / SELECT_LANES;
+    const int group = threadIdx.x / SELECT_LANES;
+    const int sub = threadIdx.x % SELECT_LANES;
     unsigned* totals = shared + 2 * width + group * LEVELS;
     const int v = blockIdx.x;
-    const unsigned mask = group_mask<LANES>();
     const size_t plane = (size_t)height * width * LEVELS;
     for (int x = threadIdx.x; x < width; x += blockDim.x) right_best[x] = 0xffffffffu;
     __syncthreads();
-    for (int u = group; u < width; u += groups) {
-        const size_t cell = ((size_t)v * width + u) * LEVELS + sub * PER_LANE;
-        unsigned halves[(PER_LANE + 1) / 2];
+    for (int first = 0; first < width; first += groups) {
+        const int u = first + group;
+        const bool inside = u < width;
+        const size_t cell = ((size_t)v * width + (inside ? u : width - 1)) * LEVELS
+                            + sub * SELECT_PER_LANE;
+        unsigned halves[(SELECT_PER_LANE + 1) / 2];
 #pragma unroll
-        for (int h = 0; h < (PER_LANE + 1) / 2; ++h) halves[h] = 0;
+        for (int h = 0; h < (SELECT_PER_LANE + 1) / 2; ++h) halves[h] = 0;
 #pragma unroll
         for (int slot = 0; slot < 4; ++slot) add_path_bytes(paths + slot * plane + cell, halves);
-        unsigned total[PER_LANE];
+        unsigned total[SELECT_PER_LANE];
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k) total[k] = (halves[k / 2] >> (16 * (k % 2))) & 0xffffu;
+        for (int k = 0; k < SELECT_PER_LANE; ++k)
+            total[k] = (halves[k / 2] >> (16 * (k % 2))) & 0xffffu;
         unsigned packed = 0xffffffffu;
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k)
-            packed = min(packed, (total[k] << 16) | (unsigned)(sub * PER_LANE + k));
-        packed = group_min_u(packed, mask);
+        for (int k = 0; k < SELECT_PER_LANE; ++k)
+            packed = min(packed, (total[k] << 16) | (unsigned)(sub * SELECT_PER_LANE + k));
+        packed = group_minimum<SELECT_LANES>(packed);
         const int best = packed & 0xffff;
         const unsigned least = packed >> 16;
         unsigned second = 0xffffffffu;
 #pragma unroll
-        for (int k = 0; k < PER_LANE; ++k) {
-            const int d = sub * PER_LANE + k;
+        for (int k = 0; k < SELECT_PER_LANE; ++k) {
+            const int d = sub * SELECT_PER_LANE + k;
             if (abs(d - best) > 1) second = min(second, total[k]);
             totals[d] = total[k];
             // most candidates lose to what the column already holds (values only fall, so a
             // stale read is never below it): read before the atomic
             const unsigned candidate = (total[k] << 16) | (unsigned)d;
-            if (u - d >= 0 && candidate < *(volatile unsigned*)&right_best[u - d])
+            if (inside && u - d >= 0 && candidate < *(volatile unsigned*)&right_best[u - d])
                 atomicMin(&right_best[u - d], candidate);
         }
-        second = group_min_u(second, mask);
-        __syncwarp(mask);
-        if (sub == 0) {
+        second = group_minimum<SELECT_LANES>(second);
+        __syncwarp();
+        if (sub == 0 && inside) {
             bool valid = u - best >= 0;
             if (uniqueness > 0 && second != 0xffffffffu
                 && !(100u * least < (unsigned)(100 - uniqueness) * second))
@@ -527,7 +523,7 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
             left_best[u] = valid ? best : -1;
             raw[(size_t)v * width + u] = value;
         }
-        __syncwarp(mask);
+        __syncwarp();
     }
     __syncthreads();
     for (int u = threadIdx.x; u < width; u += blockDim.x) {

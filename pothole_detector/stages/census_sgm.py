@@ -198,25 +198,63 @@ def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> Non
         raise ConfigError(f"census SGM needs a non-empty HxW image, got shape {shape}")
 
 
-def lanes_for(levels: int) -> int:
-    """Threads per path line and per pixel of the GPU matcher (levels: a multiple of 16): the
-    fewest of 4, 8, 16, 32 that leave each at most 8 levels, a multiple of 4 where possible
-    (32-bit path reads in the winner search); 32 (or 16) for longer ranges. Measured at 96
-    levels, 2079x1040, H200, the two path launches (halfword-packed levels, loads 6 steps
-    ahead, 8 for 32 lanes): 16 lanes 1.93 ms, 8 lanes 2.35 ms, 32 lanes 2.51 ms."""
-    for multiple_of_four in (True, False):
-        for lanes in (4, 8, 16, 32):
-            per_lane = levels // lanes
-            if levels % lanes == 0 and per_lane <= 8 \
-                    and (per_lane % 4 == 0 or not multiple_of_four):
-                return lanes
+# Lines of a path pass times lanes below this share of the device's resident threads leave
+# it underfilled: the lanes are doubled (see lanes_for).
+FILL_SHARE = 0.4
+
+
+def lanes_for(levels: int, lines: int = 0, resident_threads: int = 0) -> int:
+    """Threads per path line and per pixel of the GPU matcher (levels: a multiple of 16).
+
+    The most of 4, 8, 16, 32 that leave each an even number of 4 to 8 levels (two levels per
+    32-bit word); else the fewest that leave at most 8 (a multiple of 4 where possible), and
+    32 (or 16) for longer ranges. Then, while ``lines`` (the path lines of one pass) times the
+    lanes fill less than FILL_SHARE of ``resident_threads`` (the device's), twice the lanes
+    as long as each keeps an even number of levels. Measured on the H200, both path passes:
+    64 levels at 1280x720: 8 lanes 1.15 ms, 16 lanes 0.78, 32 lanes 0.68; at 1920x1080: 1.84,
+    1.32, 1.35; 96 levels at 2079x1040: 16 lanes 1.63, 32 lanes 2.00; 128 levels at
+    2079x1040: 16 lanes 2.32, 32 lanes 2.14."""
+    lanes = next((candidate for candidate in (32, 16, 8, 4)
+                  if levels % candidate == 0 and levels // candidate in (4, 6, 8)), 0)
+    if not lanes:
+        lanes = next((candidate for multiple_of_four in (True, False)
+                      for candidate in (4, 8, 16, 32)
+                      if levels % candidate == 0 and levels // candidate <= 8
+                      and (levels // candidate % 4 == 0 or not multiple_of_four)),
+                     32 if levels % 32 == 0 else 16)
+    while lanes < 32 and levels % (4 * lanes) == 0 \
+            and lines * lanes < FILL_SHARE * resident_threads:
+        lanes *= 2
+    return lanes
+
+
+def select_lanes_for(levels: int) -> int:
+    """Threads per pixel of the GPU winner search (levels: a multiple of 16): the fewest of 4,
+    8, 16, 32 that leave each a multiple of 4 levels, at most 12 (32-bit path reads); else the
+    fewest that leave at most 8; 32 (or 16) for longer ranges. Measured on the H200 at
+    2079x1040: 96 levels, 8 lanes 0.29 ms, 16 lanes 0.39 ms; 64 levels, 8 lanes 0.29 ms, 16
+    lanes 0.31 ms; 128 levels, 8 lanes 0.89 ms, 16 lanes 0.59 ms."""
+    for lanes in (4, 8, 16, 32):
+        per_lane = levels // lanes
+        if levels % lanes == 0 and per_lane % 4 == 0 and per_lane <= 12:
+            return lanes
+    for lanes in (4, 8, 16, 32):
+        if levels % lanes == 0 and levels // lanes <= 8:
+            return lanes
     return 32 if levels % 32 == 0 else 16
+
+
+def path_lines(height: int, width: int) -> int:
+    """Path lines of one pass of the GPU matcher, on average: one straight direction of each
+    axis and two diagonals."""
+    return height + width + 2 * (width + height - 1)
 
 
 class GpuMatcher:
     """Census SGM on the device with buffers kept per (height, width, levels).
 
-    Kernels come from kernels/sgm.cu, built once per level count. Memory: 4 bytes per pixel
+    Kernels come from kernels/sgm.cu, built once per level count and lane count (``lanes``:
+    more lanes per path line for images too small to fill the device). Memory: 4 bytes per pixel
     and level for the path costs (the sums of DIRECTION_PAIRS), plus 12 bytes per pixel. Two
     path launches: the first walks the first direction of every pair and writes, the second
     walks the other and adds in place. The path kernels keep kappa in shared memory and load
@@ -225,27 +263,35 @@ class GpuMatcher:
 
     THREADS = 256
 
-    def __init__(self, backend: Backend) -> None:
+    def __init__(self, backend: Backend, fill_device: bool = True) -> None:
         if not backend.is_gpu:
             raise ConfigError("GpuMatcher needs the gpu backend")
         self.backend = backend
+        self.fill_device = fill_device
         self._buffers: dict[tuple[int, int, int], dict[str, Any]] = {}
-        self._kernel_sets: dict[int, dict[str, Any]] = {}
+        self._kernel_sets: dict[tuple[int, int], dict[str, Any]] = {}
 
-    def _kernels(self, levels: int) -> dict[str, Any]:
-        if levels not in self._kernel_sets:
-            self._kernel_sets[levels] = self._build_kernels(levels)
-        return self._kernel_sets[levels]
+    def lanes(self, height: int, width: int, levels: int) -> int:
+        """Lanes per path line for an image and level count (lanes_for; with
+        ``fill_device`` False, without doubling for small images)."""
+        if not self.fill_device:
+            return lanes_for(levels)
+        return lanes_for(levels, path_lines(height, width), self.backend.resident_threads())
 
-    def _build_kernels(self, levels: int) -> dict[str, Any]:
-        lanes = lanes_for(levels)
-        defines = {"LEVELS": levels, "LANES": lanes, "CENSUS_RY": CENSUS_RADIUS_Y,
+    def _kernels(self, levels: int, lanes: int) -> dict[str, Any]:
+        if (levels, lanes) not in self._kernel_sets:
+            self._kernel_sets[levels, lanes] = self._build_kernels(levels, lanes)
+        return self._kernel_sets[levels, lanes]
+
+    def _build_kernels(self, levels: int, lanes: int) -> dict[str, Any]:
+        defines = {"LEVELS": levels, "LANES": lanes, "SELECT_LANES": select_lanes_for(levels),
+                   "CENSUS_RY": CENSUS_RADIUS_Y,
                    "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
                    "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X}
         names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
                  "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
-            | {"lanes": lanes}
+            | {"lanes": lanes, "select_lanes": defines["SELECT_LANES"]}
 
     def _buffers_for(self, height: int, width: int, levels: int) -> dict[str, Any]:
         key = (height, width, levels)
@@ -268,7 +314,7 @@ class GpuMatcher:
         height, width = left.shape
         check_settings(left.shape, levels, p1, p2)
         xp = self.backend.xp
-        kernels = self._kernels(levels)
+        kernels = self._kernels(levels, self.lanes(height, width, levels))
         buffers = self._buffers_for(height, width, levels)
         census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
         out = xp.empty((height, width), dtype=xp.float32)
@@ -288,7 +334,7 @@ class GpuMatcher:
                 walk((blocks,), (self.THREADS,),
                      (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
                       i32(p2)), shared_mem=kappa_bytes)
-        shared = 4 * (2 * width + groups * levels)
+        shared = 4 * (2 * width + self.THREADS // kernels["select_lanes"] * levels)
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
