@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import scipy.ndimage
@@ -104,6 +104,28 @@ class Backend:
         if self.is_gpu:
             self.xp.get_default_memory_pool().free_all_blocks()
 
+    @contextmanager
+    def side_stream(self) -> Iterator[Callable[[], None]]:
+        """Work queued inside the block runs on a second device stream, after everything
+        queued so far, so that it overlaps what the current stream queues next. Yields
+        ``join``: called after the block, the current stream's later work waits for the
+        side work. On the CPU the block simply runs and ``join`` does nothing."""
+        if not self.is_gpu:
+            yield lambda: None
+            return
+        assert _cupy is not None
+        main = _cupy.cuda.get_current_stream()
+        started = _cupy.cuda.Event(disable_timing=True)
+        started.record(main)
+        side = _side_stream(_cupy.cuda.Device().id)
+        side.wait_event(started)
+        finished = _cupy.cuda.Event(disable_timing=True)
+        try:
+            with side:
+                yield lambda: main.wait_event(finished)
+        finally:
+            finished.record(side)
+
     def synchronize(self) -> None:
         """Wait for queued device work (no-op on the CPU backend), e.g. before reading a clock."""
         if self.is_gpu:
@@ -191,6 +213,12 @@ def _kernel(source: str, digest: str, defines: tuple[tuple[str, int], ...], name
 def _multiprocessors(device: int) -> int:
     assert _cupy is not None
     return int(_cupy.cuda.Device(device).attributes["MultiProcessorCount"])
+
+
+@lru_cache(maxsize=None)
+def _side_stream(device: int) -> Any:
+    assert _cupy is not None
+    return _cupy.cuda.Stream(non_blocking=True)
 
 
 @lru_cache(maxsize=None)

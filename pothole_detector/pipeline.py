@@ -25,9 +25,10 @@ class PipelineResult:
     ``disparity`` (D1) and ``transformed`` (D2) are float32 HxW px, NaN where invalid;
     ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW;
     ``band`` (lowest row shift, levels) and ``disparity_range`` (lowest, highest disparity the
-    matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU), ``total``
-    (their sum), ``host`` (wall time of the call) and ``host_wait`` (of it, the wait for the
-    GPU frame's one readback; 0 on the CPU).
+    matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU; there the
+    threshold search runs beside SLIC on a second stream, and ``threshold`` times what is left
+    of it after SLIC plus the selection), ``total`` (their sum), ``host`` (wall time of the
+    call) and ``host_wait`` (of it, the wait for the GPU frame's one readback; 0 on the CPU).
     """
 
     disparity: Any
@@ -216,11 +217,14 @@ class Pipeline:
         with clock.stage("dt"):
             transformed = transform_disparity(backend, disparity, report.road_params,
                                               config.delta_dt_px)
+        # the threshold search needs D2 only: it runs beside SLIC on a second stream
+        with backend.side_stream() as join_threshold:
+            thresholding.threshold_on_device(backend, transformed, config.histogram_bin_px,
+                                             config.delta_dt_px, result=report.threshold)
         with clock.stage("slic"):
             sp_grid, n_sp, sp_labels, sp_means, sp_valid = self._superpixels(transformed)
         with clock.stage("threshold"):
-            thresholding.threshold_on_device(backend, transformed, config.histogram_bin_px,
-                                             config.delta_dt_px, result=report.threshold)
+            join_threshold()
             drop: float | Any = config.delta_pd_px
             if config.threshold_mode != "pixels":
                 # the metric tolerance needs the road model on the host: one early readback

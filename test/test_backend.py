@@ -14,6 +14,13 @@ def test_cpu_backend_is_numpy():
     assert backend.upload(array) is not None and to_host(array) is array
 
 
+def test_side_stream_on_the_cpu_runs_the_block_and_joins_as_a_no_op():
+    done = []
+    with CPU.side_stream() as join:
+        done.append(np.arange(3).sum())
+    assert join() is None and done == [3]
+
+
 def test_unknown_backend_is_refused():
     with pytest.raises(BackendError, match="unknown backend"):
         get_backend("tpu")

@@ -142,6 +142,18 @@ def test_matcher_kernel_clock_times_each_kernel_and_changes_nothing(gpu):
     assert all(value > 0 for value in timings.values())
 
 
+def test_side_stream_work_is_ordered_after_earlier_and_before_joined_work(gpu):
+    xp = gpu.xp
+    for _ in range(3):
+        values = xp.arange(1 << 22, dtype=xp.float64)
+        values += 1.0                                    # queued on the current stream
+        with gpu.side_stream() as join:
+            doubled = values * 2.0                       # after it, on the side stream
+            total = doubled.sum()
+        join()
+        assert float(total + values[0]) == float((1 << 22) * ((1 << 22) + 1) + 1)
+
+
 def test_upload_many_round_trips(gpu):
     arrays = (np.arange(15, dtype=np.uint8).reshape(3, 5), np.arange(7, dtype=np.int32),
               np.linspace(0, 1, 6, dtype=np.float32).reshape(2, 3))
