@@ -58,16 +58,18 @@ __device__ __forceinline__ void add_path_bytes(const unsigned char* cell,
 // shuffles.
 template <int GROUP>
 __device__ __forceinline__ unsigned group_minimum(unsigned value) {
-    if (GROUP == 32) return __reduce_min_sync(0xffffffffu, value);
-    if (GROUP == 16) {
+    if (GROUP == 32) {
+        value = __reduce_min_sync(0xffffffffu, value);
+    } else if (GROUP == 16) {
         const bool high = threadIdx.x & 16;
         const unsigned low_min = __reduce_min_sync(0xffffffffu, high ? 0xffffffffu : value);
         const unsigned high_min = __reduce_min_sync(0xffffffffu, high ? value : 0xffffffffu);
-        return high ? high_min : low_min;
-    }
+        value = high ? high_min : low_min;
+    } else {
 #pragma unroll
-    for (int offset = GROUP / 2; offset > 0; offset >>= 1)
-        value = min(value, __shfl_xor_sync(0xffffffffu, value, offset, GROUP));
+        for (int offset = GROUP / 2; offset > 0; offset >>= 1)
+            value = min(value, __shfl_xor_sync(0xffffffffu, value, offset, GROUP));
+    }
     return value;
 }
 
@@ -462,22 +464,27 @@ sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const i
 extern "C" __global__ void __launch_bounds__(256)
 sgm_select(const unsigned char* paths, float* raw, int height, int width, int uniqueness,
            int lr_max_diff) {
+    // the right view's best (cost << 16 | d) per column, after LEVELS columns left of the
+    // image that take the candidates there (so no test), then the left view's winners and
+    // each group's totals, LEVELS + 1 apart (the groups of a warp write the same level into
+    // different banks)
     extern __shared__ unsigned shared[];
-    unsigned* right_best = shared;
-    int* left_best = (int*)(shared + width);
+    unsigned* right_best = shared + LEVELS;
+    int* left_best = (int*)(right_best + width);
     const int groups = blockDim.x / SELECT_LANES;
     const int group = threadIdx.x / SELECT_LANES;
     const int sub = threadIdx.x % SELECT_LANES;
-    unsigned* totals = shared + 2 * width + group * LEVELS;
+    unsigned* totals = (unsigned*)(left_best + width) + group * (LEVELS + 1);
     const int v = blockIdx.x;
     const size_t plane = (size_t)height * width * LEVELS;
-    for (int x = threadIdx.x; x < width; x += blockDim.x) right_best[x] = 0xffffffffu;
+    for (int x = threadIdx.x; x < width + LEVELS; x += blockDim.x) shared[x] = 0xffffffffu;
     __syncthreads();
     for (int first = 0; first < width; first += groups) {
-        const int u = first + group;
-        const bool inside = u < width;
-        const size_t cell = ((size_t)v * width + (inside ? u : width - 1)) * LEVELS
-                            + sub * SELECT_PER_LANE;
+        // a group past the row's end repeats the last pixel: its right-view candidates are
+        // that pixel's own, so they change nothing
+        const int u = min(first + group, width - 1);
+        const bool inside = first + group < width;
+        const size_t cell = ((size_t)v * width + u) * LEVELS + sub * SELECT_PER_LANE;
         unsigned halves[(SELECT_PER_LANE + 1) / 2];
 #pragma unroll
         for (int h = 0; h < (SELECT_PER_LANE + 1) / 2; ++h) halves[h] = 0;
@@ -498,13 +505,13 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
 #pragma unroll
         for (int k = 0; k < SELECT_PER_LANE; ++k) {
             const int d = sub * SELECT_PER_LANE + k;
-            if (abs(d - best) > 1) second = min(second, total[k]);
+            if ((unsigned)(d - best + 1) > 2u) second = min(second, total[k]);  // |d - best| > 1
             totals[d] = total[k];
             // most candidates lose to what the column already holds (values only fall, so a
             // stale read is never below it): read before the atomic
             const unsigned candidate = (total[k] << 16) | (unsigned)d;
-            if (inside && u - d >= 0 && candidate < *(volatile unsigned*)&right_best[u - d])
-                atomicMin(&right_best[u - d], candidate);
+            unsigned* column = right_best + (u - d);
+            if (candidate < *(volatile unsigned*)column) atomicMin(column, candidate);
         }
         second = group_minimum<SELECT_LANES>(second);
         __syncwarp();

@@ -232,8 +232,8 @@ def select_lanes_for(levels: int) -> int:
     """Threads per pixel of the GPU winner search (levels: a multiple of 16): the fewest of 4,
     8, 16, 32 that leave each a multiple of 4 levels, at most 12 (32-bit path reads); else the
     fewest that leave at most 8; 32 (or 16) for longer ranges. Measured on the H200 at
-    2079x1040: 96 levels, 8 lanes 0.29 ms, 16 lanes 0.39 ms; 64 levels, 8 lanes 0.29 ms, 16
-    lanes 0.31 ms; 128 levels, 8 lanes 0.89 ms, 16 lanes 0.59 ms."""
+    2079x1040: 96 levels, 8 lanes 0.27 ms, 16 lanes 0.36 ms, 32 lanes 0.57 ms; 64 levels, 8
+    lanes 0.22 ms, 16 lanes 0.28 ms; 128 levels, 8 lanes 0.48 ms, 16 lanes 0.47 ms."""
     for lanes in (4, 8, 16, 32):
         per_lane = levels // lanes
         if levels % lanes == 0 and per_lane % 4 == 0 and per_lane <= 12:
@@ -334,7 +334,8 @@ class GpuMatcher:
                 walk((blocks,), (self.THREADS,),
                      (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
                       i32(p2)), shared_mem=kappa_bytes)
-        shared = 4 * (2 * width + self.THREADS // kernels["select_lanes"] * levels)
+        shared = 4 * (levels + 2 * width
+                      + self.THREADS // kernels["select_lanes"] * (levels + 1))
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
