@@ -134,6 +134,12 @@ def test_winner_search_lanes_hold_whole_words_of_at_most_12_levels():
         assert lanes in (4, 8, 16, 32) and levels % lanes == 0
 
 
+def test_horizontal_walks_go_second_where_lanes_hold_at_most_4_levels():
+    assert census_sgm.horizontals_second(64, 16) and census_sgm.horizontals_second(64, 32)
+    assert not census_sgm.horizontals_second(96, 16)
+    assert not census_sgm.horizontals_second(256, 32)
+
+
 def test_lanes_double_while_the_lines_leave_the_device_underfilled():
     resident = 132 * 2048
     lines_720p = census_sgm.path_lines(720, 1280)

@@ -6,7 +6,7 @@
 // SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a pair fits a byte).
 // In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE and the next
 // SELECT_PER_LANE - 1; sgm_paths_write and sgm_paths_add: see PACKED. Optional:
-// PREFETCH_STEPS, OLD_AHEAD, SUMS_L2_AHEAD, PATH_BLOCKS (tuning).
+// HORIZONTALS_SECOND, PREFETCH_STEPS, OLD_AHEAD, SUMS_L2_AHEAD, PATH_BLOCKS (tuning).
 
 #define PER_LANE (LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
@@ -15,9 +15,18 @@
 __constant__ int DIRECTION_DX[8] = {1, -1, 0, 0, 1, -1, 1, -1};
 __constant__ int DIRECTION_DY[8] = {0, 0, 1, -1, 1, 1, -1, -1};
 // Directions of the first pass (written) and of the second (added to the same slot): slots 0
-// and 1 take the horizontal, then the vertical walks; slots 2 and 3 the diagonals.
+// and 1 take the horizontal and the vertical walks, the horizontal ones first unless
+// HORIZONTALS_SECOND; slots 2 and 3 the diagonals.
+#ifndef HORIZONTALS_SECOND
+#define HORIZONTALS_SECOND 0
+#endif
+#if HORIZONTALS_SECOND
+__constant__ int FIRST_PASS[4] = {2, 3, 4, 5};
+__constant__ int SECOND_PASS[4] = {0, 1, 6, 7};
+#else
 __constant__ int FIRST_PASS[4] = {0, 1, 4, 5};
 __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
+#endif
 
 // sgm_select's own lane count (the path kernels' LANES by default): SELECT_LANES threads take
 // one pixel, SELECT_PER_LANE levels each.
@@ -229,11 +238,11 @@ __device__ __forceinline__ int lines_of(int direction, int height, int width) {
 // One launch per pass walks all four slots: slot s takes the direction FIRST_PASS[s] in the
 // first pass (path costs written: ADD false) and SECOND_PASS[s] in the second (added). The
 // blocks of slot 0 come first, then those of slots 1, 2, 3, each slot with just enough blocks
-// for its lines (the horizontal walks, the longest, start first and spread over the
-// multiprocessors). Each group of LANES threads walks one line from where it enters the image;
-// the groups of a warp step together as long as the longest of their lines (a group whose
-// line has ended, or that has none, computes on stale registers and stores nothing), so the
-// group exchanges are whole-warp operations.
+// for its lines (the straight walks start first and spread over the multiprocessors). Each
+// group of LANES threads walks one line from where it enters the image; the groups of a warp
+// step together as long as the longest of their lines (a group whose line has ended, or that
+// has none, computes on stale registers and stores nothing), so the group exchanges are
+// whole-warp operations.
 template <bool ADD>
 __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_left,
                                            const unsigned* __restrict__ census_right,
