@@ -84,31 +84,42 @@ __device__ __forceinline__ unsigned group_minimum(unsigned value) {
 
 __device__ __forceinline__ int clamp_index(int i, int n) { return min(max(i, 0), n - 1); }
 
-// blockIdx.z: 0 = left, 1 = right. One thread per pixel.
-extern "C" __global__ void census_pair(const unsigned char* left, const unsigned char* right,
-                                       unsigned* census_left, unsigned* census_right,
-                                       int height, int width) {
-    const int u = blockIdx.x * blockDim.x + threadIdx.x;
-    const int v = blockIdx.y * blockDim.y + threadIdx.y;
-    if (u >= width || v >= height) return;
+// blockIdx.z: 0 = left, 1 = right. One thread per pixel, blocks of CENSUS_BLOCK_X x
+// CENSUS_BLOCK_Y threads; each block first copies its pixels and the window's margin
+// (edge-replicated) into shared memory.
+#define CENSUS_BLOCK_X 32
+#define CENSUS_BLOCK_Y 8
+#define CENSUS_TILE_X (CENSUS_BLOCK_X + 2 * CENSUS_RX)
+#define CENSUS_TILE_Y (CENSUS_BLOCK_Y + 2 * CENSUS_RY)
+extern "C" __global__ void __launch_bounds__(CENSUS_BLOCK_X * CENSUS_BLOCK_Y)
+census_pair(const unsigned char* left, const unsigned char* right, unsigned* census_left,
+            unsigned* census_right, int height, int width) {
+    __shared__ unsigned char tile[CENSUS_TILE_Y][CENSUS_TILE_X];
     const unsigned char* image = blockIdx.z == 0 ? left : right;
-    unsigned* out = blockIdx.z == 0 ? census_left : census_right;
+    const int u0 = blockIdx.x * CENSUS_BLOCK_X - CENSUS_RX;
+    const int v0 = blockIdx.y * CENSUS_BLOCK_Y - CENSUS_RY;
+    for (int i = threadIdx.y * CENSUS_BLOCK_X + threadIdx.x; i < CENSUS_TILE_Y * CENSUS_TILE_X;
+         i += CENSUS_BLOCK_X * CENSUS_BLOCK_Y) {
+        const int y = i / CENSUS_TILE_X, x = i % CENSUS_TILE_X;
+        tile[y][x] = image[clamp_index(v0 + y, height) * width + clamp_index(u0 + x, width)];
+    }
+    __syncthreads();
+    const int u = blockIdx.x * CENSUS_BLOCK_X + threadIdx.x;
+    const int v = blockIdx.y * CENSUS_BLOCK_Y + threadIdx.y;
+    if (u >= width || v >= height) return;
+    const int x = threadIdx.x + CENSUS_RX, y = threadIdx.y + CENSUS_RY;
     unsigned bits = 0;
     int bit = 0;
 #pragma unroll
     for (int dy = 0; dy <= CENSUS_RY; ++dy) {
-        const int ahead_row = clamp_index(v + dy, height) * width;
-        const int behind_row = clamp_index(v - dy, height) * width;
 #pragma unroll
         for (int dx = -CENSUS_RX; dx <= CENSUS_RX; ++dx) {
             if (dy == 0 && dx <= 0) continue;
-            const int ahead = image[ahead_row + clamp_index(u + dx, width)];
-            const int behind = image[behind_row + clamp_index(u - dx, width)];
-            bits |= (unsigned)(ahead > behind) << bit;
+            bits |= (unsigned)(tile[y + dy][x + dx] > tile[y - dy][x - dx]) << bit;
             ++bit;
         }
     }
-    out[v * width + u] = bits;
+    (blockIdx.z == 0 ? census_left : census_right)[v * width + u] = bits;
 }
 
 // Blocks of 256 threads the path kernels are built to fit on one multiprocessor.
