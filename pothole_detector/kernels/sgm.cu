@@ -180,6 +180,12 @@ struct StepData {
     unsigned old[OLD_WORDS];
 };
 
+// A compile-time flag as a value (for the generic step lambda).
+template <bool B>
+struct Flag {
+    static constexpr bool value = B;
+};
+
 // Where a walk's loads are: the pixel index, the column less the lane's first level and
 // kappa's entry for the row in shared memory.
 struct Cursor {
@@ -206,6 +212,17 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
         for (int k = 0; k < PER_LANE; ++k)
             data.right[k] = start >= LEVEL_STEP * k ? __ldg(right - LEVEL_STEP * k) : outside;
     }
+}
+
+// load_census where every column of the lane's levels is known to lie inside the image.
+__device__ __forceinline__ void load_census_inside(const unsigned* __restrict__ census_left,
+                                                   const unsigned* __restrict__ census_right,
+                                                   const Cursor& at, int first,
+                                                   StepData& data) {
+    data.left = __ldg(census_left + at.pixel);
+    const unsigned* right = census_right + (at.pixel - first - *at.shift);
+#pragma unroll
+    for (int k = 0; k < PER_LANE; ++k) data.right[k] = __ldg(right - LEVEL_STEP * k);
 }
 
 __device__ __forceinline__ void prefetch_sums(const unsigned char* cells, unsigned pixel) {
@@ -334,7 +351,10 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     int step = 0;
     // one step with the register set `data` (and the sums into `later`, the set OLD_AHEAD
     // steps on); false once the warp's lines have all ended
-    auto advance = [&](StepData& data, StepData& later) -> bool {
+    // FAST: a run of steps checked beforehand (all of them and the loads they make inside
+    // every line of the warp and inside the image), with no test between them
+    auto advance = [&](StepData& data, StepData& later, auto fast) -> bool {
+        constexpr bool FAST = decltype(fast)::value;
         unsigned old[OLD_WORDS];
         if (ADD) {
 #pragma unroll
@@ -352,16 +372,18 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) current[k] = __popc(data.left ^ data.right[k]);
 #endif
-        if (step + PREFETCH_STEPS < steps)
+        if (FAST)
+            load_census_inside(census_left, census_right, ahead, first, data);
+        else if (step + PREFETCH_STEPS < steps)
             load_census(census_left, census_right, ahead, first, data);
-        if (ADD && step + OLD_AHEAD < steps)
+        if (ADD && (FAST || step + OLD_AHEAD < steps))
             load_sums(cells, pixel + sums_delta, later);
         if (ADD && SUMS_L2_AHEAD > 0 && step + SUMS_L2_AHEAD < steps)
             prefetch_sums(cells, pixel + l2_delta);
         ahead.pixel += delta;
         ahead.column += dx;
         ahead.shift += dy;
-        const bool store = step < steps;
+        const bool store = FAST || step < steps;
 #if PACKED
         unsigned least;
         {
@@ -447,19 +469,41 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         pixel += delta;
         return ++step < warp_steps;
     };
+    // whether the next PREFETCH_STEPS steps can run as one checked run: every line of the
+    // warp has them and the loads they make, and the loads' columns are inside the image
+    auto run_ahead = [&]() -> bool {
+        bool inside = step + 2 * PREFETCH_STEPS <= steps;
+#pragma unroll
+        for (int j = 0; j < PREFETCH_STEPS; ++j)
+            inside = inside && ALL_INSIDE(ahead.column + j * dx - ahead.shift[j * dy]);
+        return __all_sync(0xffffffffu, inside);
+    };
     // written out: with many levels per lane the compiler would not unroll a loop over the
     // sets, and a set indexed at run time lives in local memory
     static_assert(PREFETCH_STEPS >= 1 && PREFETCH_STEPS <= 8, "PREFETCH_STEPS: 1 to 8");
 #define SET(i) sets[(i) % PREFETCH_STEPS], sets[((i) + OLD_AHEAD) % PREFETCH_STEPS]
+    const Flag<true> fast;
+    const Flag<false> checked;
     while (true) {
-        if (!advance(SET(0))) return;
-        if (PREFETCH_STEPS > 1 && !advance(SET(1))) return;
-        if (PREFETCH_STEPS > 2 && !advance(SET(2))) return;
-        if (PREFETCH_STEPS > 3 && !advance(SET(3))) return;
-        if (PREFETCH_STEPS > 4 && !advance(SET(4))) return;
-        if (PREFETCH_STEPS > 5 && !advance(SET(5))) return;
-        if (PREFETCH_STEPS > 6 && !advance(SET(6))) return;
-        if (PREFETCH_STEPS > 7 && !advance(SET(7))) return;
+        if (run_ahead()) {
+            advance(SET(0), fast);
+            if (PREFETCH_STEPS > 1) advance(SET(1), fast);
+            if (PREFETCH_STEPS > 2) advance(SET(2), fast);
+            if (PREFETCH_STEPS > 3) advance(SET(3), fast);
+            if (PREFETCH_STEPS > 4) advance(SET(4), fast);
+            if (PREFETCH_STEPS > 5) advance(SET(5), fast);
+            if (PREFETCH_STEPS > 6) advance(SET(6), fast);
+            if (PREFETCH_STEPS > 7) advance(SET(7), fast);
+            continue;
+        }
+        if (!advance(SET(0), checked)) return;
+        if (PREFETCH_STEPS > 1 && !advance(SET(1), checked)) return;
+        if (PREFETCH_STEPS > 2 && !advance(SET(2), checked)) return;
+        if (PREFETCH_STEPS > 3 && !advance(SET(3), checked)) return;
+        if (PREFETCH_STEPS > 4 && !advance(SET(4), checked)) return;
+        if (PREFETCH_STEPS > 5 && !advance(SET(5), checked)) return;
+        if (PREFETCH_STEPS > 6 && !advance(SET(6), checked)) return;
+        if (PREFETCH_STEPS > 7 && !advance(SET(7), checked)) return;
     }
 #undef SET
 }
