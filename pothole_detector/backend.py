@@ -139,17 +139,17 @@ class StageClock:
     def __init__(self, backend: Backend) -> None:
         self._gpu = backend.is_gpu
         self._marks: list[tuple[str, Any, Any]] = []
+        self._read: dict[str, float] = {}
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
         if self._gpu:
-            assert _cupy is not None
-            start = _cupy.cuda.Event()
+            start = _timing_event()
             start.record()
             try:
                 yield
             finally:
-                end = _cupy.cuda.Event()
+                end = _timing_event()
                 end.record()
                 self._marks.append((name, start, end))
         else:
@@ -160,8 +160,9 @@ class StageClock:
                 self._marks.append((name, begin, time.perf_counter()))
 
     def timings(self) -> dict[str, float]:
-        """Stage name -> ms (a stage entered twice adds up); waits for the device."""
-        result: dict[str, float] = {}
+        """Stage name -> ms (a stage entered twice adds up, a stage entered after an earlier
+        call adds to it); waits for the device."""
+        result = self._read
         for name, start, end in self._marks:
             if self._gpu:
                 assert _cupy is not None
@@ -170,7 +171,28 @@ class StageClock:
             else:
                 elapsed = (end - start) * 1e3
             result[name] = result.get(name, 0.0) + elapsed
-        return result
+        if self._gpu:
+            # both events of every mark have completed: they serve the next frames' clocks
+            _spare_events(_cupy.cuda.Device().id).extend(
+                event for _, start, end in self._marks for event in (start, end))
+        self._marks.clear()
+        return dict(result)
+
+
+@lru_cache(maxsize=None)
+def _spare_events(device: int) -> list[Any]:
+    return []
+
+
+def _timing_event() -> Any:
+    """A CUDA event for StageClock: a read one again where there is one (creating events is
+    a few microseconds each, sixteen per frame)."""
+    assert _cupy is not None
+    spare = _spare_events(_cupy.cuda.Device().id)
+    try:
+        return spare.pop()
+    except IndexError:
+        return _cupy.cuda.Event()
 
 
 CPU = Backend("cpu", np, scipy.ndimage)

@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.backend import CPU, get_backend, gpu_available, to_host
+from pothole_detector.backend import CPU, StageClock, get_backend, gpu_available, to_host
 from pothole_detector.errors import BackendError
 
 
@@ -19,6 +19,17 @@ def test_side_stream_on_the_cpu_runs_the_block_and_joins_as_a_no_op():
     with CPU.side_stream() as join:
         done.append(np.arange(3).sum())
     assert join() is None and done == [3]
+
+
+def test_stage_clock_keeps_its_timings_when_read_again():
+    clock = StageClock(CPU)
+    with clock.stage("a"):
+        pass
+    first = clock.timings()
+    with clock.stage("b"):
+        pass
+    again = clock.timings()
+    assert set(first) == {"a"} and again["a"] == first["a"] and set(again) == {"a", "b"}
 
 
 def test_unknown_backend_is_refused():

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.backend import CPU, get_backend, gpu_available, to_host
+from pothole_detector.backend import CPU, StageClock, get_backend, gpu_available, to_host
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import census_sgm, components, measure, superpixels, threshold
@@ -128,7 +128,6 @@ def test_buffers_are_reused_across_frames(gpu):
 
 
 def test_matcher_kernel_clock_times_each_kernel_and_changes_nothing(gpu):
-    from pothole_detector.backend import StageClock
     left, right = random_pair(30, 80, 7, seed=9)
     kappa = gpu.upload(np.zeros(30, np.int32))
     matcher = census_sgm.GpuMatcher(gpu)
@@ -152,6 +151,18 @@ def test_side_stream_work_is_ordered_after_earlier_and_before_joined_work(gpu):
             total = doubled.sum()
         join()
         assert float(total + values[0]) == float((1 << 22) * ((1 << 22) + 1) + 1)
+
+
+def test_stage_clocks_reuse_read_events_and_still_time_the_work(gpu):
+    xp = gpu.xp
+    for _ in range(3):
+        clock = StageClock(gpu)
+        with clock.stage("sum"):
+            float(xp.arange(1 << 20, dtype=xp.float64).sum())
+        with clock.stage("sort"):
+            xp.sort(xp.arange(1 << 20)[::-1])
+        timings = clock.timings()
+        assert set(timings) == {"sum", "sort"} and all(v > 0 for v in timings.values())
 
 
 def test_upload_many_round_trips(gpu):

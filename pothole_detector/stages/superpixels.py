@@ -140,14 +140,15 @@ def _slic_gpu_filled(backend: Backend, filled: Any, valid_bytes: Any, region_siz
         (filled, valid_bytes, centre_v, centre_u, centre_d, i32(height), i32(width), i32(step),
          i32(cells_y), i32(cells_x)))
     grid = ((width + 31) // 32, (height + 7) // 8)
+    assign_args = (filled, valid_bytes, centre_v, centre_u, centre_d, labels, i32(height),
+                   i32(width), i32(step), i32(cells_y), i32(cells_x),
+                   np.float32((compactness / step) ** 2))
+    update_args = (filled, valid_bytes, labels, centre_v, centre_u, centre_d, i32(height),
+                   i32(width), i32(step), i32(cells_x))
     for iteration in range(iterations):
-        assign(grid, (32, 8), (filled, valid_bytes, centre_v, centre_u, centre_d, labels,
-                               i32(height), i32(width), i32(step), i32(cells_y), i32(cells_x),
-                               np.float32((compactness / step) ** 2)))
+        assign(grid, (32, 8), assign_args)
         if iteration < iterations - 1:
-            update((n_labels,), (256,), (filled, valid_bytes, labels, centre_v, centre_u,
-                                         centre_d, i32(height), i32(width), i32(step),
-                                         i32(cells_x)))
+            update((n_labels,), (256,), update_args)
     return labels, n_labels
 
 
