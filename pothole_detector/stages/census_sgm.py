@@ -204,7 +204,7 @@ FILL_SHARE = 0.4
 
 
 def lanes_for(levels: int, lines: int = 0, resident_threads: int = 0) -> int:
-    """Threads per path line and per pixel of the GPU matcher (levels: a multiple of 16).
+    """Threads per path line of the GPU matcher (levels: a multiple of 16).
 
     The most of 4, 8, 16, 32 that leave each an even number of 4 to 8 levels (two levels per
     32-bit word); else the fewest that leave at most 8 (a multiple of 4 where possible), and
