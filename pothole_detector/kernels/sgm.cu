@@ -194,6 +194,9 @@ struct Cursor {
     const int* shift;
 };
 
+// The census words of the step at `at` into `data`; INSIDE: every column of the lane's levels
+// is known to lie inside the image (no test).
+template <bool INSIDE>
 __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_left,
                                             const unsigned* __restrict__ census_right,
                                             const Cursor& at, int first, StepData& data) {
@@ -203,7 +206,7 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
     const int start = at.column - shift;
     // unsigned: where the index is negative (left of row 0) no word is read
     const unsigned* right = census_right + (at.pixel - first - shift);
-    if (ALL_INSIDE(start)) {
+    if (INSIDE || ALL_INSIDE(start)) {
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k) data.right[k] = __ldg(right - LEVEL_STEP * k);
     } else {
@@ -212,17 +215,6 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
         for (int k = 0; k < PER_LANE; ++k)
             data.right[k] = start >= LEVEL_STEP * k ? __ldg(right - LEVEL_STEP * k) : outside;
     }
-}
-
-// load_census where every column of the lane's levels is known to lie inside the image.
-__device__ __forceinline__ void load_census_inside(const unsigned* __restrict__ census_left,
-                                                   const unsigned* __restrict__ census_right,
-                                                   const Cursor& at, int first,
-                                                   StepData& data) {
-    data.left = __ldg(census_left + at.pixel);
-    const unsigned* right = census_right + (at.pixel - first - *at.shift);
-#pragma unroll
-    for (int k = 0; k < PER_LANE; ++k) data.right[k] = __ldg(right - LEVEL_STEP * k);
 }
 
 __device__ __forceinline__ void prefetch_sums(const unsigned char* cells, unsigned pixel) {
@@ -325,7 +317,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
 #pragma unroll
     for (int s = 0; s < PREFETCH_STEPS; ++s) {
         if (s < steps) {
-            load_census(census_left, census_right, ahead, first, sets[s]);
+            load_census<false>(census_left, census_right, ahead, first, sets[s]);
             if (ADD && s < OLD_AHEAD) load_sums(cells, ahead.pixel, sets[s]);
         }
         ahead.pixel += delta;
@@ -373,9 +365,9 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         for (int k = 0; k < PER_LANE; ++k) current[k] = __popc(data.left ^ data.right[k]);
 #endif
         if (FAST)
-            load_census_inside(census_left, census_right, ahead, first, data);
+            load_census<true>(census_left, census_right, ahead, first, data);
         else if (step + PREFETCH_STEPS < steps)
-            load_census(census_left, census_right, ahead, first, data);
+            load_census<false>(census_left, census_right, ahead, first, data);
         if (ADD && (FAST || step + OLD_AHEAD < steps))
             load_sums(cells, pixel + sums_delta, later);
         if (ADD && SUMS_L2_AHEAD > 0 && step + SUMS_L2_AHEAD < steps)
