@@ -246,9 +246,8 @@ def _side_stream(device: int) -> Any:
 @lru_cache(maxsize=None)
 def _resident_threads(device: int) -> int:
     assert _cupy is not None
-    attributes = _cupy.cuda.Device(device).attributes
-    return int(attributes["MultiProcessorCount"]) * int(
-        attributes["MaxThreadsPerMultiProcessor"])
+    return _multiprocessors(device) * int(
+        _cupy.cuda.Device(device).attributes["MaxThreadsPerMultiProcessor"])
 
 
 def gpu_available() -> bool:

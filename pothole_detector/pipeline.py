@@ -226,6 +226,7 @@ class Pipeline:
         with clock.stage("threshold"):
             join_threshold()
             drop: float | Any = config.delta_pd_px
+            road: road_model.RoadModel | None = None
             if config.threshold_mode != "pixels":
                 # the metric tolerance needs the road model on the host: one early readback
                 road = self._checked_road(report.read_header(), disparity.size)
@@ -250,7 +251,8 @@ class Pipeline:
             waiting = time.perf_counter()
             host = report.read()
             wait_ms = (time.perf_counter() - waiting) * 1e3
-        road = self._checked_road(host.header, disparity.size)
+        if road is None:
+            road = self._checked_road(host.header, disparity.size)
         t_r, road_mean = thresholding.split_from_result(host.threshold, config.histogram_bin_px,
                                                         config.delta_dt_px)
         reference = road_mean if config.threshold_reference == "road_mean" else t_r

@@ -376,6 +376,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         ahead.column += dx;
         ahead.shift += dy;
         const bool store = FAST || step < steps;
+        unsigned char* cell = cells + (size_t)pixel * LEVELS;
 #if PACKED
         unsigned least;
         {
@@ -409,7 +410,6 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
             // both halves: the lane's least
             least = __vminu2(least, __byte_perm(least, 0u, 0x1032));
         }
-        unsigned char* cell = cells + (size_t)pixel * LEVELS;
         if (store) {
 #pragma unroll
             for (int p = 0; p < PAIRS; ++p) {
@@ -446,7 +446,6 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         unsigned least = (unsigned)current[0];
 #pragma unroll
         for (int k = 1; k < PER_LANE; ++k) least = min(least, (unsigned)current[k]);
-        unsigned char* cell = cells + (size_t)pixel * LEVELS;
         if (store) {
 #pragma unroll
             for (int k = 0; k < PER_LANE; ++k) {

@@ -221,8 +221,7 @@ def _block_mean_gpu(backend: Backend, image: Any, factor: int) -> tuple[Any, Any
 
 def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
     """The label count :func:`superpixel_grid` returns for an HxW map, from its size alone."""
-    height, width = (shape[0] // downsample, shape[1] // downsample) if downsample > 1 \
-        else shape
+    height, width = shape[0] // downsample, shape[1] // downsample
     step = _grid_step(region_size_px, downsample)
     return -(-height // step) * -(-width // step)
 
