@@ -52,17 +52,28 @@ def frames(data: Path | None, real_count: int):
 
 
 def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
-            right: np.ndarray, count: int) -> dict:
+            right: np.ndarray, count: int, stream: bool = False) -> dict:
+    """Median stage times of ``count`` frames after 5 warm-up frames, by Pipeline.run one
+    frame at a time or (``stream``) by Pipeline.run_stream (the next pair staged in
+    page-locked memory while the device works); ``period``: wall ms per frame."""
     backend = get_backend("gpu")
     backend.release_memory()
     pipeline = Pipeline(config, calibration, backend)
     for _ in range(5):
         result = pipeline.run(left, right)
-    runs = []
-    for _ in range(count):
-        result = pipeline.run(left, right)
-        runs.append(result.timings_ms)
+    started = time.perf_counter()
+    if stream:
+        results = list(pipeline.run_stream((left, right) for _ in range(count)))
+    else:
+        results = [pipeline.run(left, right) for _ in range(count)]
+    period = (time.perf_counter() - started) * 1e3 / count
+    failed = [r for r in results if isinstance(r, Exception)]
+    if failed:
+        raise failed[0]
+    runs = [r.timings_ms for r in results]
+    result = results[-1]
     medians = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    medians["period"] = period
     medians["host_busy"] = float(np.median([r["host"] - r["host_wait"] for r in runs]))
     medians["levels"] = result.band[1]
     medians["range_hi"] = result.disparity_range[1]
@@ -143,24 +154,28 @@ def main() -> None:
           f"over {args.frames} frames after 5 warm-up frames (same pair each frame, road model "
           "carried over as in a drive). Stage and total: CUDA events, ms; host: wall time of "
           "Pipeline.run, ms; host busy: host less the wait for the frame's one readback (the "
-          f"host's own work per frame), ms. OpenCV SGBM 3WAY on {args.threads} threads, same "
+          "host's own work per frame), ms; period: wall time of the whole run per frame, ms; "
+          "stream: Pipeline.run_stream, the next pair staged in page-locked memory while the "
+          f"device works on this one. OpenCV SGBM 3WAY on {args.threads} threads, same "
           "frame, no LR check.\n")
     print("| frame | range | levels | " + " | ".join(STAGES)
-          + " | total GPU | host | host busy | pool MiB | OpenCV SGBM | SGBM / our SGM "
-          "| SGBM / pipeline |")
-    print("| --- |" + " --- |" * (len(STAGES) + 9))
+          + " | total GPU | host | host busy | period | pool MiB | OpenCV SGBM "
+          "| SGBM / our SGM | SGBM / pipeline |")
+    print("| --- |" + " --- |" * (len(STAGES) + 10))
     data = args.data if args.data.is_dir() else None
     kernel_lines: list[str] = []
     for name, left, right, calibration in frames(data, args.real):
         band = measure(Config(), calibration, left, right, args.frames)
+        streamed = measure(Config(), calibration, left, right, args.frames, stream=True)
         full_levels = round_up_levels(band["range_hi"] + 1)
         full_config = Config({"gpt_enabled": False, "max_disparity_px": full_levels})
         full = measure(full_config, calibration, left, right, args.frames)
         sgbm = opencv_ms(left, right, full_levels, args.threads)
-        for label, row in (("GPT band", band), ("full", full)):
+        for label, row in (("GPT band", band), ("GPT band, stream", streamed), ("full", full)):
             print(f"| {name} | {label} | {row['levels']} | "
                   + " | ".join(f"{row.get(s, 0.0):.3f}" for s in STAGES)
                   + f" | {row['total']:.3f} | {row['host']:.2f} | {row['host_busy']:.2f} | "
+                  + f"{row['period']:.2f} | "
                   + f"{row['memory_mib']:.0f} | "
                   + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / row['sgm']:.0f}x | "
                   + f"{sgbm / row['total']:.0f}x |", flush=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import re
 import time
 from contextlib import contextmanager
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import scipy.ndimage
@@ -132,6 +133,58 @@ class Backend:
             self.xp.cuda.get_current_stream().synchronize()
 
 
+class UploadBuffer:
+    """Host memory for one frame's upload: several arrays back to back (each starting on a
+    16-byte boundary) in one buffer, page-locked on the GPU backend and copied by one
+    asynchronous transfer into a device buffer of the same layout that the object keeps, so
+    that the host can fill it while the device still works on the frame before. Each upload
+    overwrites the device arrays of the one before. ``layout``: (shape, dtype) of each array."""
+
+    def __init__(self, backend: Backend,
+                 layout: Sequence[tuple[tuple[int, ...], np.dtype | type]]) -> None:
+        self._gpu = backend.is_gpu
+        self._layout = [(tuple(shape), np.dtype(dtype)) for shape, dtype in layout]
+        sizes = [math.prod(shape) * dtype.itemsize for shape, dtype in self._layout]
+        self._offsets = [0]
+        for size in sizes:
+            self._offsets.append(self._offsets[-1] + -(-size // 16) * 16)
+        total = self._offsets[-1]
+        if self._gpu:
+            assert _cupy is not None
+            self._host = _cupy_pinned(total)
+            self._device = _cupy.empty(total, dtype=np.uint8)
+        else:
+            self._host = self._device = np.empty(total, np.uint8)
+        self._views = self._carve(self._host)
+        self._device_views = self._carve(self._device)
+        self._sent: Any = None
+
+    def _carve(self, buffer: Any) -> tuple[Any, ...]:
+        return tuple(buffer[start:start + math.prod(shape) * dtype.itemsize].view(dtype)
+                     .reshape(shape)
+                     for (shape, dtype), start in zip(self._layout, self._offsets))
+
+    def writable(self) -> tuple[np.ndarray, ...]:
+        """The host arrays, once the buffer's last transfer has finished (it waits for it)."""
+        if self._sent is not None:
+            self._sent.synchronize()
+        return self._views
+
+    def upload(self) -> tuple[Any, ...]:
+        """The device arrays, holding the host arrays' contents once the transfer queued on the
+        current stream has run (on the CPU backend the host arrays themselves). Write the host
+        arrays again only through :meth:`writable`."""
+        if not self._gpu:
+            return self._views
+        assert _cupy is not None
+        stream = _cupy.cuda.get_current_stream()
+        self._device.set(self._host, stream=stream)
+        if self._sent is None:
+            self._sent = _cupy.cuda.Event(disable_timing=True)
+        self._sent.record(stream)
+        return self._device_views
+
+
 class StageClock:
     """Per-stage times of one frame: CUDA events on the GPU (no synchronization until
     :meth:`timings`), wall clock on the CPU."""
@@ -229,6 +282,13 @@ def _kernel(source: str, digest: str, defines: tuple[tuple[str, int], ...], name
             cooperative: bool) -> Any:
     """Kernel ``name`` of the module built from kernels/``source`` with ``defines``."""
     return _module(source, digest, defines, cooperative).get_function(name)
+
+
+def _cupy_pinned(nbytes: int) -> np.ndarray:
+    """A uint8 NumPy array of ``nbytes`` in page-locked host memory."""
+    assert _cupy is not None
+    memory = _cupy.cuda.alloc_pinned_memory(nbytes)
+    return np.frombuffer(memory, np.uint8, nbytes)
 
 
 @lru_cache(maxsize=None)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import importlib
+import itertools
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
@@ -299,6 +301,17 @@ def find_stereo_topics(topics: dict[str, str], left: str | None = None,
                         pick(right_info, "right", INFO_TYPE, "camera_info"))
 
 
+@dataclass(frozen=True)
+class _BagFrame:
+    """One synchronized stereo set of a bag, converted: images as arrays (HxW or HxWxC)."""
+
+    stamp: int
+    header: Any
+    left: np.ndarray
+    right: np.ndarray
+    calibration: Any
+
+
 @dataclass
 class ProcessSummary:
     """What :func:`process` did."""
@@ -392,53 +405,74 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             image_count = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
             if pictures is not None:
                 Path(pictures).mkdir(parents=True, exist_ok=True)
-            pipeline: Pipeline | None = None
-            calibration_used = None
-            for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
-                    _stereo_sets(reader, stereo, config, summary)):
-                if progress is not None:
-                    progress(index, image_count)
-                header = left_msg.header
-                try:
-                    left_px = conversions.image_to_array(left_msg)
-                    right_px = conversions.image_to_array(right_msg)
-                    height, width = left_px.shape[:2]
-                    calibration = conversions.calibration_from_camera_info(
-                        left_cal, right_cal, width, height)
-                    if pipeline is None or calibration != calibration_used:
-                        pipeline = Pipeline(config, calibration, backend)
-                        calibration_used = calibration
+            def prepared() -> Iterator[_BagFrame]:
+                for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
+                        _stereo_sets(reader, stereo, config, summary)):
+                    if progress is not None:
+                        progress(index, image_count)
+                    try:
+                        left_px = conversions.image_to_array(left_msg)
+                        right_px = conversions.image_to_array(right_msg)
+                        height, width = left_px.shape[:2]
+                        calibration = conversions.calibration_from_camera_info(
+                            left_cal, right_cal, width, height)
+                    except PotholeError as exc:
+                        summary.failed += 1
+                        summary.errors.append(f"stamp {stamp}: {exc}")
+                        continue
+                    yield _BagFrame(stamp, left_msg.header, left_px, right_px, calibration)
+
+            # one pipeline per run of frames with the same calibration; within a run the host
+            # prepares the next pair while the device works (Pipeline.run_stream)
+            for calibration, run in itertools.groupby(prepared(), lambda f: f.calibration):
+                pipeline = Pipeline(config, calibration, backend)
+                queued: deque[_BagFrame] = deque()
+
+                def pairs(run: Iterator[_BagFrame] = run, queued: deque[_BagFrame] = queued
+                          ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                    for frame in run:
+                        queued.append(frame)
+                        yield frame.left, frame.right
+
+                outcomes = pipeline.run_stream(pairs())
+                while True:
                     started = time.perf_counter()
-                    result = pipeline.run(left_px, right_px)
+                    outcome = next(outcomes, None)
+                    if outcome is None:
+                        break
+                    frame = queued.popleft()
+                    stamp, header, left_px = frame.stamp, frame.header, frame.left
+                    if isinstance(outcome, PotholeError):
+                        summary.failed += 1
+                        summary.errors.append(f"stamp {stamp}: {outcome}")
+                        continue
+                    result = outcome
                     labels = backend.to_host(result.labels)
                     disparity = backend.to_host(result.disparity)
                     summary.milliseconds.append((time.perf_counter() - started) * 1e3)
-                except PotholeError as exc:
-                    summary.failed += 1
-                    summary.errors.append(f"stamp {stamp}: {exc}")
-                    continue
-                summary.frames += 1
-                summary.potholes += len(result.potholes)
-                picture = overlay(left_px, labels, result.potholes)
-                messages = {
-                    "disparity": conversions.disparity_message(
-                        disparity, calibration, result.disparity_range, header),
-                    "disparity_transformed": conversions.array_to_image(
-                        backend.to_host(result.transformed), "32FC1", header),
-                    "pothole_labels": conversions.array_to_image(
-                        labels.astype(np.uint16), "mono16", header),
-                    "pothole_points": conversions.pointcloud_message(conversions.pothole_points(
-                        labels, disparity, result.road, calibration), header),
-                    "potholes": conversions.potholes_message(result.potholes, result.road,
-                                                             header),
-                    "pothole_markers": conversions.markers_message(
-                        labels, result.potholes, result.road, calibration, header),
-                    "overlay": conversions.array_to_image(picture, "rgb8", header),
-                }
-                for name, message in messages.items():
-                    writer.write(output[name], stamp, serialize_message(message))
-                if pictures is not None:
-                    write_rgb(Path(pictures) / f"overlay_{stamp}.png", picture)
+                    summary.frames += 1
+                    summary.potholes += len(result.potholes)
+                    picture = overlay(left_px, labels, result.potholes)
+                    messages = {
+                        "disparity": conversions.disparity_message(
+                            disparity, calibration, result.disparity_range, header),
+                        "disparity_transformed": conversions.array_to_image(
+                            backend.to_host(result.transformed), "32FC1", header),
+                        "pothole_labels": conversions.array_to_image(
+                            labels.astype(np.uint16), "mono16", header),
+                        "pothole_points": conversions.pointcloud_message(
+                            conversions.pothole_points(labels, disparity, result.road,
+                                                       calibration), header),
+                        "potholes": conversions.potholes_message(result.potholes,
+                                                                 result.road, header),
+                        "pothole_markers": conversions.markers_message(
+                            labels, result.potholes, result.road, calibration, header),
+                        "overlay": conversions.array_to_image(picture, "rgb8", header),
+                    }
+                    for name, message in messages.items():
+                        writer.write(output[name], stamp, serialize_message(message))
+                    if pictures is not None:
+                        write_rgb(Path(pictures) / f"overlay_{stamp}.png", picture)
             if progress is not None:
                 progress(image_count, image_count)
         finally:

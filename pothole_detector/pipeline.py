@@ -5,18 +5,17 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
-from .backend import CPU, Backend, StageClock, to_host
+from .backend import CPU, Backend, StageClock, UploadBuffer, to_host
 from .calibration import StereoCalibration
-from .errors import InputError, NoRoadError, NoTextureError
+from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
 from .stages import components, matching, measure, perspective, road_model, superpixels
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
-
 
 @dataclass
 class PipelineResult:
@@ -139,6 +138,7 @@ class Pipeline:
         self.backend = backend
         self.matcher = matching.Matcher(backend)
         self._road: road_model.RoadModel | None = None
+        self._uploads: dict[tuple[int, int], list[UploadBuffer]] = {}
 
     def reset(self) -> None:
         """Forget the previous frame's road model; the next frame runs the seed pass."""
@@ -151,14 +151,82 @@ class Pipeline:
         On the GPU nothing is read back between the upload and the frame's one readback of a
         report (valid count, road fit, threshold, component counts, pothole sums): the checks
         that raise run on that report, after the stages have been queued."""
-        backend = self.backend
         started = time.perf_counter()
-        clock = StageClock(backend)
         left_gray, right_gray = _validate_pair(left, right)
+        return self._run(left_gray, right_gray, None, started, None)
+
+    def run_stream(self, pairs: Iterable[tuple[np.ndarray, np.ndarray]]
+                   ) -> Iterator[PipelineResult | PotholeError]:
+        """:meth:`run` over a sequence of pairs: yields, in order, each pair's result or the
+        error it raised (the stream goes on after an error). On the GPU the host checks and
+        converts pair N + 1 into page-locked memory while the device works on pair N (two
+        buffers per image size, used in turn), and pair N + 1 goes up in one asynchronous copy
+        instead of the driver's staging of pageable memory."""
+        if not self.backend.is_gpu:
+            for left, right in pairs:
+                try:
+                    yield self.run(left, right)
+                except PotholeError as exc:
+                    yield exc
+            return
+        iterator = iter(pairs)
+        following = next(iterator, None)
+        staged = self._stage(following) if following is not None else None
+        while following is not None:
+            started = time.perf_counter()
+            current = staged
+            following = next(iterator, None)
+            ahead: list[UploadBuffer | PotholeError] = []
+
+            def stage_following() -> None:
+                if following is not None and not ahead:
+                    ahead.append(self._stage(following))
+
+            if isinstance(current, PotholeError):
+                outcome: PipelineResult | PotholeError = current
+            else:
+                assert current is not None
+                left_gray, right_gray, _ = current.writable()
+                try:
+                    outcome = self._run(left_gray, right_gray, current, started,
+                                        stage_following)
+                except PotholeError as exc:
+                    outcome = exc
+            stage_following()
+            staged = ahead[0] if ahead else None
+            yield outcome
+
+    def _stage(self, pair: tuple[np.ndarray, np.ndarray]) -> UploadBuffer | PotholeError:
+        """Pair checked and converted to grey into the next upload buffer of its size."""
+        try:
+            left_gray, right_gray = _validate_pair(*pair)
+        except PotholeError as exc:
+            return exc
+        height, width = left_gray.shape
+        buffers = self._uploads.get((height, width))
+        if buffers is None:
+            layout = [((height, width), np.uint8), ((height, width), np.uint8),
+                      ((height,), np.int32)]
+            buffers = [UploadBuffer(self.backend, layout) for _ in range(2)]
+            self._uploads = {(height, width): buffers}
+        buffer = buffers.pop(0)
+        buffers.append(buffer)
+        left_host, right_host, _ = buffer.writable()
+        np.copyto(left_host, left_gray)
+        np.copyto(right_host, right_gray)
+        return buffer
+
+    def _run(self, left_gray: np.ndarray, right_gray: np.ndarray, staged: UploadBuffer | None,
+             started: float, while_waiting: Callable[[], None] | None) -> PipelineResult:
+        """run() on a checked grey pair; ``staged``: the upload buffer holding it (else the
+        pair is copied from where it is); ``while_waiting`` runs while the device finishes
+        the frame, before its one readback (GPU)."""
+        backend = self.backend
+        clock = StageClock(backend)
         seeded = self._road is None or not self.config.gpt_enabled
-        disparity, kappa, levels = self._match(left_gray, right_gray, clock)
+        disparity, kappa, levels = self._match(left_gray, right_gray, clock, staged)
         if backend.is_gpu:
-            found = self._detect_on_device(disparity, clock)
+            found = self._detect_on_device(disparity, clock, while_waiting)
         else:
             found = self._detect_on_host(disparity, clock)
         timings = clock.timings()
@@ -198,7 +266,8 @@ class Pipeline:
             labels, potholes = self._measure_exact(labels, count, disparity, road)
         return _Detection(transformed, labels, sp_labels, road, reference, potholes)
 
-    def _detect_on_device(self, disparity: Any, clock: StageClock) -> _Detection:
+    def _detect_on_device(self, disparity: Any, clock: StageClock,
+                          while_waiting: Callable[[], None] | None = None) -> _Detection:
         """The stages after matching queued on the device with nothing read back but one report
         at the end (see :class:`_DeviceReport`); the checks run on that report."""
         config, backend = self.config, self.backend
@@ -248,6 +317,8 @@ class Pipeline:
             labels = measure.area_filter_on_device(
                 backend, labels, report.sums, report.counts[1:2], report.capacity,
                 config.min_pothole_area_m2, report.counts[3:4])
+            if while_waiting is not None:
+                while_waiting()
             waiting = time.perf_counter()
             host = report.read()
             wait_ms = (time.perf_counter() - waiting) * 1e3
@@ -340,15 +411,21 @@ class Pipeline:
                 self.reset()
         return disparity, levels
 
-    def _match(self, left_gray: np.ndarray, right_gray: np.ndarray,
-               clock: StageClock) -> tuple[Any, np.ndarray, int]:
-        """One upload of the pair and the GPT row shifts, seed (if needed), SGM:
-        (D1 on the backend, kappa (H,) on the host, levels)."""
+    def _match(self, left_gray: np.ndarray, right_gray: np.ndarray, clock: StageClock,
+               staged: UploadBuffer | None = None) -> tuple[Any, np.ndarray, int]:
+        """One upload of the pair and the GPT row shifts (from ``staged``, the upload buffer
+        holding the pair, where given), seed (if needed), SGM: (D1 on the backend, kappa (H,)
+        on the host, levels)."""
         config, backend = self.config, self.backend
         seeding = config.gpt_enabled and self._road is None
         with clock.stage("gpt"):
             kappa, levels = self._band(left_gray.shape)
-            left_dev, right_dev, kappa_dev = backend.upload_many(left_gray, right_gray, kappa)
+            if staged is None:
+                left_dev, right_dev, kappa_dev = backend.upload_many(left_gray, right_gray,
+                                                                     kappa)
+            else:
+                staged.writable()[2][...] = kappa
+                left_dev, right_dev, kappa_dev = staged.upload()
         if seeding:
             with clock.stage("seed"):
                 self._road = self._seed(left_dev, right_dev)

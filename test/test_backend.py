@@ -3,7 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.backend import CPU, StageClock, get_backend, gpu_available, to_host
+from pothole_detector.backend import (CPU, StageClock, UploadBuffer, get_backend, gpu_available,
+                                      to_host)
 from pothole_detector.errors import BackendError
 
 
@@ -30,6 +31,20 @@ def test_stage_clock_keeps_its_timings_when_read_again():
         pass
     again = clock.timings()
     assert set(first) == {"a"} and again["a"] == first["a"] and set(again) == {"a", "b"}
+
+
+def test_upload_buffer_lays_arrays_out_on_16_byte_boundaries_and_hands_them_over_on_cpu():
+    buffer = UploadBuffer(CPU, [((3, 5), np.uint8), ((7,), np.int32), ((2, 3), np.float32)])
+    views = buffer.writable()
+    assert [v.shape for v in views] == [(3, 5), (7,), (2, 3)]
+    assert [v.dtype for v in views] == [np.uint8, np.int32, np.float32]
+    starts = [v.__array_interface__["data"][0] - views[0].__array_interface__["data"][0]
+              for v in views]
+    assert starts == [0, 16, 48]
+    views[1][...] = np.arange(7)
+    uploaded = buffer.upload()
+    assert all(a is b for a, b in zip(uploaded, views))
+    np.testing.assert_array_equal(uploaded[1], np.arange(7))
 
 
 def test_unknown_backend_is_refused():

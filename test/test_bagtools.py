@@ -172,3 +172,33 @@ def test_process_counts_unpaired_images(tmp_path, drive_bag):
     summary = bagtools.process(cut, tmp_path / "out", Config({"backend": "cpu"}))
     assert (summary.frames, summary.unpaired) == (2, 1)
     assert "1 unpaired images" in summary.text()
+
+
+def test_process_goes_on_after_a_failed_frame_and_a_new_calibration(tmp_path, drive_frames):
+    """Frames stream through the pipeline; a frame that fails is counted and the next one is
+    processed; a new camera_info starts a pipeline with the new calibration."""
+    import dataclasses
+
+    (s0, first), (s1, second), (s2, third) = drive_frames
+    blank = dataclasses.replace(second, right=np.full_like(second.right, 128),
+                                left=np.full_like(second.left, 128))
+    wider = dataclasses.replace(third.calibration, baseline=third.calibration.baseline * 1.5)
+    moved = dataclasses.replace(third, calibration=wider)
+    bag = tmp_path / "mixed"
+    frames = [(s0, first), (s1, blank), (s2, moved), (s2 + 100_000_000, moved)]
+    assert bagtools.write_stereo_bag(bag, frames, namespace="/cam") == 4
+    summary = bagtools.process(bag, tmp_path / "out", Config({"backend": "cpu"}))
+    assert (summary.frames, summary.failed) == (3, 1)
+    assert f"stamp {s1}" in summary.errors[0] and "texture" in summary.errors[0]
+    before = Pipeline(Config(), first.calibration).run(first.left, first.right)
+    after = Pipeline(Config(), wider)
+    expected = {s0: before, s2: after.run(third.left, third.right),
+                s2 + 100_000_000: after.run(third.left, third.right)}
+    seen = {}
+    for _, stamp, msg in bagtools.read_messages(tmp_path / "out", ["/cam/potholes"]):
+        seen[stamp] = sorted(p.area_m2 for p in msg.potholes)
+    assert set(seen) == set(expected)
+    for stamp, result in expected.items():
+        np.testing.assert_allclose(seen[stamp], sorted(p.area_m2 for p in result.potholes),
+                                   rtol=1e-5)
+    assert seen[s2] != seen[s0]

@@ -8,7 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.backend import CPU, StageClock, get_backend, gpu_available, to_host
+from pothole_detector.backend import (CPU, StageClock, UploadBuffer, get_backend, gpu_available,
+                                      to_host)
+from pothole_detector.errors import InputError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import census_sgm, components, measure, superpixels, threshold
@@ -179,6 +181,44 @@ def test_upload_many_keeps_earlier_uploads_intact(gpu):
     assert int(to_host(first[0]).max()) == 7 and int(to_host(second[0]).min()) == 9
     np.testing.assert_array_equal(to_host(second[1]), np.arange(64) * 2)
     np.testing.assert_array_equal(to_host(first[1]), np.arange(64))
+
+
+def test_upload_buffer_round_trips_and_waits_before_it_is_written_again(gpu):
+    buffer = UploadBuffer(gpu, [((64, 64), np.uint8), ((64,), np.int32)])
+    image, shifts = buffer.writable()
+    image[...] = 7
+    shifts[...] = np.arange(64)
+    first = buffer.upload()
+    image, shifts = buffer.writable()  # waits for the first transfer
+    image[...] = 9
+    assert int(to_host(first[0]).max()) == 7
+    second = buffer.upload()
+    assert all(a is b for a, b in zip(first, second))  # one device buffer, overwritten
+    assert int(to_host(second[0]).min()) == 9 and second[0].shape == (64, 64)
+    np.testing.assert_array_equal(to_host(second[1]), np.arange(64))
+
+
+def test_run_stream_on_the_gpu_gives_what_run_gives(demo_sample):
+    gpu = get_backend("gpu")
+    left, right = demo_sample.left, demo_sample.right
+    again = Pipeline(Config(), demo_sample.calibration, gpu)
+    expected = [again.run(left, right) for _ in range(2)]
+    flipped = np.ascontiguousarray(right[:, ::-1])
+    pairs = [(left, right), (left, right[:4]), (left, right), (flipped, left)]
+    pipeline = Pipeline(Config(), demo_sample.calibration, gpu)
+    outcomes = list(pipeline.run_stream(pairs))
+    assert isinstance(outcomes[1], InputError)
+    for result, reference in zip((outcomes[0], outcomes[2]), expected):
+        np.testing.assert_array_equal(to_host(result.disparity), to_host(reference.disparity))
+        np.testing.assert_array_equal(to_host(result.labels), to_host(reference.labels))
+        assert result.seeded == reference.seeded
+    last = outcomes[3]
+    try:
+        reference = again.run(flipped, left)
+    except Exception as exc:  # noqa: BLE001 - the stream must report the same outcome
+        assert type(last) is type(exc)
+    else:
+        np.testing.assert_array_equal(to_host(last.disparity), to_host(reference.disparity))
 
 
 # --- the other stages: one body on both backends -------------------------------------------

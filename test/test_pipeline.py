@@ -63,6 +63,31 @@ def test_metric_threshold_mode(demo_sample):
     assert 0.004 < depth[0] < 0.008
 
 
+def test_run_stream_yields_each_result_or_error_in_order_and_goes_on(demo_sample):
+    pipeline = Pipeline(Config(), demo_sample.calibration)
+    single = Pipeline(Config(), demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    pairs = [(demo_sample.left, demo_sample.right), (demo_sample.left, demo_sample.right[:, :-2]),
+             (demo_sample.left, demo_sample.right)]
+    outcomes = list(pipeline.run_stream(iter(pairs)))
+    assert len(outcomes) == 3 and isinstance(outcomes[1], InputError)
+    first, last = outcomes[0], outcomes[2]
+    assert first.seeded and not last.seeded
+    np.testing.assert_array_equal(first.disparity, single.disparity)
+    assert len(first.potholes) == len(last.potholes) == len(single.potholes)
+    assert list(pipeline.run_stream([])) == []
+
+
+@pytest.mark.parametrize("matcher", ["opencv", "census"])
+def test_blank_frame_after_a_road_is_refused_not_matched_to_the_prior(flat_sample, matcher):
+    """With a road model the band starts at the road: a blank pair must not come out as that
+    road (SGBM picks the lowest level where every cost is 0)."""
+    pipeline = Pipeline(Config({"matcher": matcher}), flat_sample.calibration)
+    pipeline.run(flat_sample.left, flat_sample.right)
+    blank = np.full_like(flat_sample.left, 128)
+    with pytest.raises(NoTextureError, match="texture"):
+        pipeline.run(blank, blank)
+
+
 def test_bad_inputs_raise_clear_errors(demo_sample):
     pipeline = Pipeline(Config(), demo_sample.calibration)
     with pytest.raises(InputError, match="equal sizes"):

@@ -154,6 +154,16 @@ def select_disparities(paths: np.ndarray, uniqueness_percent: int,
     return np.where(valid, disparity, np.float32(-1)).astype(np.float32)
 
 
+def textureless(census_left: np.ndarray) -> np.ndarray:
+    """bool HxW: pixels whose census word (uint32 HxW) is 0 together with their 8
+    neighbours' (edge-replicated): no pair of the window differs upwards anywhere in the 3x3
+    windows, so no match there means anything (a blank or saturated patch)."""
+    height, width = census_left.shape
+    flat = np.pad(census_left == 0, 1, mode="edge")
+    return np.logical_and.reduce([flat[a:a + height, b:b + width]
+                                  for a in range(3) for b in range(3)])
+
+
 def finish(raw: np.ndarray, kappa: np.ndarray, median: bool,
            census_left: np.ndarray) -> np.ndarray:
     """D1 (float32 HxW px, NaN invalid) from the raw D0 (-1 invalid): median, census border,
@@ -166,11 +176,8 @@ def finish(raw: np.ndarray, kappa: np.ndarray, median: bool,
         stack = np.stack([padded[a:a + height, b:b + width] for a in range(3) for b in range(3)])
         raw = np.sort(stack, axis=0)[4]
     disparity = raw + kappa.astype(np.float32)[:, None]
-    flat = np.pad(census_left == 0, 1, mode="edge")
-    textureless = np.logical_and.reduce([flat[a:a + height, b:b + width]
-                                         for a in range(3) for b in range(3)])
     invalid = (raw < 0) | (np.arange(width, dtype=np.float32)[None, :] - disparity < 0) \
-        | textureless
+        | textureless(census_left)
     invalid[:BORDER_Y] = invalid[height - BORDER_Y:] = True
     invalid[:, :BORDER_X] = invalid[:, width - BORDER_X:] = True
     return np.where(invalid, np.float32(np.nan), disparity).astype(np.float32)

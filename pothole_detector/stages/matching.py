@@ -140,7 +140,10 @@ class Matcher:
                                       block_size)
             disparity += kappa[:, None].astype(np.float32)
             outside = np.arange(left.shape[1], dtype=np.float32)[None, :] - disparity < 0
-            disparity[outside] = np.nan
+            # SGBM matches a blank patch at the lowest level (every cost 0), which on the GPT
+            # band is the road prior itself: drop such pixels as the census matcher does
+            disparity[outside | census_sgm.textureless(census_sgm.census_transform(left))] = \
+                np.nan
         return self.backend.upload(disparity)
 
 
