@@ -33,7 +33,7 @@ from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E4
 from pothole_detector.stages.perspective import round_up_levels  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
 
-STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure")
+STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure", "readback")
 
 
 def frames(data: Path | None, real_count: int):
@@ -61,17 +61,16 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
     pipeline = Pipeline(config, calibration, backend)
     for _ in range(5):
         result = pipeline.run(left, right)
+    runs = []
     started = time.perf_counter()
-    if stream:
-        results = list(pipeline.run_stream((left, right) for _ in range(count)))
-    else:
-        results = [pipeline.run(left, right) for _ in range(count)]
+    outcomes = pipeline.run_stream((left, right) for _ in range(count)) if stream else \
+        (pipeline.run(left, right) for _ in range(count))
+    for outcome in outcomes:  # only the last result is kept, as a consumer would
+        if isinstance(outcome, Exception):
+            raise outcome
+        result = outcome
+        runs.append(result.timings_ms)
     period = (time.perf_counter() - started) * 1e3 / count
-    failed = [r for r in results if isinstance(r, Exception)]
-    if failed:
-        raise failed[0]
-    runs = [r.timings_ms for r in results]
-    result = results[-1]
     medians = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
     medians["period"] = period
     medians["host_busy"] = float(np.median([r["host"] - r["host_wait"] for r in runs]))
@@ -122,6 +121,7 @@ def opencv_ms(left: np.ndarray, right: np.ndarray, levels: int, threads: int) ->
 def long_run(count: int) -> str:
     sample = render(demo_scene(1280, 720))
     backend = get_backend("gpu")
+    backend.release_memory()
     pipeline = Pipeline(Config(), sample.calibration, backend)
     left, right = to_gray8(sample.left), to_gray8(sample.right)
     for _ in range(100):
@@ -132,8 +132,15 @@ def long_run(count: int) -> str:
         pipeline.run(left, right)
     seconds = time.perf_counter() - start
     after = backend.memory_bytes()
+    start = time.perf_counter()
+    for outcome in pipeline.run_stream((left, right) for _ in range(count)):
+        if isinstance(outcome, Exception):
+            raise outcome
+    streamed = time.perf_counter() - start
+    final = backend.memory_bytes()
     return (f"{count} frames at 1280x720 in {seconds:.1f} s: device pool {before / 2**20:.1f} "
-            f"MiB after 100 frames, {after / 2**20:.1f} MiB after {count} more")
+            f"MiB after 100 frames, {after / 2**20:.1f} MiB after {count} more; {count} more "
+            f"by run_stream in {streamed:.1f} s, pool {final / 2**20:.1f} MiB")
 
 
 def main() -> None:

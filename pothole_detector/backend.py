@@ -135,10 +135,11 @@ class Backend:
 
 class UploadBuffer:
     """Host memory for one frame's upload: several arrays back to back (each starting on a
-    16-byte boundary) in one buffer, page-locked on the GPU backend and copied by one
-    asynchronous transfer into a device buffer of the same layout that the object keeps, so
-    that the host can fill it while the device still works on the frame before. Each upload
-    overwrites the device arrays of the one before. ``layout``: (shape, dtype) of each array."""
+    16-byte boundary) in one buffer, page-locked on the GPU backend and copied by asynchronous
+    transfers into a device buffer of the same layout that the object keeps, so that the host
+    can fill it, and part of it can go up, while the device still works on the frame before.
+    Each upload overwrites the device arrays of the one before. ``layout``: (shape, dtype) of
+    each array."""
 
     def __init__(self, backend: Backend,
                  layout: Sequence[tuple[tuple[int, ...], np.dtype | type]]) -> None:
@@ -158,6 +159,8 @@ class UploadBuffer:
         self._views = self._carve(self._host)
         self._device_views = self._carve(self._device)
         self._sent: Any = None
+        self._ahead: Any = None
+        self._ahead_count = 0
 
     def _carve(self, buffer: Any) -> tuple[Any, ...]:
         return tuple(buffer[start:start + math.prod(shape) * dtype.itemsize].view(dtype)
@@ -166,9 +169,26 @@ class UploadBuffer:
 
     def writable(self) -> tuple[np.ndarray, ...]:
         """The host arrays, once the buffer's last transfer has finished (it waits for it)."""
-        if self._sent is not None:
-            self._sent.synchronize()
+        for event in (self._sent, self._ahead):
+            if event is not None:
+                event.synchronize()
         return self._views
+
+    def send_ahead(self, count: int) -> None:
+        """Queue the transfer of the first ``count`` arrays now, on a copy stream of its own, so
+        that it overlaps the device's work on the frame before; :meth:`upload` then sends the
+        rest and orders the current stream after both. The device arrays must no longer be in
+        use by queued work (no-op on the CPU backend)."""
+        if not self._gpu:
+            return
+        assert _cupy is not None
+        end = self._offsets[count]
+        stream = _copy_stream(_cupy.cuda.Device().id)
+        self._device[:end].set(self._host[:end], stream=stream)
+        if self._ahead is None:
+            self._ahead = _cupy.cuda.Event(disable_timing=True)
+        self._ahead.record(stream)
+        self._ahead_count = count
 
     def upload(self) -> tuple[Any, ...]:
         """The device arrays, holding the host arrays' contents once the transfer queued on the
@@ -178,7 +198,12 @@ class UploadBuffer:
             return self._views
         assert _cupy is not None
         stream = _cupy.cuda.get_current_stream()
-        self._device.set(self._host, stream=stream)
+        start = self._offsets[self._ahead_count]
+        if self._ahead_count:
+            stream.wait_event(self._ahead)
+            self._ahead_count = 0
+        if start < self._offsets[-1]:
+            self._device[start:].set(self._host[start:], stream=stream)
         if self._sent is None:
             self._sent = _cupy.cuda.Event(disable_timing=True)
         self._sent.record(stream)
@@ -299,6 +324,12 @@ def _multiprocessors(device: int) -> int:
 
 @lru_cache(maxsize=None)
 def _side_stream(device: int) -> Any:
+    assert _cupy is not None
+    return _cupy.cuda.Stream(non_blocking=True)
+
+
+@lru_cache(maxsize=None)
+def _copy_stream(device: int) -> Any:
     assert _cupy is not None
     return _cupy.cuda.Stream(non_blocking=True)
 

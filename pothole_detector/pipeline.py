@@ -26,8 +26,9 @@ class PipelineResult:
     ``band`` (lowest row shift, levels) and ``disparity_range`` (lowest, highest disparity the
     matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU; there the
     threshold search runs beside SLIC on a second stream, and ``threshold`` times what is left
-    of it after SLIC plus the selection), ``total`` (their sum), ``host`` (wall time of the
-    call) and ``host_wait`` (of it, the wait for the GPU frame's one readback; 0 on the CPU).
+    of it after SLIC plus the selection, and ``readback`` the frame's one report copy),
+    ``total`` (their sum), ``host`` (wall time of the call) and ``host_wait`` (of it, the wait
+    for the GPU frame's one readback; 0 on the CPU).
     """
 
     disparity: Any
@@ -214,6 +215,7 @@ class Pipeline:
         left_host, right_host, _ = buffer.writable()
         np.copyto(left_host, left_gray)
         np.copyto(right_host, right_gray)
+        buffer.send_ahead(2)  # the images now; kappa waits for this frame's road model
         return buffer
 
     def _run(self, left_gray: np.ndarray, right_gray: np.ndarray, staged: UploadBuffer | None,
@@ -317,8 +319,9 @@ class Pipeline:
             labels = measure.area_filter_on_device(
                 backend, labels, report.sums, report.counts[1:2], report.capacity,
                 config.min_pothole_area_m2, report.counts[3:4])
-            if while_waiting is not None:
-                while_waiting()
+        if while_waiting is not None:
+            while_waiting()
+        with clock.stage("readback"):
             waiting = time.perf_counter()
             host = report.read()
             wait_ms = (time.perf_counter() - waiting) * 1e3

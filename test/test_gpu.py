@@ -196,6 +196,14 @@ def test_upload_buffer_round_trips_and_waits_before_it_is_written_again(gpu):
     assert all(a is b for a, b in zip(first, second))  # one device buffer, overwritten
     assert int(to_host(second[0]).min()) == 9 and second[0].shape == (64, 64)
     np.testing.assert_array_equal(to_host(second[1]), np.arange(64))
+    image, _ = buffer.writable()
+    image[...] = 11
+    buffer.send_ahead(1)  # the image goes up now, on the copy stream
+    _, shifts = buffer.writable()
+    shifts[...] = -np.arange(64)
+    third = buffer.upload()
+    assert int(to_host(third[0]).min()) == int(to_host(third[0]).max()) == 11
+    np.testing.assert_array_equal(to_host(third[1]), -np.arange(64))
 
 
 def test_run_stream_on_the_gpu_gives_what_run_gives(demo_sample):
