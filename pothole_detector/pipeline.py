@@ -160,9 +160,9 @@ class Pipeline:
                    ) -> Iterator[PipelineResult | PotholeError]:
         """:meth:`run` over a sequence of pairs: yields, in order, each pair's result or the
         error it raised (the stream goes on after an error). On the GPU the host checks and
-        converts pair N + 1 into page-locked memory while the device works on pair N (two
-        buffers per image size, used in turn), and pair N + 1 goes up in one asynchronous copy
-        instead of the driver's staging of pageable memory."""
+        converts pair N + 1 into page-locked memory and sends its images up on a copy stream
+        while the device works on pair N (two buffers for the current image size, used in
+        turn), instead of the driver's staging of pageable memory at the frame's start."""
         if not self.backend.is_gpu:
             for left, right in pairs:
                 try:
@@ -198,7 +198,8 @@ class Pipeline:
             yield outcome
 
     def _stage(self, pair: tuple[np.ndarray, np.ndarray]) -> UploadBuffer | PotholeError:
-        """Pair checked and converted to grey into the next upload buffer of its size."""
+        """Pair checked and converted to grey into the next upload buffer of its size (a new
+        size replaces the buffers of the old one), its images sent ahead."""
         try:
             left_gray, right_gray = _validate_pair(*pair)
         except PotholeError as exc:
