@@ -64,8 +64,8 @@ class Backend:
         if not self.is_gpu:
             return arrays
         sizes = [a.nbytes for a in arrays]
-        offsets = np.concatenate([[0], np.cumsum([-(-n // 16) * 16 for n in sizes])])
-        device = self.xp.empty(int(offsets[-1]), dtype=np.uint8)
+        offsets = _packed_offsets(sizes)
+        device = self.xp.empty(offsets[-1], dtype=np.uint8)
         stream = self.xp.cuda.get_current_stream()
         for array, start, size in zip(arrays, offsets, sizes):
             device[start:start + size].set(
@@ -145,10 +145,8 @@ class UploadBuffer:
                  layout: Sequence[tuple[tuple[int, ...], np.dtype | type]]) -> None:
         self._gpu = backend.is_gpu
         self._layout = [(tuple(shape), np.dtype(dtype)) for shape, dtype in layout]
-        sizes = [math.prod(shape) * dtype.itemsize for shape, dtype in self._layout]
-        self._offsets = [0]
-        for size in sizes:
-            self._offsets.append(self._offsets[-1] + -(-size // 16) * 16)
+        self._offsets = _packed_offsets(
+            [math.prod(shape) * dtype.itemsize for shape, dtype in self._layout])
         total = self._offsets[-1]
         if self._gpu:
             assert _cupy is not None
@@ -208,6 +206,15 @@ class UploadBuffer:
             self._sent = _cupy.cuda.Event(disable_timing=True)
         self._sent.record(stream)
         return self._device_views
+
+
+def _packed_offsets(sizes: Sequence[int]) -> list[int]:
+    """Byte offsets of arrays of ``sizes`` bytes laid back to back, each starting on a 16-byte
+    boundary, and the total length last."""
+    offsets = [0]
+    for size in sizes:
+        offsets.append(offsets[-1] + -(-size // 16) * 16)
+    return offsets
 
 
 class StageClock:

@@ -17,6 +17,7 @@ from .stages import components, matching, measure, perspective, road_model, supe
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
 
+
 @dataclass
 class PipelineResult:
     """Everything one stereo pair produced. Arrays live on the pipeline's backend.

@@ -27,7 +27,7 @@ Disparities are float32 px, NaN where invalid.
 from __future__ import annotations
 
 from contextlib import contextmanager
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -225,11 +225,7 @@ def lanes_for(levels: int, lines: int = 0, resident_threads: int = 0) -> int:
     lanes = next((candidate for candidate in (32, 16, 8, 4)
                   if levels % candidate == 0 and levels // candidate in (4, 6, 8)), 0)
     if not lanes:
-        lanes = next((candidate for multiple_of_four in (True, False)
-                      for candidate in (4, 8, 16, 32)
-                      if levels % candidate == 0 and levels // candidate <= 8
-                      and (levels // candidate % 4 == 0 or not multiple_of_four)),
-                     32 if levels % 32 == 0 else 16)
+        lanes = _fewest_lanes(levels, lambda per_lane: per_lane <= 8 and per_lane % 4 == 0)
     while lanes < 32 and levels % (4 * lanes) == 0 \
             and lines * lanes < FILL_SHARE * resident_threads:
         lanes *= 2
@@ -242,13 +238,16 @@ def select_lanes_for(levels: int) -> int:
     fewest that leave at most 8; 32 (or 16) for longer ranges. Measured on the H200 at
     2079x1040: 96 levels, 8 lanes 0.27 ms, 16 lanes 0.36 ms, 32 lanes 0.57 ms; 64 levels, 8
     lanes 0.22 ms, 16 lanes 0.28 ms; 128 levels, 8 lanes 0.48 ms, 16 lanes 0.47 ms."""
-    for lanes in (4, 8, 16, 32):
-        per_lane = levels // lanes
-        if levels % lanes == 0 and per_lane % 4 == 0 and per_lane <= 12:
-            return lanes
-    for lanes in (4, 8, 16, 32):
-        if levels % lanes == 0 and levels // lanes <= 8:
-            return lanes
+    return _fewest_lanes(levels, lambda per_lane: per_lane <= 12 and per_lane % 4 == 0)
+
+
+def _fewest_lanes(levels: int, preferred: Callable[[int], bool]) -> int:
+    """The fewest of 4, 8, 16, 32 lanes dividing ``levels`` whose levels per lane pass
+    ``preferred``; else the fewest that leave at most 8 levels each; else 32 (or 16)."""
+    for rule in (preferred, lambda per_lane: per_lane <= 8):
+        for lanes in (4, 8, 16, 32):
+            if levels % lanes == 0 and rule(levels // lanes):
+                return lanes
     return 32 if levels % 32 == 0 else 16
 
 
