@@ -160,10 +160,12 @@ def main() -> None:
           f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores; median "
           f"over {args.frames} frames after 5 warm-up frames (same pair each frame, road model "
           "carried over as in a drive). Stage and total: CUDA events, ms; host: wall time of "
-          "Pipeline.run, ms; host busy: host less the wait for the frame's one readback (the "
-          "host's own work per frame), ms; period: wall time of the whole run per frame, ms; "
-          "stream: Pipeline.run_stream, the next pair staged in page-locked memory while the "
-          f"device works on this one. OpenCV SGBM 3WAY on {args.threads} threads, same "
+          "Pipeline.run (streamed: from the frame's start to its result, less the queueing of "
+          "the next frame), ms; host busy: host less the wait for the frame's one readback "
+          "(the host's own work per frame), ms; period: wall time of the whole run per frame, "
+          "ms; stream: Pipeline.run_stream, the next pair staged in page-locked memory while "
+          "the device works on this one and queued once this one's report is read back. "
+          f"OpenCV SGBM 3WAY on {args.threads} threads, same "
           "frame, no LR check.\n")
     print("| frame | range | levels | " + " | ".join(STAGES)
           + " | total GPU | host | host busy | period | pool MiB | OpenCV SGBM "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
@@ -28,8 +28,9 @@ class PipelineResult:
     matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU; there the
     threshold search runs beside SLIC on a second stream, and ``threshold`` times what is left
     of it after SLIC plus the selection, and ``readback`` the frame's one report copy),
-    ``total`` (their sum), ``host`` (wall time of the call) and ``host_wait`` (of it, the wait
-    for the GPU frame's one readback; 0 on the CPU).
+    ``total`` (their sum), ``host`` (wall time of the call; in a stream, from the frame's start
+    to its result less the time spent queueing the next frame) and ``host_wait`` (of it, the
+    wait for the GPU frame's one readback; 0 on the CPU).
     """
 
     disparity: Any
@@ -125,6 +126,39 @@ class _DeviceReport:
                 self.capacity + 1, measure.MEASURE_EXTREMES))
 
 
+@dataclass
+class _DeviceWork:
+    """The stages of a frame queued on the device: what its readback and result need
+    (``host`` and ``road`` once read back and checked; ``road`` early in the metric mode)."""
+
+    report: _DeviceReport
+    valid: Any
+    transformed: Any
+    n_sp: int
+    sp_labels: Any
+    candidate: Any
+    labels: Any
+    road: road_model.RoadModel | None
+    host: _HostReport | None = None
+    wait_ms: float = 0.0
+
+
+@dataclass
+class _Queued:
+    """A matched frame: its detection done (CPU, ``found``) or queued on the device
+    (``device``)."""
+
+    disparity: Any
+    kappa: np.ndarray
+    levels: int
+    seeded: bool
+    started: float
+    clock: StageClock
+    found: _Detection | None = None
+    device: _DeviceWork | None = None
+    lent_ms: float = 0.0  # of its host time, ms spent queueing the next frame
+
+
 class Pipeline:
     """Stereo pair in, potholes out.
 
@@ -155,48 +189,40 @@ class Pipeline:
         that raise run on that report, after the stages have been queued."""
         started = time.perf_counter()
         left_gray, right_gray = _validate_pair(left, right)
-        return self._run(left_gray, right_gray, None, started, None)
+        return self._run(left_gray, right_gray, None, started)
 
     def run_stream(self, pairs: Iterable[tuple[np.ndarray, np.ndarray]]
                    ) -> Iterator[PipelineResult | PotholeError]:
         """:meth:`run` over a sequence of pairs: yields, in order, each pair's result or the
-        error it raised (the stream goes on after an error). On the GPU the host checks and
-        converts pair N + 1 into page-locked memory and sends its images up on a copy stream
-        while the device works on pair N (two buffers for the current image size, used in
-        turn), instead of the driver's staging of pageable memory at the frame's start."""
-        if not self.backend.is_gpu:
-            for left, right in pairs:
-                try:
-                    yield self.run(left, right)
-                except PotholeError as exc:
-                    yield exc
-            return
+        error it raised (the stream goes on after an error), the same results as :meth:`run`
+        pair after pair. On the GPU two frames are in flight: while the device works on pair
+        N the host checks and converts pair N + 1 into page-locked memory and sends its images
+        up on a copy stream (two buffers for the current image size, used in turn); once pair
+        N's report is read back and checked, pair N + 1 (whose band needs N's road model) is
+        queued before N's result is built, so the device does not wait for the host between
+        frames. The CPU backend runs the same sequence, each frame whole when it is queued."""
         iterator = iter(pairs)
-        following = next(iterator, None)
-        staged = self._stage(following) if following is not None else None
-        while following is not None:
-            started = time.perf_counter()
-            current = staged
-            following = next(iterator, None)
-            ahead: list[UploadBuffer | PotholeError] = []
-
-            def stage_following() -> None:
-                if following is not None and not ahead:
-                    ahead.append(self._stage(following))
-
-            if isinstance(current, PotholeError):
-                outcome: PipelineResult | PotholeError = current
-            else:
-                assert current is not None
-                left_gray, right_gray, _ = current.writable()
+        pair = next(iterator, None)
+        queued = self._queue_staged(self._stage(pair)) if pair is not None else None
+        while queued is not None:
+            pair = next(iterator, None)
+            staged = self._stage(pair) if pair is not None else None
+            outcome: _Queued | PipelineResult | PotholeError = queued
+            if isinstance(queued, _Queued):
                 try:
-                    outcome = self._run(left_gray, right_gray, current, started,
-                                        stage_following)
+                    self._read_back(queued)
                 except PotholeError as exc:
                     outcome = exc
-            stage_following()
-            staged = ahead[0] if ahead else None
+            queueing = time.perf_counter()
+            following = self._queue_staged(staged) if staged is not None else None
+            if isinstance(outcome, _Queued):
+                outcome.lent_ms = (time.perf_counter() - queueing) * 1e3
+                try:
+                    outcome = self._finish(outcome)
+                except PotholeError as exc:
+                    outcome = exc
             yield outcome
+            queued = following
 
     def _stage(self, pair: tuple[np.ndarray, np.ndarray]) -> UploadBuffer | PotholeError:
         """Pair checked and converted to grey into the next upload buffer of its size (a new
@@ -220,29 +246,45 @@ class Pipeline:
         buffer.send_ahead(2)  # the images now; kappa waits for this frame's road model
         return buffer
 
+    def _queue_staged(self, staged: UploadBuffer | PotholeError) -> _Queued | PotholeError:
+        """The pair in upload buffer ``staged`` queued (see :meth:`_queue`), or the error it
+        raised."""
+        if isinstance(staged, PotholeError):
+            return staged
+        started = time.perf_counter()
+        left_gray, right_gray, _ = staged.writable()
+        try:
+            return self._queue(left_gray, right_gray, staged, started)
+        except PotholeError as exc:
+            return exc
+
     def _run(self, left_gray: np.ndarray, right_gray: np.ndarray, staged: UploadBuffer | None,
-             started: float, while_waiting: Callable[[], None] | None) -> PipelineResult:
+             started: float) -> PipelineResult:
         """run() on a checked grey pair; ``staged``: the upload buffer holding it (else the
-        pair is copied from where it is); ``while_waiting`` runs while the device finishes
-        the frame, before its one readback (GPU)."""
-        backend = self.backend
-        clock = StageClock(backend)
-        seeded = self._road is None or not self.config.gpt_enabled
-        disparity, kappa, levels = self._match(left_gray, right_gray, clock, staged)
-        if backend.is_gpu:
-            found = self._detect_on_device(disparity, clock, while_waiting)
-        else:
-            found = self._detect_on_host(disparity, clock)
-        timings = clock.timings()
+        pair is copied from where it is)."""
+        queued = self._queue(left_gray, right_gray, staged, started)
+        self._read_back(queued)
+        return self._finish(queued)
+
+    def _seeding(self) -> bool:
+        """Whether the next frame runs the seed pass (no road model yet, or GPT off)."""
+        return self._road is None or not self.config.gpt_enabled
+
+    def _finish(self, queued: _Queued) -> PipelineResult:
+        """The result of a frame that :meth:`_read_back` has read back and checked."""
+        found = queued.found if queued.found is not None else self._device_detection(queued)
+        timings = queued.clock.timings()
         timings["total"] = sum(timings.values())
-        timings["host"] = (time.perf_counter() - started) * 1e3
+        timings["host"] = (time.perf_counter() - queued.started) * 1e3 - queued.lent_ms
         timings["host_wait"] = found.wait_ms
+        kappa, levels = queued.kappa, queued.levels
         return PipelineResult(
-            disparity=disparity, transformed=found.transformed, labels=found.labels,
+            disparity=queued.disparity, transformed=found.transformed, labels=found.labels,
             superpixels=found.superpixels, road=found.road, threshold_px=found.threshold_px,
             band=(int(kappa.min()), int(levels)),
             disparity_range=(float(kappa.min()), float(kappa.max()) + levels - 1),
-            potholes=found.potholes, backend=backend.name, seeded=seeded, timings_ms=timings,
+            potholes=found.potholes, backend=self.backend.name, seeded=queued.seeded,
+            timings_ms=timings,
         )
 
     def _detect_on_host(self, disparity: Any, clock: StageClock) -> _Detection:
@@ -270,10 +312,23 @@ class Pipeline:
             labels, potholes = self._measure_exact(labels, count, disparity, road)
         return _Detection(transformed, labels, sp_labels, road, reference, potholes)
 
-    def _detect_on_device(self, disparity: Any, clock: StageClock,
-                          while_waiting: Callable[[], None] | None = None) -> _Detection:
-        """The stages after matching queued on the device with nothing read back but one report
-        at the end (see :class:`_DeviceReport`); the checks run on that report."""
+    def _queue(self, left_gray: np.ndarray, right_gray: np.ndarray,
+               staged: UploadBuffer | None, started: float) -> _Queued:
+        """Match the pair, then detect on the host (CPU) or queue the stages after matching on
+        the device (GPU)."""
+        clock = StageClock(self.backend)
+        seeded = self._seeding()
+        disparity, kappa, levels = self._match(left_gray, right_gray, clock, staged)
+        queued = _Queued(disparity, kappa, levels, seeded, started, clock)
+        if self.backend.is_gpu:
+            queued.device = self._queue_on_device(disparity, clock)
+        else:
+            queued.found = self._detect_on_host(disparity, clock)
+        return queued
+
+    def _queue_on_device(self, disparity: Any, clock: StageClock) -> _DeviceWork:
+        """The stages after matching queued on the device with nothing read back (see
+        :class:`_DeviceReport`; the metric threshold mode reads the road model early)."""
         config, backend = self.config, self.backend
         xp = backend.xp
         n_sp = superpixels.grid_count(disparity.shape, config.slic_region_size_px,
@@ -321,29 +376,44 @@ class Pipeline:
             labels = measure.area_filter_on_device(
                 backend, labels, report.sums, report.counts[1:2], report.capacity,
                 config.min_pothole_area_m2, report.counts[3:4])
-        if while_waiting is not None:
-            while_waiting()
-        with clock.stage("readback"):
+        return _DeviceWork(report, valid, transformed, n_sp, sp_labels, candidate, labels, road)
+
+    def _read_back(self, queued: _Queued) -> None:
+        """A GPU frame's one readback and the checks on it, which raise; the road model they
+        accept gives the next frame its band (the CPU checked its frames when detecting)."""
+        work = queued.device
+        if work is None:
+            return
+        with queued.clock.stage("readback"):
             waiting = time.perf_counter()
-            host = report.read()
-            wait_ms = (time.perf_counter() - waiting) * 1e3
-        if road is None:
-            road = self._checked_road(host.header, disparity.size)
+            work.host = work.report.read()
+            work.wait_ms = (time.perf_counter() - waiting) * 1e3
+        if work.road is None:
+            work.road = self._checked_road(work.host.header, queued.disparity.size)
+
+    def _device_detection(self, queued: _Queued) -> _Detection:
+        """The detection of a GPU frame from its report, read back and checked."""
+        config, work = self.config, queued.device
+        assert work is not None and work.host is not None and work.road is not None
+        host, road = work.host, work.road
         t_r, road_mean = thresholding.split_from_result(host.threshold, config.histogram_bin_px,
                                                         config.delta_dt_px)
         reference = road_mean if config.threshold_reference == "road_mean" else t_r
+        labels = work.labels
         if host.overflow:
             # more components than the report holds: filter and measure again with exact sizes
             labels, count = components.pothole_components(
-                backend, candidate, valid, sp_labels, n_sp, config.corner_fraction,
-                config.min_pothole_superpixels, factor=config.slic_downsample)
-            labels, potholes = self._measure_exact(labels, count, disparity, road)
+                self.backend, work.candidate, work.valid, work.sp_labels, work.n_sp,
+                config.corner_fraction, config.min_pothole_superpixels,
+                factor=config.slic_downsample)
+            labels, potholes = self._measure_exact(labels, count, queued.disparity, road)
         else:
             potholes, _ = measure.keep_large(
                 measure.potholes_from_sums(host.sums[1:host.components_kept + 1],
                                            host.extremes[1:host.components_kept + 1]),
                 config.min_pothole_area_m2)
-        return _Detection(transformed, labels, sp_labels, road, reference, potholes, wait_ms)
+        return _Detection(work.transformed, labels, work.sp_labels, road, reference, potholes,
+                          work.wait_ms)
 
     def _check_valid(self, valid_fraction: float) -> None:
         if valid_fraction < self.config.min_valid_fraction:

@@ -3,9 +3,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.errors import InputError, NoRoadError, NoTextureError
+from pothole_detector.backend import get_backend, gpu_available, to_host
+from pothole_detector.errors import InputError, NoRoadError, NoTextureError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline, metric_tolerance_px
+from pothole_detector.synthetic import drive_scenes, render
+
+BACKENDS = ["cpu", pytest.param("gpu", marks=[
+    pytest.mark.gpu,
+    pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")])]
 
 
 def detection_coverage(result, sample):
@@ -75,6 +81,42 @@ def test_run_stream_yields_each_result_or_error_in_order_and_goes_on(demo_sample
     np.testing.assert_array_equal(first.disparity, single.disparity)
     assert len(first.potholes) == len(last.potholes) == len(single.potholes)
     assert list(pipeline.run_stream([])) == []
+
+
+@pytest.mark.parametrize("backend_name", BACKENDS)
+def test_run_stream_gives_what_run_gives_frame_by_frame(backend_name):
+    """Distinct frames of a drive, a blank pair (refused: the next frame seeds again) and a
+    bad pair: every outcome of the stream equals run()'s, the results read only after the whole
+    stream ran (on the GPU the next frame is queued before a frame's result is built)."""
+    samples = [render(scene) for scene in drive_scenes(3, 640, 360, speed_mps=1.5)]
+    blank = np.full_like(samples[0].left, 128)
+    pairs = [(sample.left, sample.right) for sample in samples]
+    pairs[2:2] = [(blank, blank)]
+    pairs.append((samples[0].left, samples[0].right[:, :-2]))
+    backend = get_backend(backend_name)
+    one_by_one = Pipeline(Config(), samples[0].calibration, backend)
+    expected: list = []
+    for left, right in pairs:
+        try:
+            expected.append(one_by_one.run(left, right))
+        except PotholeError as exc:
+            expected.append(exc)
+    streamed = list(Pipeline(Config(), samples[0].calibration, backend).run_stream(iter(pairs)))
+    assert [type(outcome) for outcome in streamed] == [type(outcome) for outcome in expected]
+    assert isinstance(expected[2], NoTextureError) and isinstance(expected[-1], InputError)
+    results = [outcome for outcome in streamed if not isinstance(outcome, PotholeError)]
+    assert [result.seeded for result in results] == [True, False, True]
+    assert not np.array_equal(to_host(expected[0].labels), to_host(expected[1].labels))
+    for got, want in zip(streamed, expected):
+        if isinstance(want, PotholeError):
+            assert str(got) == str(want)
+            continue
+        for name in ("disparity", "transformed", "labels"):
+            np.testing.assert_array_equal(to_host(getattr(got, name)),
+                                          to_host(getattr(want, name)))
+        assert got.band == want.band and got.threshold_px == want.threshold_px
+        assert [p.area_m2 for p in got.potholes] == [p.area_m2 for p in want.potholes]
+        assert got.potholes
 
 
 @pytest.mark.parametrize("matcher", ["opencv", "census"])
