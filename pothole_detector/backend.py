@@ -118,7 +118,7 @@ class Backend:
         main = _cupy.cuda.get_current_stream()
         started = _cupy.cuda.Event(disable_timing=True)
         started.record(main)
-        side = _side_stream(_cupy.cuda.Device().id)
+        side = _stream(_cupy.cuda.Device().id, "side")
         side.wait_event(started)
         finished = _cupy.cuda.Event(disable_timing=True)
         try:
@@ -181,7 +181,7 @@ class UploadBuffer:
             return
         assert _cupy is not None
         end = self._offsets[count]
-        stream = _copy_stream(_cupy.cuda.Device().id)
+        stream = _stream(_cupy.cuda.Device().id, "copy")
         self._device[:end].set(self._host[:end], stream=stream)
         if self._ahead is None:
             self._ahead = _cupy.cuda.Event(disable_timing=True)
@@ -330,13 +330,9 @@ def _multiprocessors(device: int) -> int:
 
 
 @lru_cache(maxsize=None)
-def _side_stream(device: int) -> Any:
-    assert _cupy is not None
-    return _cupy.cuda.Stream(non_blocking=True)
-
-
-@lru_cache(maxsize=None)
-def _copy_stream(device: int) -> Any:
+def _stream(device: int, role: str) -> Any:
+    """The device's one extra stream for ``role`` ("side": Backend.side_stream, "copy":
+    UploadBuffer.send_ahead)."""
     assert _cupy is not None
     return _cupy.cuda.Stream(non_blocking=True)
 

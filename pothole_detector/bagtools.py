@@ -6,7 +6,6 @@ import functools
 import importlib
 import itertools
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
@@ -425,22 +424,12 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             # one pipeline per run of frames with the same calibration; within a run the host
             # prepares the next pair while the device works (Pipeline.run_stream)
             for calibration, run in itertools.groupby(prepared(), lambda f: f.calibration):
-                pipeline = Pipeline(config, calibration, backend)
-                queued: deque[_BagFrame] = deque()
-
-                def pairs(run: Iterator[_BagFrame] = run, queued: deque[_BagFrame] = queued
-                          ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-                    for frame in run:
-                        queued.append(frame)
-                        yield frame.left, frame.right
-
-                outcomes = pipeline.run_stream(pairs())
-                while True:
+                frames, streamed = itertools.tee(run)
+                outcomes = Pipeline(config, calibration, backend).run_stream(
+                    (frame.left, frame.right) for frame in streamed)
+                for frame in frames:
                     started = time.perf_counter()
-                    outcome = next(outcomes, None)
-                    if outcome is None:
-                        break
-                    frame = queued.popleft()
+                    outcome = next(outcomes)
                     stamp, header, left_px = frame.stamp, frame.header, frame.left
                     if isinstance(outcome, PotholeError):
                         summary.failed += 1

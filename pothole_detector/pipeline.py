@@ -189,7 +189,9 @@ class Pipeline:
         that raise run on that report, after the stages have been queued."""
         started = time.perf_counter()
         left_gray, right_gray = _validate_pair(left, right)
-        return self._run(left_gray, right_gray, None, started)
+        queued = self._queue(left_gray, right_gray, None, started)
+        self._read_back(queued)
+        return self._finish(queued)
 
     def run_stream(self, pairs: Iterable[tuple[np.ndarray, np.ndarray]]
                    ) -> Iterator[PipelineResult | PotholeError]:
@@ -258,18 +260,6 @@ class Pipeline:
         except PotholeError as exc:
             return exc
 
-    def _run(self, left_gray: np.ndarray, right_gray: np.ndarray, staged: UploadBuffer | None,
-             started: float) -> PipelineResult:
-        """run() on a checked grey pair; ``staged``: the upload buffer holding it (else the
-        pair is copied from where it is)."""
-        queued = self._queue(left_gray, right_gray, staged, started)
-        self._read_back(queued)
-        return self._finish(queued)
-
-    def _seeding(self) -> bool:
-        """Whether the next frame runs the seed pass (no road model yet, or GPT off)."""
-        return self._road is None or not self.config.gpt_enabled
-
     def _finish(self, queued: _Queued) -> PipelineResult:
         """The result of a frame that :meth:`_read_back` has read back and checked."""
         found = queued.found if queued.found is not None else self._device_detection(queued)
@@ -315,9 +305,10 @@ class Pipeline:
     def _queue(self, left_gray: np.ndarray, right_gray: np.ndarray,
                staged: UploadBuffer | None, started: float) -> _Queued:
         """Match the pair, then detect on the host (CPU) or queue the stages after matching on
-        the device (GPU)."""
+        the device (GPU); ``staged``: the upload buffer holding the pair (else it is copied from
+        where it is)."""
         clock = StageClock(self.backend)
-        seeded = self._seeding()
+        seeded = self._road is None or not self.config.gpt_enabled
         disparity, kappa, levels = self._match(left_gray, right_gray, clock, staged)
         queued = _Queued(disparity, kappa, levels, seeded, started, clock)
         if self.backend.is_gpu:
