@@ -10,6 +10,7 @@ the frame needs without GPT. Prints a Markdown table for docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import platform
 import sys
@@ -33,7 +34,8 @@ from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E4
 from pothole_detector.stages.perspective import round_up_levels  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
 
-STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure", "readback")
+STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure", "graph",
+          "readback")
 
 
 def frames(data: Path | None, real_count: int):
@@ -57,6 +59,7 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
     frame at a time or (``stream``) by Pipeline.run_stream (the next pair staged in
     page-locked memory while the device works); ``period``: wall ms per frame."""
     backend = get_backend("gpu")
+    gc.collect()  # earlier pipelines and their graphs' memory
     backend.release_memory()
     pipeline = Pipeline(config, calibration, backend)
     for _ in range(5):
@@ -164,8 +167,10 @@ def main() -> None:
           "the next frame), ms; host busy: host less the wait for the frame's one readback "
           "(the host's own work per frame), ms; period: wall time of the whole run per frame, "
           "ms; stream: Pipeline.run_stream, the next pair staged in page-locked memory while "
-          "the device works on this one and queued once this one's report is read back. "
-          f"OpenCV SGBM 3WAY on {args.threads} threads, same "
+          "the device works on this one and queued once this one's report is read back; "
+          "graph: SGM to measure replayed as one CUDA graph (the stage column graph; no "
+          "graph: every stage timed on its own). SGBM / our SGM: against the no-graph sgm "
+          f"stage. OpenCV SGBM 3WAY on {args.threads} threads, same "
           "frame, no LR check.\n")
     print("| frame | range | levels | " + " | ".join(STAGES)
           + " | total GPU | host | host busy | period | pool MiB | OpenCV SGBM "
@@ -173,20 +178,26 @@ def main() -> None:
     print("| --- |" + " --- |" * (len(STAGES) + 10))
     data = args.data if args.data.is_dir() else None
     kernel_lines: list[str] = []
+    staged = Config({"cuda_graph": False})
     for name, left, right, calibration in frames(data, args.real):
+        stages = measure(staged, calibration, left, right, args.frames)
+        stages_streamed = measure(staged, calibration, left, right, args.frames, stream=True)
         band = measure(Config(), calibration, left, right, args.frames)
         streamed = measure(Config(), calibration, left, right, args.frames, stream=True)
         full_levels = round_up_levels(band["range_hi"] + 1)
         full_config = Config({"gpt_enabled": False, "max_disparity_px": full_levels})
         full = measure(full_config, calibration, left, right, args.frames)
         sgbm = opencv_ms(left, right, full_levels, args.threads)
-        for label, row in (("GPT band", band), ("GPT band, stream", streamed), ("full", full)):
+        for label, row in (("GPT band, no graph", stages),
+                           ("GPT band, no graph, stream", stages_streamed),
+                           ("GPT band, graph", band), ("GPT band, graph, stream", streamed),
+                           ("full, graph", full)):
             print(f"| {name} | {label} | {row['levels']} | "
                   + " | ".join(f"{row.get(s, 0.0):.3f}" for s in STAGES)
                   + f" | {row['total']:.3f} | {row['host']:.2f} | {row['host_busy']:.2f} | "
                   + f"{row['period']:.2f} | "
                   + f"{row['memory_mib']:.0f} | "
-                  + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / row['sgm']:.0f}x | "
+                  + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / stages['sgm']:.0f}x | "
                   + f"{sgbm / row['total']:.0f}x |", flush=True)
         if args.sgm_kernels:
             kernel_lines.append(f"- {name}: {sgm_kernels(left, right, calibration, args.frames)}")

@@ -11,12 +11,13 @@ import logging
 import math
 import re
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Generic, Iterator, Sequence, TypeVar
+from weakref import WeakSet
 
 import numpy as np
 import scipy.ndimage
@@ -31,6 +32,7 @@ except Exception:  # noqa: BLE001 - any import failure means "no GPU backend"
     _cupy_ndimage = None
 
 _log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 BACKEND_CHOICES = ("auto", "cpu", "gpu")
 KERNEL_DIR = Path(__file__).resolve().parent / "kernels"
 _INCLUDE = re.compile(r'^#include "([A-Za-z0-9_]+\.cuh)"$', re.MULTILINE)
@@ -95,15 +97,59 @@ class Backend:
         return _resident_threads(_cupy.cuda.Device().id)
 
     def memory_bytes(self) -> int:
-        """Device memory held by the backend's allocator (bytes; 0 on the CPU backend)."""
+        """Device memory held by the backend's allocator and by the live GraphMemory pools
+        (bytes; 0 on the CPU backend)."""
         if not self.is_gpu:
             return 0
-        return int(self.xp.get_default_memory_pool().total_bytes())
+        return int(self.xp.get_default_memory_pool().total_bytes()) \
+            + sum(memory.total_bytes() for memory in _GRAPH_MEMORIES)
 
     def release_memory(self) -> None:
-        """Give the allocator's unused device blocks back to the driver (no-op on the CPU)."""
+        """Give the allocator's unused device blocks back to the driver (no-op on the CPU).
+        GraphMemory pools keep theirs: their graphs replay into them."""
         if self.is_gpu:
             self.xp.get_default_memory_pool().free_all_blocks()
+
+    def copy_into(self, target: Any, source: Any) -> None:
+        """Copy ``source`` (a host array or a backend array) into the contiguous backend array
+        ``target`` of the same shape and dtype; on the GPU queued on the current stream (one
+        transfer)."""
+        if target.shape != source.shape or target.dtype != source.dtype:
+            raise BackendError(f"cannot copy {source.dtype} {source.shape} into "
+                               f"{target.dtype} {target.shape}")
+        if not self.is_gpu:
+            np.copyto(target, source)
+            return
+        assert _cupy is not None
+        stream = _cupy.cuda.get_current_stream()
+        if isinstance(source, np.ndarray):
+            target.set(np.ascontiguousarray(source), stream=stream)
+        else:
+            target.data.copy_from_device_async(_cupy.ascontiguousarray(source).data,
+                                               source.nbytes, stream=stream)
+
+    def capture(self, body: Callable[[], _T], memory: GraphMemory) -> CapturedGraph[_T]:
+        """The device work ``body`` queues, captured as a CUDA graph and not run (GPU backend
+        only): :meth:`CapturedGraph.launch` replays it on the current stream. ``body`` queues
+        on the current stream (and on side streams joined back to it) and must not read back,
+        upload from host memory or wait for the device; every array it allocates comes from
+        ``memory``, and what it returns stays alive with the graph (a replay writes into those
+        arrays again). Kernels it launches should have been built before (run the work once
+        without capture first)."""
+        if not self.is_gpu:
+            raise BackendError("graph capture needs the gpu backend")
+        assert _cupy is not None
+        stream = _stream(_cupy.cuda.Device().id, "capture")
+        with _cupy.cuda.using_allocator(memory.allocate), stream:
+            stream.begin_capture()
+            try:
+                outputs = body()
+            except BaseException:
+                with suppress(Exception):  # the body's error says more than the end's
+                    stream.end_capture()
+                raise
+            graph = stream.end_capture()
+        return CapturedGraph(graph, outputs, memory)
 
     @contextmanager
     def side_stream(self) -> Iterator[Callable[[], None]]:
@@ -131,6 +177,43 @@ class Backend:
         """Wait for queued device work (no-op on the CPU backend), e.g. before reading a clock."""
         if self.is_gpu:
             self.xp.cuda.get_current_stream().synchronize()
+
+
+class GraphMemory:
+    """Device memory for captured graphs (GPU backend): a memory pool of its own that only
+    :meth:`Backend.capture` allocates from, so nothing outside a graph is ever handed memory a
+    graph replays into. Graphs captured into one GraphMemory may share the memory each freed
+    during its capture, so they must never run at the same time (replay them on one stream)."""
+
+    def __init__(self) -> None:
+        assert _cupy is not None
+        self._pool = _cupy.cuda.MemoryPool()
+        _GRAPH_MEMORIES.add(self)
+
+    def allocate(self, nbytes: int) -> Any:
+        return self._pool.malloc(nbytes)
+
+    def total_bytes(self) -> int:
+        """Device memory the pool holds (bytes)."""
+        return int(self._pool.total_bytes())
+
+
+_GRAPH_MEMORIES: WeakSet[GraphMemory] = WeakSet()
+
+
+@dataclass
+class CapturedGraph(Generic[_T]):
+    """A CUDA graph from :meth:`Backend.capture` and what its body returned (``outputs``: the
+    arrays every replay writes into), kept alive together with the memory they came from."""
+
+    graph: Any
+    outputs: _T
+    memory: GraphMemory
+
+    def launch(self) -> None:
+        """Queue one replay of the graph on the current stream."""
+        assert _cupy is not None
+        self.graph.launch(stream=_cupy.cuda.get_current_stream())
 
 
 class UploadBuffer:
@@ -219,16 +302,20 @@ def _packed_offsets(sizes: Sequence[int]) -> list[int]:
 
 class StageClock:
     """Per-stage times of one frame: CUDA events on the GPU (no synchronization until
-    :meth:`timings`), wall clock on the CPU."""
+    :meth:`timings`), wall clock on the CPU; with ``timed`` False it records nothing (work
+    being captured into a graph cannot be timed)."""
 
-    def __init__(self, backend: Backend) -> None:
+    def __init__(self, backend: Backend, timed: bool = True) -> None:
         self._gpu = backend.is_gpu
+        self._timed = timed
         self._marks: list[tuple[str, Any, Any]] = []
         self._read: dict[str, float] = {}
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        if self._gpu:
+        if not self._timed:
+            yield
+        elif self._gpu:
             start = _timing_event()
             start.record()
             try:
@@ -332,7 +419,7 @@ def _multiprocessors(device: int) -> int:
 @lru_cache(maxsize=None)
 def _stream(device: int, role: str) -> Any:
     """The device's one extra stream for ``role`` ("side": Backend.side_stream, "copy":
-    UploadBuffer.send_ahead)."""
+    UploadBuffer.send_ahead, "capture": Backend.capture)."""
     assert _cupy is not None
     return _cupy.cuda.Stream(non_blocking=True)
 

@@ -5,18 +5,21 @@ Run on a machine with CUDA and CuPy: ``pytest test/test_gpu.py``.
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 
 from pothole_detector.backend import (CPU, StageClock, UploadBuffer, get_backend, gpu_available,
                                       to_host)
-from pothole_detector.errors import InputError
+from pothole_detector.errors import InputError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import census_sgm, components, measure, superpixels, threshold
 from pothole_detector.stages.matching import to_gray8
 from pothole_detector.stages.road_model import fit_road
 from pothole_detector.stages.transform import transform_disparity
+from pothole_detector.synthetic import drive_scenes, render
 
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")]
@@ -41,7 +44,7 @@ def run_both(gpu, left, right, kappa, levels, uniqueness=5, lr=1, median=True,
     matcher = census_sgm.GpuMatcher(gpu, fill_device)
     device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa.astype(np.int32)),
                      levels, P1, P2, uniqueness, lr, median)
-    buffers = matcher._buffers[(left.shape[0], left.shape[1], levels)]
+    buffers = matcher.buffers(left.shape[0], left.shape[1], levels)
     return matcher, buffers, to_host(device)
 
 
@@ -70,7 +73,9 @@ def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, leve
     census_left = census_sgm.census_transform(left)
     census_right = census_sgm.census_transform(right)
     np.testing.assert_array_equal(to_host(buffers["census"][0]), census_left)
-    np.testing.assert_array_equal(to_host(buffers["census"][1]), census_right)
+    # the right census words went into the path costs checked below; the winner search then
+    # wrote over them
+    assert buffers["raw"].data.ptr == buffers["census"][1].data.ptr
     cost = census_sgm.matching_cost(census_left, census_right, kappa, levels)
     paths = census_sgm.aggregate(cost, P1, P2)
     pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
@@ -96,7 +101,7 @@ def test_largest_penalty_fits_the_byte_pairs(gpu):
     expected = census_sgm.reference_disparity(left, right, kappa, 32, 0, census_sgm.MAX_P2, 0,
                                               -1, False)
     np.testing.assert_array_equal(to_host(device), expected)
-    assert int(to_host(matcher._buffers[(20, 48, 32)]["paths"]).max()) > 160
+    assert int(to_host(matcher.buffers(20, 48, 32)["paths"]).max()) > 160
 
 
 @pytest.mark.parametrize("uniqueness,lr,median", [(0, -1, False), (30, 0, True), (100, 3, True)])
@@ -119,14 +124,28 @@ def test_textureless_pair_gives_the_same_ties_on_both(gpu):
     assert not np.isfinite(expected).any()
 
 
-def test_buffers_are_reused_across_frames(gpu):
+def test_buffers_are_reused_across_frames_and_level_counts(gpu):
     left, right = random_pair(24, 64, 9, seed=3)
     kappa = np.zeros(24, np.int32)
-    matcher, buffers, first = run_both(gpu, left, right, kappa, 16)
-    again = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), 16, P1, P2, 5, 1,
-                    True)
-    assert matcher._buffers[(24, 64, 16)]["paths"] is buffers["paths"]
-    np.testing.assert_array_equal(to_host(again), first)
+    matcher, buffers, first = run_both(gpu, left, right, kappa, 32)
+    generation = matcher.generation
+
+    def match(levels):
+        return to_host(matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels,
+                               P1, P2, 5, 1, True))
+
+    np.testing.assert_array_equal(match(32), first)
+    fewer = match(16)
+    np.testing.assert_array_equal(
+        fewer, census_sgm.reference_disparity(left, right, kappa, 16, P1, P2, 5, 1, True))
+    for levels in (32, 16):
+        assert matcher.buffers(24, 64, levels)["paths"].data.ptr == buffers["paths"].data.ptr
+    assert matcher.generation == generation
+    more = match(48)  # the volume grows: new buffers, a new generation
+    assert matcher.generation == generation + 1
+    np.testing.assert_array_equal(
+        more, census_sgm.reference_disparity(left, right, kappa, 48, P1, P2, 5, 1, True))
+    np.testing.assert_array_equal(match(32), first)
 
 
 def test_matcher_kernel_clock_times_each_kernel_and_changes_nothing(gpu):
@@ -666,3 +685,121 @@ def test_block_mean_and_upsample_kernels_match_the_reference(gpu, shape, factor)
     expected = superpixels.upsample_labels(np, small, factor, shape)
     found = superpixels.upsample_labels(gpu.xp, gpu.upload(small), factor, shape, gpu)
     np.testing.assert_array_equal(to_host(found), expected)
+
+
+# --- CUDA graphs of the frame -----------------------------------------------------------------
+
+
+def assert_same_results(got_all, want_all, graphed_at_least):
+    """Outcomes of one frame sequence with and without CUDA graphs: errors alike, results bit
+    for bit (pothole sums by float64 atomics: to rounding); ``graphed_at_least`` of them
+    replayed."""
+    assert [type(got) for got in got_all] == [type(want) for want in want_all]
+    replays = 0
+    for got, want in zip(got_all, want_all):
+        if isinstance(want, PotholeError):
+            assert str(got) == str(want)
+            continue
+        replays += "graph" in got.timings_ms
+        assert "graph" not in want.timings_ms
+        for name in ("disparity", "transformed", "labels", "superpixels"):
+            np.testing.assert_array_equal(to_host(getattr(got, name)),
+                                          to_host(getattr(want, name)), err_msg=name)
+        assert (got.band, got.threshold_px, got.seeded) == (want.band, want.threshold_px,
+                                                            want.seeded)
+        assert got.road == want.road
+        assert [(p.label, p.pixels, p.bbox_px) for p in got.potholes] == \
+            [(p.label, p.pixels, p.bbox_px) for p in want.potholes]
+        np.testing.assert_allclose([p.volume_m3 for p in got.potholes],
+                                   [p.volume_m3 for p in want.potholes], rtol=1e-9)
+    assert replays >= graphed_at_least
+
+
+def outcomes(pipeline, pairs, stream=False):
+    if stream:
+        return list(pipeline.run_stream(iter(pairs)))
+    found = []
+    for left, right in pairs:
+        try:
+            found.append(pipeline.run(left, right))
+        except PotholeError as exc:
+            found.append(exc)
+    return found
+
+
+def varying_band(pipeline, extra_levels):
+    """Make the pipeline's band alternate between its own level count and that plus
+    ``extra_levels`` frame by frame, as a road moving in the image would."""
+    band, calls = pipeline._band, []
+
+    def alternating(shape):
+        kappa, levels = band(shape)
+        calls.append(shape)
+        return kappa, levels + extra_levels * (len(calls) % 2)
+
+    pipeline._band = alternating
+
+
+@pytest.mark.parametrize("stream", [False, True])
+def test_cuda_graph_frames_equal_frames_without_graphs(stream):
+    """A drive with a blank (refused) pair: with graphs every outcome equals the one without,
+    every result read only after the whole run (a replay's arrays are copies)."""
+    samples = [render(scene) for scene in drive_scenes(7, 320, 192, speed_mps=1.0)]
+    pairs = [(sample.left, sample.right) for sample in samples]
+    blank = np.full_like(samples[0].left, 128)
+    pairs[5:5] = [(blank, blank)]
+    gpu = get_backend("gpu")
+    plain = Pipeline(Config({"cuda_graph": False, "matcher": "census"}),
+                     samples[0].calibration, gpu)
+    graphed = Pipeline(Config({"matcher": "census"}), samples[0].calibration, gpu)
+    want = outcomes(plain, pairs)
+    got = outcomes(graphed, pairs, stream)
+    # seed, first frame of the key, then replays; after the blank pair a seed again
+    assert_same_results(got, want, graphed_at_least=3)
+    assert len(graphed._graphs.keys()) == 1
+    assert sum(isinstance(outcome, PotholeError) for outcome in got) == 1
+
+
+def test_cuda_graphs_per_level_count_and_image_size():
+    """Bands alternating between two level counts get a graph each on one path volume; a new
+    image size drops them; every outcome equals the one without graphs."""
+    small = [render(scene) for scene in drive_scenes(7, 320, 192, speed_mps=1.0)]
+    other = [render(scene) for scene in drive_scenes(4, 288, 176, speed_mps=1.0)]
+    pairs = [(s.left, s.right) for s in small] + [(s.left, s.right) for s in other]
+    gpu = get_backend("gpu")
+    plain = Pipeline(Config({"cuda_graph": False, "matcher": "census"}), small[0].calibration,
+                     gpu)
+    graphed = Pipeline(Config({"matcher": "census"}), small[0].calibration, gpu)
+    for pipeline in (plain, graphed):
+        varying_band(pipeline, 16)
+    want = outcomes(plain, pairs)
+    got = outcomes(graphed, pairs[:7])
+    levels = {result.band[1] for result in got}
+    assert {key[2] for key in graphed._graphs.keys()} == levels and len(levels) == 2
+    got += outcomes(graphed, pairs[7:])
+    assert {key[:2] for key in graphed._graphs.keys()} == {(176, 288)}  # the old size's went
+    assert_same_results(got, want, graphed_at_least=4)
+
+
+def test_cuda_graph_overflow_fallback_and_memory(demo_sample, monkeypatch):
+    """Replays allocate nothing beyond their results; a replayed frame whose components
+    overflow the report measures them again, the same as without graphs."""
+    left, right = to_gray8(demo_sample.left), to_gray8(demo_sample.right)
+    gpu = get_backend("gpu")
+    config = Config({"matcher": "census", "gpt_enabled": False, "max_disparity_px": 64})
+    graphed = Pipeline(config, demo_sample.calibration, gpu)
+    for _ in range(3):
+        result = graphed.run(left, right)
+    gc.collect()  # earlier tests' pipelines (held by their errors' tracebacks) and graphs
+    held = gpu.memory_bytes()
+    for _ in range(5):
+        result = graphed.run(left, right)
+    assert gpu.memory_bytes() == held and "graph" in result.timings_ms
+    plain = Pipeline(Config({**config.as_dict(), "cuda_graph": False}), demo_sample.calibration,
+                     gpu)
+    expected = [plain.run(left, right) for _ in range(3)]
+    monkeypatch.setattr(components, "device_capacity", lambda n_superpixels: 1)
+    overflowing = Pipeline(config, demo_sample.calibration, gpu)
+    got = [overflowing.run(left, right) for _ in range(3)]
+    assert_same_results(got, expected, graphed_at_least=2)
+    assert len(got[2].potholes) >= 2

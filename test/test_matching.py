@@ -43,6 +43,18 @@ def test_to_gray8_accepts_mono16_rgb_rgba(image):
     assert gray.dtype == np.uint8 and gray.shape == (4, 5) and gray.max() == 255
 
 
+@pytest.mark.parametrize("channels,dtype", [(0, np.uint8), (0, np.uint16), (3, np.uint8),
+                                            (4, np.uint8), (3, np.uint16)])
+def test_to_gray8_into_a_given_array_gives_the_same_grey(channels, dtype):
+    rng = np.random.default_rng(channels)
+    shape = (7, 9, channels) if channels else (7, 9)
+    image = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    out = np.full((7, 9), 3, np.uint8)
+    assert to_gray8(image, out=out) is out
+    np.testing.assert_array_equal(out, to_gray8(image))
+    assert len(np.unique(out)) > 10
+
+
 def test_downsample_averages_blocks():
     image = np.arange(16, dtype=np.uint8).reshape(4, 4) * 10
     np.testing.assert_array_equal(downsample(np, image, 2), [[25, 45], [105, 125]])

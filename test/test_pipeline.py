@@ -6,7 +6,7 @@ import pytest
 from pothole_detector.backend import get_backend, gpu_available, to_host
 from pothole_detector.errors import InputError, NoRoadError, NoTextureError, PotholeError
 from pothole_detector.params import Config
-from pothole_detector.pipeline import Pipeline, metric_tolerance_px
+from pothole_detector.pipeline import Pipeline, _FrameGraphs, metric_tolerance_px
 from pothole_detector.synthetic import drive_scenes, render
 
 BACKENDS = ["cpu", pytest.param("gpu", marks=[
@@ -163,3 +163,35 @@ def test_device_report_views_share_one_buffer_and_read_back_whole():
     assert (host.components_kept, host.overflow) == (3, True)
     np.testing.assert_array_equal(host.sums, np.arange(42).reshape(6, 7))
     np.testing.assert_array_equal(host.extremes, np.arange(30).reshape(6, 5))
+
+
+def test_frame_graphs_capture_a_key_on_its_second_frame_and_drop_stale_ones():
+    """_FrameGraphs' bookkeeping (the capture itself needs a GPU: test_gpu.py)."""
+    captured: list[tuple[int, int, int]] = []
+
+    def capture(key):
+        captured.append(key)
+        return f"graph {key}"
+
+    graphs = _FrameGraphs()
+    small, other_levels, large = (192, 320, 48), (192, 320, 64), (160, 288, 48)
+    assert graphs.get(small, 1, capture) is None  # first frame of a key: no graph yet
+    graphs.ran(small, 1)
+    assert graphs.get(small, 1, capture) == "graph (192, 320, 48)" and captured == [small]
+    assert graphs.get(small, 1, capture) == "graph (192, 320, 48)" and captured == [small]
+    assert graphs.get(other_levels, 1, capture) is None
+    graphs.ran(other_levels, 1)
+    assert graphs.get(other_levels, 1, capture) is not None and len(graphs.keys()) == 2
+    # the matcher replaced its buffers (more levels): every graph is stale
+    assert graphs.get(other_levels, 2, capture) is None and not graphs.keys()
+    graphs.ran(other_levels, 2)
+    assert graphs.get(other_levels, 2, capture) is not None
+    assert graphs.get(small, 2, capture) is None
+    graphs.ran(small, 2)
+    assert graphs.get(small, 2, capture) is not None and len(graphs.keys()) == 2
+    # another image size: the graphs of the old one go
+    assert graphs.get(large, 2, capture) is None and not graphs.keys()
+    graphs.ran(large, 2)
+    assert graphs.get(large, 2, capture) is not None
+    assert graphs.get(small, 2, capture) is None
+    assert captured == [small, other_levels, other_levels, small, large]

@@ -267,11 +267,15 @@ def path_lines(height: int, width: int) -> int:
 
 
 class GpuMatcher:
-    """Census SGM on the device with buffers kept per (height, width, levels).
+    """Census SGM on the device with buffers kept per image size (see :meth:`buffers`).
 
     Kernels come from kernels/sgm.cu, built once per level count and lane count (``lanes``:
     more lanes per path line for images too small to fill the device). Memory: 4 bytes per pixel
-    and level for the path costs (the sums of DIRECTION_PAIRS), plus 12 bytes per pixel. Two
+    and level for the path costs (the sums of DIRECTION_PAIRS), plus 8 bytes per pixel (the
+    census words; the winner search writes over the right view's, no longer needed). A matcher
+    with a ``lender`` (one that never runs at the same time, e.g. the seed pass's matcher
+    beside the frame's) writes its path costs into the lender's volume where that is large
+    enough. Two
     path launches: the first walks the first direction of every pair and writes, the second
     walks the other and adds in place. The path kernels keep kappa in shared memory and load
     each step's census words several steps ahead.
@@ -279,12 +283,15 @@ class GpuMatcher:
 
     THREADS = 256
 
-    def __init__(self, backend: Backend, fill_device: bool = True) -> None:
+    def __init__(self, backend: Backend, fill_device: bool = True,
+                 lender: GpuMatcher | None = None) -> None:
         if not backend.is_gpu:
             raise ConfigError("GpuMatcher needs the gpu backend")
         self.backend = backend
         self.fill_device = fill_device
-        self._buffers: dict[tuple[int, int, int], dict[str, Any]] = {}
+        self._lender = lender
+        self._buffers: dict[tuple[int, int], dict[str, Any]] = {}
+        self.generation = 0
         self._kernel_sets: dict[tuple[int, int], dict[str, Any]] = {}
 
     def lanes(self, height: int, width: int, levels: int) -> int:
@@ -311,17 +318,38 @@ class GpuMatcher:
             | {"lanes": lanes, "select_lanes": defines["SELECT_LANES"],
                "horizontals_second": bool(defines["HORIZONTALS_SECOND"])}
 
-    def _buffers_for(self, height: int, width: int, levels: int) -> dict[str, Any]:
-        key = (height, width, levels)
-        if key not in self._buffers:
-            xp = self.backend.xp
-            self._buffers.clear()
-            self._buffers[key] = {
+    def buffers(self, height: int, width: int, levels: int) -> dict[str, Any]:
+        """The device buffers of an image size and level count: census (uint32 2xHxW), paths
+        (uint8 4xHxWxlevels) and raw (float32 HxW, the right census's memory). Kept for one
+        image size and reused by every frame, whatever its level count: the path volume holds
+        the most levels asked for. Where the buffers are replaced (another size, more
+        levels), the old ones are freed first and ``generation`` counts up (graphs captured
+        with them are stale). With a lender, the path costs go into the lender's volume where
+        it is large enough, else into one of this call's own."""
+        xp = self.backend.xp
+        size = 4 * height * width * levels
+        held = self._buffers.get((height, width))
+        volume_needed = self._lender is None
+        if held is None or (volume_needed and held["volume"].size < size):
+            if self._buffers:  # another size's buffers or a smaller volume: of no use now
+                self._buffers.clear()
+                held = None
+                self.backend.release_memory()
+            held = self._buffers[height, width] = {
                 "census": xp.empty((2, height, width), dtype=xp.uint32),
-                "paths": xp.empty((4, height, width, levels), dtype=xp.uint8),
-                "raw": xp.empty((height, width), dtype=xp.float32),
+                "volume": xp.empty(size if volume_needed else 0, dtype=xp.uint8),
             }
-        return self._buffers[key]
+            self.generation += 1
+        volume = held["volume"]
+        if self._lender is not None:
+            lent = self._lender._buffers
+            volume = next((b["volume"] for b in lent.values() if b["volume"].size >= size),
+                          None)
+            if volume is None:
+                volume = xp.empty(size, dtype=xp.uint8)
+        census = held["census"]
+        return {"census": census, "raw": census[1].view(xp.float32),
+                "paths": volume[:size].reshape(4, height, width, levels)}
 
     def __call__(self, left: Any, right: Any, kappa: Any, levels: int, p1: int, p2: int,
                  uniqueness_percent: int, lr_max_diff_px: int, median: bool,
@@ -333,7 +361,7 @@ class GpuMatcher:
         check_settings(left.shape, levels, p1, p2)
         xp = self.backend.xp
         kernels = self._kernels(levels, self.lanes(height, width, levels))
-        buffers = self._buffers_for(height, width, levels)
+        buffers = self.buffers(height, width, levels)
         census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
         out = xp.empty((height, width), dtype=xp.float32)
         i32 = np.int32

@@ -39,12 +39,19 @@ def _sgbm(levels: int, block: int, p1: int, p2: int, mode: str, uniqueness: int,
     )
 
 
-def to_gray8(image: np.ndarray) -> np.ndarray:
-    """uint8 grey image (HxW) from mono8/mono16 (HxW) or RGB (HxWx3) host arrays.
+def to_gray8(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """uint8 grey image (HxW) from mono8/mono16 (HxW) or RGB/RGBA (HxWx3 or 4) host arrays.
 
     16-bit images are scaled so their largest value maps to 255; colour is averaged with the
-    usual luma weights (input is assumed RGB).
+    usual luma weights (input is assumed RGB). ``out``: a C-contiguous uint8 HxW array to
+    write the grey image into (8-bit colour is converted straight into it), returned.
     """
+    if out is not None:
+        if image.ndim == 3 and image.dtype == np.uint8:
+            cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY, dst=out)
+        else:
+            np.copyto(out, to_gray8(image))
+        return out
     if image.ndim == 3:
         if image.shape[2] == 4:
             image = image[:, :, :3]
@@ -111,9 +118,18 @@ class Matcher:
     """D1 of a rectified pair on one backend: census SGM or OpenCV SGBM (``config.matcher``;
     auto = census on the GPU, OpenCV on the CPU). Keeps the GPU buffers between frames."""
 
-    def __init__(self, backend: Backend) -> None:
+    def __init__(self, backend: Backend, lender: Matcher | None = None) -> None:
+        """``lender``: a matcher never run at the same time whose GPU path volume this one may
+        use (see census_sgm.GpuMatcher)."""
         self.backend = backend
-        self._gpu = census_sgm.GpuMatcher(backend) if backend.is_gpu else None
+        self._gpu = census_sgm.GpuMatcher(
+            backend, lender=lender._gpu if lender is not None else None) \
+            if backend.is_gpu else None
+
+    @property
+    def generation(self) -> int:
+        """Counts the replacements of the GPU matcher's device buffers (0 on the CPU)."""
+        return self._gpu.generation if self._gpu is not None else 0
 
     def kind(self, config: Config) -> str:
         """census or opencv: what ``config.matcher`` means on this backend."""

@@ -169,15 +169,16 @@ def measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: A
 def area_filter_on_device(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: int,
                           min_area_m2: float, kept_after: Any) -> Any:
     """Labels 1..kept (device int32 (1,)) of the int32 HxW ``labels`` whose footprint area in
-    :func:`measure_on_device`'s ``sums`` reaches ``min_area_m2``, renumbered 1..m in order
-    (one-thread kernel and a gather, nothing read back); writes m to the device int32 (1,)
-    ``kept_after``. The host keeps the same rows with :func:`keep_large`."""
+    :func:`measure_on_device`'s ``sums`` reaches ``min_area_m2``, renumbered 1..m in order in
+    place (one-thread kernel and a gather, nothing read back); writes m to the device int32
+    (1,) ``kept_after``. Returns ``labels``. The host keeps the same rows with
+    :func:`keep_large`."""
     xp = backend.xp
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     backend.kernel("measure.cu", "measure_keep", {})(
         (1,), (32,), (sums, kept, np.int32(capacity), np.float64(min_area_m2), new_id,
                       kept_after))
-    return xp.take(new_id, labels)
+    return xp.take(new_id, labels, out=labels)
 
 
 def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothole], np.ndarray]:
