@@ -572,8 +572,8 @@ class Pipeline:
         sp_grid, n_sp = superpixels.superpixel_grid(
             backend, transformed, config.slic_region_size_px, config.slic_compactness,
             config.slic_iterations, config.slic_downsample)
-        sp_labels = superpixels.upsample_labels(backend.xp, sp_grid, config.slic_downsample,
-                                                transformed.shape, backend)
+        sp_labels = superpixels.upsample_labels(backend, sp_grid, config.slic_downsample,
+                                                transformed.shape)
         sp_means, sp_valid = superpixels.superpixel_means(backend, transformed, sp_labels, n_sp)
         return sp_grid, n_sp, sp_labels, sp_means, sp_valid
 

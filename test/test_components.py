@@ -48,7 +48,7 @@ def test_labelling_the_reduced_grid_gives_the_full_resolution_labels():
     rng = np.random.default_rng(5)
     for factor, (height, width) in ((2, (61, 97)), (3, (90, 120)), (2, (40, 41))):
         small = rng.random((height // factor, width // factor)) < 0.35
-        full = upsample_labels(np, small, factor, (height, width))
+        full = upsample_labels(CPU, small, factor, (height, width))
         valid = np.ones((height, width), bool)
         valid[:, :7] = False
         superpixels = (np.arange(height)[:, None] // 8) * 64 + np.arange(width)[None, :] // 8

@@ -402,7 +402,7 @@ def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min
     rng = np.random.default_rng(int(corner_fraction * 10) + min_superpixels + factor)
     height, width = 90, 161
     small = rng.random((height // factor, width // factor)) < 0.3
-    candidate = upsample_labels(np, small, factor, (height, width))
+    candidate = upsample_labels(CPU, small, factor, (height, width))
     valid = np.ones((height, width), bool)
     valid[:, :13] = False
     valid[40:44, :] = False
@@ -682,8 +682,8 @@ def test_block_mean_and_upsample_kernels_match_the_reference(gpu, shape, factor)
     np.testing.assert_array_equal(to_host(valid_gpu).astype(bool), valid)
     np.testing.assert_allclose(to_host(filled), np.where(valid, means, 0), rtol=1e-6)
     small = rng.integers(0, 500, (shape[0] // factor, shape[1] // factor)).astype(np.int32)
-    expected = superpixels.upsample_labels(np, small, factor, shape)
-    found = superpixels.upsample_labels(gpu.xp, gpu.upload(small), factor, shape, gpu)
+    expected = superpixels.upsample_labels(CPU, small, factor, shape)
+    found = superpixels.upsample_labels(gpu, gpu.upload(small), factor, shape)
     np.testing.assert_array_equal(to_host(found), expected)
 
 

@@ -54,7 +54,7 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
         return _components_gpu(backend, candidate, valid, superpixel_labels, n_superpixels,
                                corner_fraction, min_superpixels, factor)
     components, count = label_components(backend, candidate)
-    components = upsample_labels(xp, components, factor, valid.shape)
+    components = upsample_labels(backend, components, factor, valid.shape)
     if count == 0:
         return components.astype(xp.int32), 0
     keep = xp.ones(count + 1, dtype=bool)

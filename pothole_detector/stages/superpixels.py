@@ -182,7 +182,7 @@ def superpixels(backend: Backend, transformed: Any, region_size_px: int, compact
     labels, n_labels = superpixel_grid(backend, transformed, region_size_px, compactness,
                                        iterations, downsample)
     if downsample > 1:
-        labels = upsample_labels(backend.xp, labels, downsample, transformed.shape, backend)
+        labels = upsample_labels(backend, labels, downsample, transformed.shape)
     return labels, n_labels
 
 
@@ -230,15 +230,15 @@ def _grid_step(region_size_px: int, downsample: int) -> int:
     return max(2, int(round(region_size_px / downsample)))
 
 
-def upsample_labels(xp: Any, labels: Any, factor: int, shape: tuple[int, int],
-                    backend: Backend | None = None) -> Any:
-    """Nearest-neighbour enlargement of a label image by ``factor`` to ``shape``; rows and
-    columns past the enlarged image repeat the last one. With a GPU ``backend``, one kernel
-    for int32 labels (kernels/slic.cu)."""
+def upsample_labels(backend: Backend, labels: Any, factor: int, shape: tuple[int, int]) -> Any:
+    """Nearest-neighbour enlargement of a label image (any dtype) by ``factor`` to ``shape``;
+    rows and columns past the enlarged image repeat the last one. On the GPU, one kernel for
+    int32 labels (kernels/slic.cu)."""
     if factor == 1 and labels.shape == tuple(shape):
         return labels
+    xp = backend.xp
     height, width = shape
-    if backend is not None and backend.is_gpu and labels.dtype == np.int32:
+    if backend.is_gpu and labels.dtype == np.int32:
         result = xp.empty((height, width), dtype=xp.int32)
         backend.kernel("slic.cu", "upsample_labels", {})(
             ((width + 31) // 32, (height + 7) // 8), (32, 8),
