@@ -6,6 +6,7 @@ arrays of the same kind as their inputs.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import logging
 import math
@@ -128,28 +129,36 @@ class Backend:
             target.data.copy_from_device_async(_cupy.ascontiguousarray(source).data,
                                                source.nbytes, stream=stream)
 
-    def capture(self, body: Callable[[], _T], memory: GraphMemory) -> CapturedGraph[_T]:
-        """The device work ``body`` queues, captured as a CUDA graph and not run (GPU backend
-        only): :meth:`CapturedGraph.launch` replays it on the current stream. ``body`` queues
-        on the current stream (and on side streams joined back to it) and must not read back,
-        upload from host memory or wait for the device; every array it allocates comes from
-        ``memory``, and what it returns stays alive with the graph (a replay writes into those
-        arrays again). Kernels it launches should have been built before (run the work once
-        without capture first)."""
+    def capture(self, body: Callable[[Callable[[], None]], _T],
+                memory: GraphMemory) -> CapturedGraph[_T]:
+        """The device work ``body`` queues, captured as CUDA graphs and not run (GPU backend
+        only): ``body(cut)`` may call ``cut()`` to end one graph and start the next, and
+        :meth:`CapturedGraph.launch` replays graph i on the current stream. ``body`` queues
+        on the current stream (and on side streams joined back to it before a cut) and must
+        not read back, upload from host memory or wait for the device; every array it
+        allocates comes from ``memory``, and what it returns stays alive with the graphs (a
+        replay writes into those arrays again). Kernels it launches should have been built
+        before (run the work once without capture first)."""
         if not self.is_gpu:
             raise BackendError("graph capture needs the gpu backend")
         assert _cupy is not None
         stream = _stream(_cupy.cuda.Device().id, "capture")
+        graphs: list[Any] = []
+
+        def cut() -> None:
+            graphs.append(stream.end_capture())
+            stream.begin_capture()
+
         with _cupy.cuda.using_allocator(memory.allocate), stream:
             stream.begin_capture()
             try:
-                outputs = body()
+                outputs = body(cut)
             except BaseException:
                 with suppress(Exception):  # the body's error says more than the end's
                     stream.end_capture()
                 raise
-            graph = stream.end_capture()
-        return CapturedGraph(graph, outputs, memory)
+            graphs.append(stream.end_capture())
+        return CapturedGraph(graphs, outputs, memory)
 
     @contextmanager
     def side_stream(self) -> Iterator[Callable[[], None]]:
@@ -203,17 +212,60 @@ _GRAPH_MEMORIES: WeakSet[GraphMemory] = WeakSet()
 
 @dataclass
 class CapturedGraph(Generic[_T]):
-    """A CUDA graph from :meth:`Backend.capture` and what its body returned (``outputs``: the
-    arrays every replay writes into), kept alive together with the memory they came from."""
+    """The CUDA graphs from :meth:`Backend.capture` (one more than the body's cuts) and what
+    its body returned (``outputs``: the arrays every replay writes into), kept alive together
+    with the memory they came from."""
 
-    graph: Any
+    graphs: list[Any]
     outputs: _T
     memory: GraphMemory
 
-    def launch(self) -> None:
-        """Queue one replay of the graph on the current stream."""
+    def launch(self, index: int = 0) -> None:
+        """Queue one replay of graph ``index`` on the current stream."""
         assert _cupy is not None
-        self.graph.launch(stream=_cupy.cuda.get_current_stream())
+        self.graphs[index].launch(stream=_cupy.cuda.get_current_stream())
+
+
+class Readback:
+    """Device bytes copied into page-locked host memory by an asynchronous transfer (on the CPU
+    backend a plain copy): :meth:`send` queues the copy on the current stream, :meth:`receive`
+    waits for it. The host memory is reused: receive a send's bytes before the next send."""
+
+    def __init__(self, backend: Backend, nbytes: int) -> None:
+        self._gpu = backend.is_gpu
+        if self._gpu:
+            assert _cupy is not None
+            self._host = _cupy_pinned(nbytes)
+            self._event = _cupy.cuda.Event(disable_timing=True)
+        else:
+            self._host = np.empty(nbytes, np.uint8)
+        self._count = 0
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._host.size)
+
+    def send(self, source: Any) -> None:
+        """Queue the copy of ``source``, a contiguous uint8 backend array of at most
+        ``nbytes``."""
+        count = int(source.size)
+        if count > self._host.size:
+            raise BackendError(f"{count} bytes do not fit a readback of {self._host.size}")
+        if self._gpu:
+            assert _cupy is not None
+            stream = _cupy.cuda.get_current_stream()
+            source.data.copy_to_host_async(ctypes.c_void_p(self._host.ctypes.data), count,
+                                           stream=stream)
+            self._event.record(stream)
+        else:
+            self._host[:count] = source
+        self._count = count
+
+    def receive(self) -> np.ndarray:
+        """A host copy of the last send's bytes (uint8), once its transfer is done (waits)."""
+        if self._gpu:
+            self._event.synchronize()
+        return self._host[:self._count].copy()
 
 
 class UploadBuffer:

@@ -9,7 +9,8 @@ from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
-from .backend import CPU, Backend, CapturedGraph, GraphMemory, StageClock, UploadBuffer, to_host
+from .backend import (CPU, Backend, CapturedGraph, GraphMemory, Readback, StageClock,
+                      UploadBuffer, to_host)
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
@@ -27,12 +28,12 @@ class PipelineResult:
     ``band`` (lowest row shift, levels) and ``disparity_range`` (lowest, highest disparity the
     matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU; there the
     threshold search runs beside SLIC on a second stream, and ``threshold`` times what is left
-    of it after SLIC plus the selection, and ``readback`` the frame's one report copy; a frame
-    replayed as a CUDA graph has ``gpt``, ``graph`` (SGM to measure, and the copies of the
-    published arrays) and ``readback`` instead of the stages between), ``total`` (their sum),
-    ``host`` (wall time of the call; in a stream, from the frame's start to its result less
-    the time spent queueing the next frame) and ``host_wait`` (of it, the wait for the GPU
-    frame's one readback; 0 on the CPU).
+    of it after SLIC plus the selection, and ``readback`` the copy of the frame's report to the
+    host; a frame replayed as CUDA graphs has ``gpt``, ``graph`` (SGM to measure, and the
+    copies of the published arrays) and ``readback`` instead of the stages between),
+    ``total`` (their sum), ``host`` (wall time of the call; in a stream, from the frame's
+    start to its result less the time spent queueing the next frame) and ``host_wait`` (of
+    it, the waits for the GPU frame's two readbacks; 0 on the CPU).
     """
 
     disparity: Any
@@ -71,7 +72,8 @@ class _HostReport:
 
 
 class _DeviceReport:
-    """One device buffer that a frame's stages write their small results into, read back once:
+    """One device buffer that a frame's stages write their small results into, read back once
+    (its header, everything the checks need, once more as soon as the road fit is done):
     float64 road report (ROAD) and kernel parameters, threshold search result, valid pixel
     count; int32 counts (components, kept, overflow, kept after the area filter); the
     measure sums and extremes of ``capacity`` labels."""
@@ -80,16 +82,16 @@ class _DeviceReport:
     _PARAMS = (ROAD[1], ROAD[1] + road_model.ROAD_PARAMS)
     _THRESHOLD = (_PARAMS[1], _PARAMS[1] + 3)
     _VALID = _THRESHOLD[1]
-    _HEADER_BYTES = 8 * (_VALID + 1)
+    HEADER_BYTES = 8 * (_VALID + 1)
 
     def __init__(self, xp: Any, capacity: int) -> None:
         self.capacity = capacity
-        self._counts_at = -(-self._HEADER_BYTES // 16) * 16
+        self._counts_at = -(-self.HEADER_BYTES // 16) * 16
         self._sums_at = self._counts_at + 16
         self._extremes_at = self._sums_at + (capacity + 1) * measure.MEASURE_SUMS * 8
         end = self._extremes_at + (capacity + 1) * measure.MEASURE_EXTREMES * 4
         self.buffer = xp.empty(end, dtype=xp.uint8)
-        header = self.buffer[:self._HEADER_BYTES].view(xp.float64)
+        header = self.buffer[:self.HEADER_BYTES].view(xp.float64)
         self.road = header[slice(*self.ROAD)]
         self.road_params = header[slice(*self._PARAMS)]
         self.threshold = header[slice(*self._THRESHOLD)]
@@ -100,10 +102,14 @@ class _DeviceReport:
         self.extremes = self.buffer[self._extremes_at:].view(xp.int32).reshape(
             capacity + 1, measure.MEASURE_EXTREMES)
 
+    @property
+    def header_bytes(self) -> Any:
+        """The header (road report and parameters, threshold, valid count) as device bytes."""
+        return self.buffer[:self.HEADER_BYTES]
+
     def read_header(self) -> np.ndarray:
-        """Host float64 copy of the header (road report and parameters, threshold, valid
-        count)."""
-        return to_host(self.buffer[:self._HEADER_BYTES]).view(np.float64)
+        """Host float64 copy of the header (a synchronous readback)."""
+        return to_host(self.header_bytes).view(np.float64)
 
     @classmethod
     def road_of(cls, header: np.ndarray) -> np.ndarray:
@@ -113,10 +119,9 @@ class _DeviceReport:
     def valid_count_of(cls, header: np.ndarray) -> float:
         return float(header[cls._VALID])
 
-    def read(self) -> _HostReport:
-        """The one readback of the frame."""
-        host = to_host(self.buffer)
-        header = host[:self._HEADER_BYTES].view(np.float64)
+    def parse(self, host: np.ndarray) -> _HostReport:
+        """The report from a host copy of the whole buffer (uint8)."""
+        header = host[:self.HEADER_BYTES].view(np.float64)
         counts = host[self._counts_at:self._sums_at].view(np.int32)
         return _HostReport(
             header=header,
@@ -130,19 +135,22 @@ class _DeviceReport:
 
 @dataclass
 class _DeviceWork:
-    """The stages of a frame queued on the device: what its readback and result need
-    (``host`` and ``road`` once read back and checked; ``road`` early in the metric mode;
-    ``exact``: labels and potholes measured again where the report overflowed; ``replayed``:
-    the arrays are a CUDA graph's, which its next replay writes again)."""
+    """The stages of a frame queued on the device: what its readbacks and result need (the
+    fields after ``n_sp`` once the stages after the road fit are queued; ``readbacks``: of the
+    report's header and of the whole report; ``road`` and ``host`` once read back and checked,
+    ``road`` early in the metric mode; ``exact``: labels and potholes measured again where the
+    report overflowed; ``replayed``: the arrays are still a CUDA graph's, which its next replay
+    writes again)."""
 
     report: _DeviceReport
     valid: Any
-    transformed: Any
     n_sp: int
-    sp_labels: Any
-    candidate: Any
-    labels: Any
-    road: road_model.RoadModel | None
+    transformed: Any = None
+    sp_labels: Any = None
+    candidate: Any = None
+    labels: Any = None
+    readbacks: tuple[Readback, Readback] | None = None
+    road: road_model.RoadModel | None = None
     host: _HostReport | None = None
     wait_ms: float = 0.0
     exact: tuple[Any, list[measure.Pothole]] | None = None
@@ -232,6 +240,8 @@ class Pipeline:
         self._uploads: dict[tuple[int, int], list[UploadBuffer]] = {}
         self._graphs = _FrameGraphs()
         self._graph_memory: GraphMemory | None = None  # shared by the graphs (one stream)
+        self._readbacks: list[tuple[Readback, Readback]] = []  # used in turn, frame by frame
+        self._unpublished: _Queued | None = None  # the last replayed frame, if not yet copied
 
     def reset(self) -> None:
         """Forget the previous frame's road model; the next frame runs the seed pass."""
@@ -241,16 +251,19 @@ class Pipeline:
         """Detect potholes in a rectified pair of host images (HxW mono or HxWx3 RGB, uint8 or
         uint16). Raises InputError, NoTextureError or NoRoadError with a message saying why.
 
-        On the GPU nothing is read back between the upload and the frame's one readback of a
-        report (valid count, road fit, threshold, component counts, pothole sums): the checks
-        that raise run on that report, after the stages have been queued."""
+        On the GPU nothing is read back but a report the stages write (valid count, road fit,
+        threshold, component counts, pothole sums): its header once the road fit is done
+        (what the checks that raise need) and the whole of it at the end, both copied
+        asynchronously into page-locked memory; the checks run after every stage has been
+        queued."""
         started = time.perf_counter()
         staged = self._stage((left, right), send_ahead=False)
         if isinstance(staged, PotholeError):
             raise staged
         left_gray, right_gray, _ = staged.writable()
         queued = self._queue(left_gray, right_gray, staged, started)
-        self._read_back(queued)
+        self._read_road(queued)
+        self._read_report(queued)
         return self._finish(queued)
 
     def run_stream(self, pairs: Iterable[tuple[np.ndarray, np.ndarray]]
@@ -259,10 +272,12 @@ class Pipeline:
         error it raised (the stream goes on after an error), the same results as :meth:`run`
         pair after pair. On the GPU two frames are in flight: while the device works on pair
         N the host checks and converts pair N + 1 into page-locked memory and sends its images
-        up on a copy stream (two buffers for the current image size, used in turn); once pair
-        N's report is read back and checked, pair N + 1 (whose band needs N's road model) is
-        queued before N's result is built, so the device does not wait for the host between
-        frames. The CPU backend runs the same sequence, each frame whole when it is queued."""
+        up on a copy stream (two buffers for the current image size, used in turn); as soon as
+        pair N's road fit is read back and checked (an early copy of the report's header),
+        pair N + 1 (whose band needs N's road model) is queued behind N's later stages, so the
+        device does not wait for the host between frames; then N's report is read and its
+        result built. The CPU backend runs the same sequence, each frame whole when it is
+        queued."""
         iterator = iter(pairs)
         pair = next(iterator, None)
         queued = self._queue_staged(self._stage(pair)) if pair is not None else None
@@ -272,7 +287,7 @@ class Pipeline:
             outcome: _Queued | PipelineResult | PotholeError = queued
             if isinstance(queued, _Queued):
                 try:
-                    self._read_back(queued)
+                    self._read_road(queued)
                 except PotholeError as exc:
                     outcome = exc
             queueing = time.perf_counter()
@@ -280,6 +295,7 @@ class Pipeline:
             if isinstance(outcome, _Queued):
                 outcome.lent_ms = (time.perf_counter() - queueing) * 1e3
                 try:
+                    self._read_report(outcome)
                     outcome = self._finish(outcome)
                 except PotholeError as exc:
                     outcome = exc
@@ -326,7 +342,7 @@ class Pipeline:
             return exc
 
     def _finish(self, queued: _Queued) -> PipelineResult:
-        """The result of a frame that :meth:`_read_back` has read back and checked."""
+        """The result of a frame whose road and report have been read back and checked."""
         found = queued.found if queued.found is not None else self._device_detection(queued)
         timings = queued.clock.timings()
         timings["total"] = sum(timings.values())
@@ -387,30 +403,51 @@ class Pipeline:
         graph = self._graphs.get(key, self.matcher.generation, self._capture_frame) \
             if graphed else None
         if graph is None:
-            disparity, work = self._device_frame(*pair, levels, clock)
+            disparity, work = self._device_frame(*pair, levels, clock, self._send_header)
             if graphed:
                 self._graphs.ran(key, self.matcher.generation)
         else:
             disparity, work = self._replay(graph, pair, clock)
-        return _Queued(disparity, kappa, levels, seeded, started, clock, device=work)
+        with clock.stage("readback"):
+            work.readbacks[1].send(work.report.buffer)
+        queued = _Queued(disparity, kappa, levels, seeded, started, clock, device=work)
+        if work.replayed:
+            self._unpublished = queued
+        return queued
 
-    def _device_frame(self, left: Any, right: Any, kappa: Any, levels: int,
-                      clock: StageClock) -> tuple[Any, _DeviceWork]:
-        """SGM and the stages after it queued on the device: (D1, the queued work)."""
+    def _device_frame(self, left: Any, right: Any, kappa: Any, levels: int, clock: StageClock,
+                      after_fit: Callable[[_DeviceWork], None]) -> tuple[Any, _DeviceWork]:
+        """SGM and the stages after it queued on the device: (D1, the queued work);
+        ``after_fit(work)`` is called once the road fit is queued."""
         disparity = self._sgm(left, right, kappa, levels, clock)
-        return disparity, self._queue_on_device(disparity, clock)
+        work = self._fit_on_device(disparity, clock)
+        after_fit(work)
+        self._after_fit_on_device(disparity, work, clock)
+        return disparity, work
+
+    def _send_header(self, work: _DeviceWork) -> None:
+        """Queue the readback of the report's header (the road fit's result, what the checks
+        need) into the next of the pipeline's readbacks."""
+        ring = self._readbacks
+        if not ring or ring[0][1].nbytes != work.report.buffer.nbytes:
+            ring[:] = [(Readback(self.backend, _DeviceReport.HEADER_BYTES),
+                        Readback(self.backend, work.report.buffer.nbytes)) for _ in range(3)]
+        work.readbacks = ring.pop(0)
+        ring.append(work.readbacks)
+        work.readbacks[0].send(work.report.header_bytes)
 
     def _capture_frame(self, key: _GraphKey) -> CapturedGraph:
-        """:meth:`_device_frame` of a (height, width, levels) captured as a CUDA graph; its
-        outputs: the input arrays (left, right, kappa) it reads, D1 and the queued work."""
+        """:meth:`_device_frame` of a (height, width, levels) captured as two CUDA graphs, cut
+        after the road fit; the outputs: the input arrays (left, right, kappa) they read, D1
+        and the queued work."""
         height, width, levels = key
         xp = self.backend.xp
 
-        def body() -> tuple[tuple[Any, Any, Any], Any, _DeviceWork]:
+        def body(cut: Callable[[], None]) -> tuple[tuple[Any, Any, Any], Any, _DeviceWork]:
             pair = (xp.empty((height, width), dtype=xp.uint8),
                     xp.empty((height, width), dtype=xp.uint8), xp.empty(height, dtype=xp.int32))
-            return (pair, *self._device_frame(*pair, levels,
-                                              StageClock(self.backend, timed=False)))
+            return (pair, *self._device_frame(*pair, levels, StageClock(self.backend, timed=False),
+                                              lambda work: cut()))
 
         if self._graph_memory is None:
             self._graph_memory = GraphMemory()
@@ -418,19 +455,43 @@ class Pipeline:
 
     def _replay(self, graph: CapturedGraph, pair: tuple[Any, Any, Any],
                 clock: StageClock) -> tuple[Any, _DeviceWork]:
-        """One replay of a frame's graph on the uploaded ``pair`` (left, right, kappa): D1 and
-        the work, in the graph's arrays (:meth:`_read_back` copies what is published)."""
-        inputs, disparity, work = graph.outputs
+        """One replay of a frame's graphs on the uploaded ``pair`` (left, right, kappa), the
+        header's readback between them: D1 and the work, in the graph's arrays (see
+        :meth:`_publish`; the frame replayed before is published first)."""
+        self._publish(self._unpublished)
+        inputs, disparity, captured = graph.outputs
         with clock.stage("gpt"):
             for target, source in zip(inputs, pair):
                 self.backend.copy_into(target, source)
         with clock.stage("graph"):
-            graph.launch()
-        return disparity, replace(work, replayed=True)
+            graph.launch(0)
+            work = replace(captured, replayed=True)
+            self._send_header(work)
+            graph.launch(1)
+        return disparity, work
 
-    def _queue_on_device(self, disparity: Any, clock: StageClock) -> _DeviceWork:
-        """The stages after matching queued on the device with nothing read back (see
-        :class:`_DeviceReport`; the metric threshold mode reads the road model early)."""
+    def _publish(self, queued: _Queued | None) -> None:
+        """Copy a replayed frame's published arrays (and the overflow fallback's candidate) out
+        of its graph's, which the next replay writes again: when the next frame is replayed or
+        once the frame's report is read, whichever comes first (so no more frames' arrays are
+        alive at once than without graphs). A frame whose road was refused is skipped."""
+        work = queued.device if queued is not None else None
+        if work is None or not work.replayed:
+            return
+        work.replayed = False
+        if self._unpublished is queued:
+            self._unpublished = None
+        if work.road is None:
+            return
+        with queued.clock.stage("graph"):
+            queued.disparity = queued.disparity.copy()
+            work.transformed = work.transformed.copy()
+            work.sp_labels = work.sp_labels.copy()
+            work.labels = work.labels.copy()
+            work.candidate = work.candidate.copy()
+
+    def _fit_on_device(self, disparity: Any, clock: StageClock) -> _DeviceWork:
+        """The valid count and the road fit queued on the device, into a new report."""
         config, backend = self.config, self.backend
         xp = backend.xp
         n_sp = superpixels.grid_count(disparity.shape, config.slic_region_size_px,
@@ -444,6 +505,15 @@ class Pipeline:
                 rounds=config.road_fit_rounds, outlier_k=config.road_outlier_k,
                 kind=config.road_model, quadratic_gain=config.road_quadratic_gain,
                 report=report.road, params=report.road_params)
+        return _DeviceWork(report, valid, n_sp)
+
+    def _after_fit_on_device(self, disparity: Any, work: _DeviceWork,
+                             clock: StageClock) -> None:
+        """The stages after the road fit queued on the device with nothing read back (see
+        :class:`_DeviceReport`; the metric threshold mode reads the road model early), their
+        arrays into ``work``."""
+        config, backend = self.config, self.backend
+        xp, report = backend.xp, work.report
         with clock.stage("dt"):
             transformed = transform_disparity(backend, disparity, report.road_params,
                                               config.delta_dt_px)
@@ -456,11 +526,10 @@ class Pipeline:
         with clock.stage("threshold"):
             join_threshold()
             drop: float | Any = config.delta_pd_px
-            road: road_model.RoadModel | None = None
             if config.threshold_mode != "pixels":
                 # the metric tolerance needs the road model on the host: one early readback
-                road = self._checked_road(report.read_header(), disparity.size)
-                drop = self._metric_drop(sp_labels, n_sp, road)
+                work.road = self._checked_road(report.read_header(), disparity.size)
+                drop = self._metric_drop(sp_labels, n_sp, work.road)
             selected = thresholding.select_on_device(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 config.threshold_reference == "road_mean", sp_means, sp_valid, drop,
@@ -468,7 +537,7 @@ class Pipeline:
         with clock.stage("components"):
             candidate = xp.take(selected, sp_grid)
             labels = components.components_on_device(
-                backend, candidate, valid, sp_labels, n_sp, config.corner_fraction,
+                backend, candidate, work.valid, sp_labels, n_sp, config.corner_fraction,
                 config.min_pothole_superpixels, config.slic_downsample, report.capacity,
                 report.counts[:3])
         with clock.stage("measure"):
@@ -478,38 +547,40 @@ class Pipeline:
             labels = measure.area_filter_on_device(
                 backend, labels, report.sums, report.counts[1:2], report.capacity,
                 config.min_pothole_area_m2, report.counts[3:4])
-        return _DeviceWork(report, valid, transformed, n_sp, sp_labels, candidate, labels, road)
+        work.transformed, work.sp_labels = transformed, sp_labels
+        work.candidate, work.labels = candidate, labels
 
-    def _read_back(self, queued: _Queued) -> None:
-        """A GPU frame's one readback and the checks on it, which raise; the road model they
-        accept gives the next frame its band (the CPU checked its frames when detecting). A
-        replayed frame's published arrays are copied out of the graph's here, before the
-        next frame can be queued (not earlier: fewer frames' arrays alive at once)."""
+    def _read_road(self, queued: _Queued) -> None:
+        """A GPU frame's header readback and the checks on it, which raise; the road model
+        they accept gives the next frame its band (the CPU checked its frames when
+        detecting; the metric mode checked it when queueing)."""
+        work = queued.device
+        if work is None or work.road is not None:
+            return
+        assert work.readbacks is not None
+        waiting = time.perf_counter()
+        header = work.readbacks[0].receive().view(np.float64)
+        work.wait_ms += (time.perf_counter() - waiting) * 1e3
+        work.road = self._checked_road(header, queued.disparity.size)
+
+    def _read_report(self, queued: _Queued) -> None:
+        """A GPU frame's report, read back after :meth:`_read_road`; where its components
+        overflowed, they are filtered and measured again with exact sizes."""
         work = queued.device
         if work is None:
             return
-        with queued.clock.stage("readback"):
-            waiting = time.perf_counter()
-            work.host = work.report.read()
-            work.wait_ms = (time.perf_counter() - waiting) * 1e3
-        if work.road is None:
-            work.road = self._checked_road(work.host.header, queued.disparity.size)
+        assert work.readbacks is not None and work.road is not None
+        waiting = time.perf_counter()
+        work.host = work.report.parse(work.readbacks[1].receive())
+        work.wait_ms += (time.perf_counter() - waiting) * 1e3
         if work.host.overflow:
-            # more components than the report holds: filter and measure again with exact
-            # sizes (now: a graph's candidate and valid mask last until its next replay)
             config = self.config
             labels, count = components.pothole_components(
-                self.backend, work.candidate, work.valid, work.sp_labels, work.n_sp,
-                config.corner_fraction, config.min_pothole_superpixels,
-                factor=config.slic_downsample)
+                self.backend, work.candidate, self.backend.xp.isfinite(queued.disparity),
+                work.sp_labels, work.n_sp, config.corner_fraction,
+                config.min_pothole_superpixels, factor=config.slic_downsample)
             work.exact = self._measure_exact(labels, count, queued.disparity, work.road)
-        if work.replayed:
-            with queued.clock.stage("graph"):
-                queued.disparity = queued.disparity.copy()
-                work.transformed = work.transformed.copy()
-                work.sp_labels = work.sp_labels.copy()
-                work.labels = work.labels.copy()
-            work.replayed = False
+        self._publish(queued)
 
     def _device_detection(self, queued: _Queued) -> _Detection:
         """The detection of a GPU frame from its report, read back and checked."""

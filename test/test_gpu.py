@@ -10,9 +10,9 @@ import gc
 import numpy as np
 import pytest
 
-from pothole_detector.backend import (CPU, StageClock, UploadBuffer, get_backend, gpu_available,
-                                      to_host)
-from pothole_detector.errors import InputError, PotholeError
+from pothole_detector.backend import (CPU, Readback, StageClock, UploadBuffer, get_backend,
+                                      gpu_available, to_host)
+from pothole_detector.errors import BackendError, InputError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import census_sgm, components, measure, superpixels, threshold
@@ -223,6 +223,18 @@ def test_upload_buffer_round_trips_and_waits_before_it_is_written_again(gpu):
     third = buffer.upload()
     assert int(to_host(third[0]).min()) == int(to_host(third[0]).max()) == 11
     np.testing.assert_array_equal(to_host(third[1]), -np.arange(64))
+
+
+def test_readback_copies_asynchronously_and_keeps_each_sends_bytes(gpu):
+    source = gpu.xp.arange(4096, dtype=gpu.xp.int32).view(gpu.xp.uint8)
+    readback = Readback(gpu, source.nbytes)
+    readback.send(source)
+    source[:] = 0  # queued after the copy on the same stream
+    np.testing.assert_array_equal(readback.receive().view(np.int32), np.arange(4096))
+    readback.send(source[:64])
+    assert readback.receive().tolist() == [0] * 64
+    with pytest.raises(BackendError, match="do not fit"):
+        readback.send(gpu.xp.zeros(source.nbytes + 1, dtype=gpu.xp.uint8))
 
 
 def test_run_stream_on_the_gpu_gives_what_run_gives(demo_sample):

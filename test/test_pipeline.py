@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.backend import get_backend, gpu_available, to_host
+from pothole_detector.backend import CPU, Readback, get_backend, gpu_available, to_host
 from pothole_detector.errors import InputError, NoRoadError, NoTextureError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline, _FrameGraphs, metric_tolerance_px
@@ -155,10 +155,15 @@ def test_device_report_views_share_one_buffer_and_read_back_whole():
     report.counts[:] = (9, 3, 1, 2)
     report.sums[:] = np.arange(42).reshape(6, 7)
     report.extremes[:] = np.arange(30).reshape(6, 5)
-    host = report.read()
+    readback = Readback(CPU, report.buffer.nbytes + 64)
+    readback.send(report.buffer)
+    report.buffer[:] = 0  # the readback holds the bytes sent
+    host = report.parse(readback.receive())
     assert list(_DeviceReport.road_of(host.header)) == list(range(15))
     assert _DeviceReport.valid_count_of(host.header) == 1234
-    assert list(report.read_header()[15:26]) == [-1.0] * 11
+    assert list(host.header[15:26]) == [-1.0] * 11
+    report.road_params[:] = 2.0
+    assert list(report.read_header()[15:26]) == [2.0] * 11
     assert list(host.threshold) == [1.0, 7.0, 32.5]
     assert (host.components_kept, host.overflow) == (3, True)
     np.testing.assert_array_equal(host.sums, np.arange(42).reshape(6, 7))
