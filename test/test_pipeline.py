@@ -179,24 +179,20 @@ def test_frame_graphs_capture_a_key_on_its_second_frame_and_drop_stale_ones():
         return f"graph {key}"
 
     graphs = _FrameGraphs()
+
+    def two_frames(key, generation):
+        assert graphs.get(key, generation, capture) is None  # the key's first frame
+        graphs.ran(key, generation)
+        assert graphs.get(key, generation, capture) == f"graph {key}"
+        return graphs.keys()
+
     small, other_levels, large = (192, 320, 48), (192, 320, 64), (160, 288, 48)
-    assert graphs.get(small, 1, capture) is None  # first frame of a key: no graph yet
-    graphs.ran(small, 1)
+    assert two_frames(small, 1) == {small}
     assert graphs.get(small, 1, capture) == "graph (192, 320, 48)" and captured == [small]
-    assert graphs.get(small, 1, capture) == "graph (192, 320, 48)" and captured == [small]
-    assert graphs.get(other_levels, 1, capture) is None
-    graphs.ran(other_levels, 1)
-    assert graphs.get(other_levels, 1, capture) is not None and len(graphs.keys()) == 2
+    assert two_frames(other_levels, 1) == {small, other_levels}
     # the matcher replaced its buffers (more levels): every graph is stale
-    assert graphs.get(other_levels, 2, capture) is None and not graphs.keys()
-    graphs.ran(other_levels, 2)
-    assert graphs.get(other_levels, 2, capture) is not None
-    assert graphs.get(small, 2, capture) is None
-    graphs.ran(small, 2)
-    assert graphs.get(small, 2, capture) is not None and len(graphs.keys()) == 2
+    assert two_frames(other_levels, 2) == {other_levels}
+    assert two_frames(small, 2) == {small, other_levels}
     # another image size: the graphs of the old one go
-    assert graphs.get(large, 2, capture) is None and not graphs.keys()
-    graphs.ran(large, 2)
-    assert graphs.get(large, 2, capture) is not None
-    assert graphs.get(small, 2, capture) is None
+    assert two_frames(large, 2) == {large}
     assert captured == [small, other_levels, other_levels, small, large]
