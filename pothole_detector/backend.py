@@ -112,9 +112,8 @@ class Backend:
             self.xp.get_default_memory_pool().free_all_blocks()
 
     def copy_into(self, target: Any, source: Any) -> None:
-        """Copy ``source`` (a host array or a backend array) into the contiguous backend array
-        ``target`` of the same shape and dtype; on the GPU queued on the current stream (one
-        transfer)."""
+        """Copy the backend array ``source`` into the contiguous backend array ``target`` of
+        the same shape and dtype; on the GPU one transfer queued on the current stream."""
         if target.shape != source.shape or target.dtype != source.dtype:
             raise BackendError(f"cannot copy {source.dtype} {source.shape} into "
                                f"{target.dtype} {target.shape}")
@@ -122,12 +121,8 @@ class Backend:
             np.copyto(target, source)
             return
         assert _cupy is not None
-        stream = _cupy.cuda.get_current_stream()
-        if isinstance(source, np.ndarray):
-            target.set(np.ascontiguousarray(source), stream=stream)
-        else:
-            target.data.copy_from_device_async(_cupy.ascontiguousarray(source).data,
-                                               source.nbytes, stream=stream)
+        target.data.copy_from_device_async(_cupy.ascontiguousarray(source).data,
+                                           source.nbytes, stream=_cupy.cuda.get_current_stream())
 
     def capture(self, body: Callable[[Callable[[], None]], _T],
                 memory: GraphMemory) -> CapturedGraph[_T]:

@@ -151,9 +151,10 @@ PARAMETERS: tuple[Param, ...] = (
           0, 100),
     # device
     Param("cuda_graph", bool, True,
-          "GPU backend: replay each frame's SGM and later stages as one CUDA graph per image "
-          "size and level count (same results, one launch instead of about fifty); per-stage "
-          "timings need it off. Not used for seed frames or the metres threshold mode."),
+          "GPU backend: replay each frame's SGM and later stages as CUDA graphs per image "
+          "size and level count (same results, two launches instead of about fifty); "
+          "per-stage timings need it off. Not used for seed frames or the metres threshold "
+          "mode."),
     # node
     Param("backend", str, "auto", "Array backend: gpu (CuPy), cpu (NumPy), or auto (gpu when "
           "CuPy sees a device, else cpu).", choices=("auto", "cpu", "gpu"), group="node"),

@@ -72,9 +72,9 @@ class _HostReport:
 
 
 class _DeviceReport:
-    """One device buffer that a frame's stages write their small results into, read back once
-    (its header, everything the checks need, once more as soon as the road fit is done):
-    float64 road report (ROAD) and kernel parameters, threshold search result, valid pixel
+    """One device buffer that a frame's stages write their small results into, read back at
+    the end (its header, what the checks need, also as soon as the road fit is done): float64
+    road report (ROAD) and kernel parameters, threshold search result, valid pixel
     count; int32 counts (components, kept, overflow, kept after the area filter); the
     measure sums and extremes of ``capacity`` labels."""
 
@@ -135,9 +135,9 @@ class _DeviceReport:
 
 @dataclass
 class _DeviceWork:
-    """The stages of a frame queued on the device: what its readbacks and result need (the
-    fields after ``n_sp`` once the stages after the road fit are queued; ``readbacks``: of the
-    report's header and of the whole report; ``road`` and ``host`` once read back and checked,
+    """The stages of a frame queued on the device: what its readbacks and result need
+    (``transformed`` to ``labels`` once the stages after the road fit are queued;
+    ``readbacks``: of the report's header and of the whole report; ``road`` and ``host`` once read back and checked,
     ``road`` early in the metric mode; ``exact``: labels and potholes measured again where the
     report overflowed; ``replayed``: the arrays are still a CUDA graph's, which its next replay
     writes again)."""
@@ -177,10 +177,10 @@ _GraphKey = tuple[int, int, int]
 
 
 class _FrameGraphs:
-    """CUDA graphs of the GPU frame after its upload (SGM and every stage after it), one per
-    (height, width, levels). A key's first frame runs without a graph
-    (kernels built, caches filled, the matcher's buffers sized); its next frame captures the
-    graph, and later frames replay it. The graphs hold the matcher's buffers by address: when
+    """CUDA graphs of the GPU frame after its upload (SGM and every stage after it), one set
+    per (height, width, levels). A key's first frame runs without graphs (kernels built,
+    caches filled, the matcher's buffers sized); its next frame captures them, and later
+    frames replay them. The graphs hold the matcher's buffers by address: when
     the matcher replaces them (its ``generation``) or the image size changes, every graph is
     dropped and each key starts again."""
 
@@ -224,8 +224,9 @@ class Pipeline:
     road fit are seeded by a coarse full-range pass.
 
     On the GPU with ``cuda_graph`` (and the census matcher, the pixel threshold mode), a frame
-    that needs no seed replays its SGM and later stages as one CUDA graph per image size and
-    level count (see _FrameGraphs): one launch instead of about fifty, the same results.
+    that needs no seed replays its SGM and later stages as two CUDA graphs (cut after the road
+    fit) per image size and level count (see _FrameGraphs): two launches instead of about
+    fifty, the same results.
     """
 
     def __init__(self, config: Config, calibration: StereoCalibration,
