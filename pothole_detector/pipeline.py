@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -17,6 +18,8 @@ from .params import Config
 from .stages import components, matching, measure, perspective, road_model, superpixels
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -137,10 +140,10 @@ class _DeviceReport:
 class _DeviceWork:
     """The stages of a frame queued on the device: what its readbacks and result need
     (``transformed`` to ``labels`` once the stages after the road fit are queued;
-    ``readbacks``: of the report's header and of the whole report; ``road`` and ``host`` once read back and checked,
-    ``road`` early in the metric mode; ``exact``: labels and potholes measured again where the
-    report overflowed; ``replayed``: the arrays are still a CUDA graph's, which its next replay
-    writes again)."""
+    ``readbacks``: of the report's header and of the whole report; ``road`` and ``host`` once
+    read back and checked, ``road`` early in the metric mode; ``exact``: labels and potholes
+    measured again where the report overflowed; ``replayed``: the arrays are still a CUDA
+    graph's, which its next replay writes again)."""
 
     report: _DeviceReport
     valid: Any
@@ -182,12 +185,14 @@ class _FrameGraphs:
     caches filled, the matcher's buffers sized); its next frame captures them, and later
     frames replay them. The graphs hold the matcher's buffers by address: when
     the matcher replaces them (its ``generation``) or the image size changes, every graph is
-    dropped and each key starts again."""
+    dropped and each key starts again. Where a capture fails, the pipeline logs why and runs
+    without graphs from then on."""
 
     def __init__(self) -> None:
         self._graphs: dict[_GraphKey, CapturedGraph] = {}
         self._ran: set[_GraphKey] = set()
         self._generation = -1
+        self.failed = False
 
     def keys(self) -> set[_GraphKey]:
         """The keys that have a graph now."""
@@ -200,8 +205,14 @@ class _FrameGraphs:
         :meth:`ran`."""
         self._forget_stale(key, generation)
         graph = self._graphs.get(key)
-        if graph is None and key in self._ran:
-            graph = self._graphs[key] = capture(key)
+        if graph is None and key in self._ran and not self.failed:
+            try:
+                graph = self._graphs[key] = capture(key)
+            except Exception as exc:  # noqa: BLE001 - any capture failure: run without graphs
+                self.failed = True
+                _log.warning("capturing the frame as CUDA graphs failed (%s: %s); running "
+                             "without graphs (cuda_graph: false avoids the attempt)",
+                             type(exc).__name__, exc)
         return graph
 
     def ran(self, key: _GraphKey, generation: int) -> None:

@@ -815,3 +815,26 @@ def test_cuda_graph_overflow_fallback_and_memory(demo_sample, monkeypatch):
     got = [overflowing.run(left, right) for _ in range(3)]
     assert_same_results(got, expected, graphed_at_least=2)
     assert len(got[2].potholes) >= 2
+
+
+def test_failed_capture_leaves_frames_running_without_graphs(demo_sample, monkeypatch):
+    """A readback inside the captured work makes the capture fail: the pipeline logs it and
+    goes on without graphs, with the same results."""
+    left, right = to_gray8(demo_sample.left), to_gray8(demo_sample.right)
+    gpu = get_backend("gpu")
+    config = Config({"matcher": "census", "gpt_enabled": False, "max_disparity_px": 64})
+    plain = Pipeline(Config({**config.as_dict(), "cuda_graph": False}), demo_sample.calibration,
+                     gpu)
+    expected = [plain.run(left, right) for _ in range(3)]
+    pipeline = Pipeline(config, demo_sample.calibration, gpu)
+    device_frame = pipeline._device_frame
+
+    def reading_back(*args):
+        disparity, work = device_frame(*args)
+        to_host(disparity)  # not allowed while capturing
+        return disparity, work
+
+    monkeypatch.setattr(pipeline, "_device_frame", reading_back)
+    got = [pipeline.run(left, right) for _ in range(3)]
+    assert pipeline._graphs.failed and not pipeline._graphs.keys()
+    assert_same_results(got, expected, graphed_at_least=0)

@@ -196,3 +196,19 @@ def test_frame_graphs_capture_a_key_on_its_second_frame_and_drop_stale_ones():
     # another image size: the graphs of the old one go
     assert two_frames(large, 2) == {large}
     assert captured == [small, other_levels, other_levels, small, large]
+
+
+def test_frame_graphs_run_without_graphs_after_a_failed_capture(caplog):
+    calls = []
+
+    def failing(key):
+        calls.append(key)
+        raise RuntimeError("operation not permitted when stream is capturing")
+
+    graphs = _FrameGraphs()
+    key = (192, 320, 48)
+    graphs.ran(key, 1)
+    with caplog.at_level("WARNING"):
+        assert graphs.get(key, 1, failing) is None
+    assert "running without graphs" in caplog.text and "not permitted" in caplog.text
+    assert graphs.get(key, 1, failing) is None and calls == [key] and graphs.failed
