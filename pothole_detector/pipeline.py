@@ -272,8 +272,7 @@ class Pipeline:
         staged = self._stage((left, right), send_ahead=False)
         if isinstance(staged, PotholeError):
             raise staged
-        left_gray, right_gray, _ = staged.writable()
-        queued = self._queue(left_gray, right_gray, staged, started)
+        queued = self._queue(staged, started)
         self._read_road(queued)
         self._read_report(queued)
         return self._finish(queued)
@@ -347,9 +346,8 @@ class Pipeline:
         if isinstance(staged, PotholeError):
             return staged
         started = time.perf_counter()
-        left_gray, right_gray, _ = staged.writable()
         try:
-            return self._queue(left_gray, right_gray, staged, started)
+            return self._queue(staged, started)
         except PotholeError as exc:
             return exc
 
@@ -395,12 +393,11 @@ class Pipeline:
             labels, potholes = self._measure_exact(labels, count, disparity, road)
         return _Detection(transformed, labels, sp_labels, road, reference, potholes)
 
-    def _queue(self, left_gray: np.ndarray, right_gray: np.ndarray,
-               staged: UploadBuffer | None, started: float) -> _Queued:
-        """Match the pair, then detect on the host (CPU) or queue the stages after matching on
-        the device (GPU); ``staged``: the upload buffer holding the pair (else it is copied from
-        where it is)."""
+    def _queue(self, staged: UploadBuffer, started: float) -> _Queued:
+        """Match the pair in upload buffer ``staged``, then detect on the host (CPU) or queue
+        the stages after matching on the device (GPU)."""
         config, backend = self.config, self.backend
+        left_gray, right_gray, _ = staged.writable()
         clock = StageClock(backend)
         seeded = self._road is None or not config.gpt_enabled
         seeding = config.gpt_enabled and self._road is None
