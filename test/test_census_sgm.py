@@ -126,6 +126,17 @@ def test_lanes_leave_at_most_8_levels_each_in_whole_words_where_possible():
     assert [census_sgm.lanes_for(n) for n in (16, 48, 64, 96, 128, 384)] == [4, 8, 16, 16, 32, 32]
 
 
+def test_path_lanes_hold_16_padding_levels_where_only_then_each_gets_an_even_count():
+    assert [census_sgm.path_levels(n) for n in (16, 48, 64, 80, 96, 112, 144, 208, 240)] \
+        == [16, 48, 64, 96, 96, 128, 144, 208, 256]
+    for levels in range(16, 513, 16):
+        held = census_sgm.path_levels(levels)
+        assert held in (levels, levels + 16)
+        lanes = census_sgm.lanes_for(held)
+        even = held % lanes == 0 and (held // lanes) % 2 == 0
+        assert held == levels or even
+
+
 def test_winner_search_lanes_hold_whole_words_of_at_most_12_levels():
     assert [census_sgm.select_lanes_for(n) for n in (16, 48, 64, 96, 128, 208, 384)] \
         == [4, 4, 8, 8, 16, 16, 32]

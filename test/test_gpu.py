@@ -60,6 +60,8 @@ CASES = [  # height, width, levels, shift, kappa pattern; lanes x levels each (s
     (8, 240, 208, 30, "ramp"),    # 16 x 13: one level per register, byte reads
     (21, 150, 96, 10, "ramp"),    # the real frames' band: 16 x 6
     (6, 330, 256, 20, "ramp"),    # 32 x 8: one line per warp
+    (19, 140, 80, 9, "ramp"),     # 16 x 6 holding 96: levels 80-95 padding
+    (13, 180, 112, 14, "ramp"),   # 32 x 4 holding 128: levels 112-127 padding
 ]
 
 
@@ -80,13 +82,43 @@ def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, leve
     paths = census_sgm.aggregate(cost, P1, P2)
     pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
                           for a, b in census_sgm.DIRECTION_PAIRS])
-    np.testing.assert_array_equal(to_host(buffers["paths"]), pair_sums)
+    np.testing.assert_array_equal(to_host(buffers["paths"])[..., :levels], pair_sums)
     raw = census_sgm.select_disparities(paths, 5, 1)
     np.testing.assert_array_equal(to_host(buffers["raw"]), raw)
     expected = census_sgm.finish(raw, kappa, True, census_left)
     np.testing.assert_array_equal(disparity, expected)
     if height > 2 * census_sgm.BORDER_Y and width > 2 * census_sgm.BORDER_X + shift:
         assert np.isfinite(disparity).any()
+
+
+@pytest.mark.parametrize("p1,p2", [(1, 4), (0, 1)])
+@pytest.mark.parametrize("height,width,levels,shift,pattern", [CASES[i] for i in (1, 6, 7, 8, 10)])
+def test_penalties_below_the_largest_cost_match_the_reference(gpu, height, width, levels, shift,
+                                                              pattern, p1, p2):
+    """Small penalties (P2 below the largest cost): the jump from the path minimum then gives
+    some steps' least path cost, where the step before's costs at the same or a neighbouring
+    level would not (never on these pairs at P2 >= 20). Padded lanes among them (80 levels)."""
+    left, right = random_pair(height, width, shift, seed=height + width)
+    kappa = (np.arange(height) // 7 if pattern == "ramp" else np.zeros(height)).astype(np.int32)
+    matcher = census_sgm.GpuMatcher(gpu)
+    matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2, 5, 1, True)
+    cost = census_sgm.matching_cost(census_sgm.census_transform(left),
+                                    census_sgm.census_transform(right), kappa, levels)
+    paths = census_sgm.aggregate(cost, p1, p2)
+    pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
+                          for a, b in census_sgm.DIRECTION_PAIRS])
+    paths_held = to_host(matcher.buffers(height, width, levels)["paths"])
+    np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
+    # along the rows (direction 0): some step's least cost + P2 below the least of its costs
+    # plus the reach from the step before (same level, or a neighbour + P1), less its minimum
+    previous = paths[0][:, :-1].astype(np.int32)
+    step_cost = cost[:, 1:]
+    outside = np.full(previous.shape[:2] + (1,), 1 << 20)
+    neighbours = np.minimum(np.concatenate([outside, previous[..., :-1]], axis=2),
+                            np.concatenate([previous[..., 1:], outside], axis=2))
+    reach = np.minimum(previous, neighbours + p1)
+    through = (step_cost + reach).min(axis=2) - previous.min(axis=2)
+    assert (step_cost.min(axis=2) + p2 < through).any()
 
 
 def test_largest_penalty_fits_the_byte_pairs(gpu):

@@ -2,13 +2,18 @@
 // pothole_detector/stages/census_sgm.py. Compile-time: LEVELS (a multiple of LANES), LANES (4
 // to 32 threads per path line), SELECT_LANES (threads per pixel in sgm_select; LANES if not
 // given), CENSUS_RY, CENSUS_RX, INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8
-// [4][H][W][LEVELS], slot s holding the sum of the directions FIRST_PASS[s] and
-// SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a pair fits a byte).
-// In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE and the next
-// SELECT_PER_LANE - 1; sgm_paths_write and sgm_paths_add: see PACKED. Optional:
-// HORIZONTALS_SECOND, PREFETCH_STEPS, OLD_AHEAD, SUMS_L2_AHEAD, PATH_BLOCKS (tuning).
+// [4][H][W][PATH_LEVELS], the first LEVELS of each pixel's PATH_LEVELS bytes holding levels 0
+// to LEVELS - 1 (the rest: padding, see PADDED), slot s holding the sum of the directions
+// FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a
+// pair fits a byte). In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE
+// and the next SELECT_PER_LANE - 1; sgm_paths_write and sgm_paths_add: see PACKED. Optional:
+// PATH_LEVELS (LEVELS unless padded), HORIZONTALS_SECOND, PREFETCH_STEPS, OLD_AHEAD,
+// SUMS_L2_AHEAD, PATH_BLOCKS (tuning).
 
-#define PER_LANE (LEVELS / LANES)
+#ifndef PATH_LEVELS
+#define PATH_LEVELS LEVELS
+#endif
+#define PER_LANE (PATH_LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
 
 // (dx, dy) of the eight path directions: census_sgm.DIRECTIONS.
@@ -33,7 +38,7 @@ __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 #ifndef SELECT_LANES
 #define SELECT_LANES LANES
 #endif
-#define SELECT_PER_LANE (LEVELS / SELECT_LANES)
+#define SELECT_PER_LANE (PATH_LEVELS / SELECT_LANES)
 
 // Adds SELECT_PER_LANE consecutive path bytes of one lane (sgm_select) to its totals. With an
 // even count the lane's bytes start on a 2-byte boundary: they are read 4 or 2 at a time,
@@ -133,6 +138,15 @@ census_pair(const unsigned char* left, const unsigned char* right, unsigned* cen
 // register, so the group's loads and stores of one k are contiguous.
 #define PACKED (PER_LANE % 2 == 0)
 #define PAIRS (PER_LANE / 2)
+// PADDED: the path lanes hold PATH_LEVELS > LEVELS levels, where only then each lane gets an
+// even number (PACKED; LEVELS even, so a pair is all real or all padding). A padded level
+// costs PAD_COST, so its path cost stays at least that, far above any real one (at most 127):
+// it is never the path minimum nor a real level's best neighbour; and it stays below
+// FAR_HALF - P1 (no carry out of its half). A pixel's last PATH_LEVELS - LEVELS bytes in the
+// path volume hold no path cost; nothing reads them as one.
+#define PADDED (PATH_LEVELS > LEVELS)
+#define PAD_COST 0x3fffu
+static_assert(!PADDED || (PACKED && LEVELS % 2 == 0), "padding needs packed even levels");
 #if PACKED
 #define LANE_FIRST_LEVEL(sub) ((sub) * PER_LANE)
 #define LEVEL_STEP 1
@@ -218,12 +232,12 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
 }
 
 __device__ __forceinline__ void prefetch_sums(const unsigned char* cells, unsigned pixel) {
-    asm volatile("prefetch.global.L2 [%0];" : : "l"(cells + (size_t)pixel * LEVELS));
+    asm volatile("prefetch.global.L2 [%0];" : : "l"(cells + (size_t)pixel * PATH_LEVELS));
 }
 
 __device__ __forceinline__ void load_sums(const unsigned char* cells, unsigned pixel,
                                           StepData& data) {
-    const unsigned char* cell = cells + (size_t)pixel * LEVELS;
+    const unsigned char* cell = cells + (size_t)pixel * PATH_LEVELS;
 #if PACKED
 #pragma unroll
     for (int p = 0; p < PAIRS; ++p)
@@ -302,7 +316,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     if (warp_steps == 0) return;
     const int first = LANE_FIRST_LEVEL(sub);
     // this lane's first path byte of pixel 0 in the slot
-    unsigned char* cells = opaque(paths + (size_t)slot * height * width * LEVELS + first);
+    unsigned char* cells = opaque(paths + (size_t)slot * height * width * PATH_LEVELS + first);
     const int delta = dy * width + dx;
     // the census loads run PREFETCH_STEPS steps ahead of the step aggregated (the sums
     // OLD_AHEAD), into one of PREFETCH_STEPS register sets used in turn
@@ -332,6 +346,11 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     unsigned minimum = 0u;  // the path minimum in both halves
     const unsigned p1_pair = (unsigned)p1 * 0x10001u;
     const unsigned p2_pair = (unsigned)p2 * 0x10001u;
+#if PADDED
+    unsigned pad[PAIRS];
+#pragma unroll
+    for (int p = 0; p < PAIRS; ++p) pad[p] = first + 2 * p < LEVELS ? 0u : PAD_COST * 0x10001u;
+#endif
 #else
     int previous[PER_LANE];
 #pragma unroll
@@ -359,6 +378,10 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         for (int p = 0; p < PAIRS; ++p)
             current[p] = __byte_perm(__popc(data.left ^ data.right[2 * p]),
                                      __popc(data.left ^ data.right[2 * p + 1]), 0x5410);
+#if PADDED
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p) current[p] |= pad[p];
+#endif
 #else
         int current[PER_LANE];
 #pragma unroll
@@ -376,7 +399,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         ahead.column += dx;
         ahead.shift += dy;
         const bool store = FAST || step < steps;
-        unsigned char* cell = cells + (size_t)pixel * LEVELS;
+        unsigned char* cell = cells + (size_t)pixel * PATH_LEVELS;
 #if PACKED
         unsigned least;
         {
@@ -519,27 +542,30 @@ sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const i
 extern "C" __global__ void __launch_bounds__(256)
 sgm_select(const unsigned char* paths, float* raw, int height, int width, int uniqueness,
            int lr_max_diff) {
-    // the right view's best (cost << 16 | d) per column, after LEVELS columns left of the
-    // image that take the candidates there (so no test), then the left view's winners and
-    // each group's totals, LEVELS + 1 apart (the groups of a warp write the same level into
-    // different banks)
+    // the right view's best (cost << 16 | d) per column, after PATH_LEVELS columns left of
+    // the image that take the candidates there (so no test), then the left view's winners and
+    // each group's totals, PATH_LEVELS + 1 apart (the groups of a warp write the same level
+    // into different banks). A padded level's total is 0xffff, above any real one (at most
+    // 4 x 254): never the winner nor the runner-up, and never the right view's winner (every
+    // column has the real candidate of its own pixel at level 0).
     extern __shared__ unsigned shared[];
-    unsigned* right_best = shared + LEVELS;
+    unsigned* right_best = shared + PATH_LEVELS;
     int* left_best = (int*)(right_best + width);
     const int groups = blockDim.x / SELECT_LANES;
     const int group = threadIdx.x / SELECT_LANES;
     const int sub = threadIdx.x % SELECT_LANES;
-    unsigned* totals = (unsigned*)(left_best + width) + group * (LEVELS + 1);
+    unsigned* totals = (unsigned*)(left_best + width) + group * (PATH_LEVELS + 1);
     const int v = blockIdx.x;
-    const size_t plane = (size_t)height * width * LEVELS;
-    for (int x = threadIdx.x; x < width + LEVELS; x += blockDim.x) shared[x] = 0xffffffffu;
+    const size_t plane = (size_t)height * width * PATH_LEVELS;
+    for (int x = threadIdx.x; x < width + PATH_LEVELS; x += blockDim.x)
+        shared[x] = 0xffffffffu;
     __syncthreads();
     for (int first = 0; first < width; first += groups) {
         // a group past the row's end repeats the last pixel: its right-view candidates are
         // that pixel's own, so they change nothing
         const int u = min(first + group, width - 1);
         const bool inside = first + group < width;
-        const size_t cell = ((size_t)v * width + u) * LEVELS + sub * SELECT_PER_LANE;
+        const size_t cell = ((size_t)v * width + u) * PATH_LEVELS + sub * SELECT_PER_LANE;
         unsigned halves[(SELECT_PER_LANE + 1) / 2];
 #pragma unroll
         for (int h = 0; h < (SELECT_PER_LANE + 1) / 2; ++h) halves[h] = 0;
@@ -548,7 +574,8 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
         unsigned total[SELECT_PER_LANE];
 #pragma unroll
         for (int k = 0; k < SELECT_PER_LANE; ++k)
-            total[k] = (halves[k / 2] >> (16 * (k % 2))) & 0xffffu;
+            total[k] = PADDED && sub * SELECT_PER_LANE + k >= LEVELS
+                           ? 0xffffu : (halves[k / 2] >> (16 * (k % 2))) & 0xffffu;
         unsigned packed = 0xffffffffu;
 #pragma unroll
         for (int k = 0; k < SELECT_PER_LANE; ++k)

@@ -232,6 +232,21 @@ def lanes_for(levels: int, lines: int = 0, resident_threads: int = 0) -> int:
     return lanes
 
 
+def path_levels(levels: int) -> int:
+    """Levels the GPU path lanes hold for ``levels`` (a multiple of 16): ``levels`` where some
+    lane count leaves each lane an even 4 to 8 of them (two per 32-bit word), else ``levels``
+    + 16 where that does (80 -> 96, 112 -> 128, 176 -> 192, 240 -> 256), else ``levels``.
+    The padded levels cost more than any real one (sgm.cu, PADDED), so the path costs and
+    disparities are those of ``levels``, at the speed of the packed kernels. Measured on the
+    H200 at 2079x1040 (model1_03): 80 levels as 16 lanes of 5, paths 1.83 ms and winner
+    search 0.40 ms; held as 96, 1.59 and 0.29 ms (SGM 2.32 -> 1.96 ms); 112 levels as 16
+    lanes of 7, 2.30 and 0.55 ms; held as 128 (32 lanes of 4), 2.26 and 0.47 ms."""
+    for held in (levels, levels + 16):
+        if any(held % lanes == 0 and held // lanes in (4, 6, 8) for lanes in (4, 8, 16, 32)):
+            return held
+    return levels
+
+
 def select_lanes_for(levels: int) -> int:
     """Threads per pixel of the GPU winner search (levels: a multiple of 16): the fewest of 4,
     8, 16, 32 that leave each a multiple of 4 levels, at most 12 (32-bit path reads); else the
@@ -270,15 +285,14 @@ class GpuMatcher:
     """Census SGM on the device with buffers kept per image size (see :meth:`buffers`).
 
     Kernels come from kernels/sgm.cu, built once per level count and lane count (``lanes``:
-    more lanes per path line for images too small to fill the device). Memory: 4 bytes per pixel
-    and level for the path costs (the sums of DIRECTION_PAIRS), plus 8 bytes per pixel (the
-    census words; the winner search writes over the right view's, no longer needed). A matcher
-    with a ``lender`` (one that never runs at the same time, e.g. the seed pass's matcher
-    beside the frame's) writes its path costs into the lender's volume where that is large
-    enough. Two
-    path launches: the first walks the first direction of every pair and writes, the second
-    walks the other and adds in place. The path kernels keep kappa in shared memory and load
-    each step's census words several steps ahead.
+    more lanes per path line for images too small to fill the device). Memory: 4 bytes per
+    pixel and path level (path_levels) for the path costs (the sums of DIRECTION_PAIRS), plus
+    8 bytes per pixel (the census words; the winner search writes over the right view's, no
+    longer needed). A matcher with a ``lender`` (one that never runs at the same time, e.g. the
+    seed pass's matcher beside the frame's) writes its path costs into the lender's volume
+    where that is large enough. Two path launches: the first walks the first direction of
+    every pair and writes, the second walks the other and adds in place. The path kernels keep
+    kappa in shared memory and load each step's census words several steps ahead.
     """
 
     THREADS = 256
@@ -295,11 +309,13 @@ class GpuMatcher:
         self._kernel_sets: dict[tuple[int, int], dict[str, Any]] = {}
 
     def lanes(self, height: int, width: int, levels: int) -> int:
-        """Lanes per path line for an image and level count (lanes_for; with
-        ``fill_device`` False, without doubling for small images)."""
+        """Lanes per path line for an image and level count (lanes_for of the levels the
+        lanes hold, path_levels; with ``fill_device`` False, without doubling for small
+        images)."""
         if not self.fill_device:
-            return lanes_for(levels)
-        return lanes_for(levels, path_lines(height, width), self.backend.resident_threads())
+            return lanes_for(path_levels(levels))
+        return lanes_for(path_levels(levels), path_lines(height, width),
+                         self.backend.resident_threads())
 
     def _kernels(self, levels: int, lanes: int) -> dict[str, Any]:
         if (levels, lanes) not in self._kernel_sets:
@@ -307,11 +323,12 @@ class GpuMatcher:
         return self._kernel_sets[levels, lanes]
 
     def _build_kernels(self, levels: int, lanes: int) -> dict[str, Any]:
-        defines = {"LEVELS": levels, "LANES": lanes, "SELECT_LANES": select_lanes_for(levels),
-                   "CENSUS_RY": CENSUS_RADIUS_Y,
+        held = path_levels(levels)
+        defines = {"LEVELS": levels, "PATH_LEVELS": held, "LANES": lanes,
+                   "SELECT_LANES": select_lanes_for(held), "CENSUS_RY": CENSUS_RADIUS_Y,
                    "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
                    "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X,
-                   "HORIZONTALS_SECOND": int(horizontals_second(levels, lanes))}
+                   "HORIZONTALS_SECOND": int(horizontals_second(held, lanes))}
         names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
                  "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
@@ -320,14 +337,16 @@ class GpuMatcher:
 
     def buffers(self, height: int, width: int, levels: int) -> dict[str, Any]:
         """The device buffers of an image size and level count: census (uint32 2xHxW), paths
-        (uint8 4xHxWxlevels) and raw (float32 HxW, the right census's memory). Kept for one
+        (uint8 4xHxWxpath_levels(levels); levels from ``levels`` on are padding) and raw
+        (float32 HxW, the right census's memory). Kept for one
         image size and reused by every frame, whatever its level count: the path volume holds
         the most levels asked for. Where the buffers are replaced (another size, more
         levels), the old ones are freed first and ``generation`` counts up (graphs captured
         with them are stale). With a lender, the path costs go into the lender's volume where
         it is large enough, else into one of this call's own."""
         xp = self.backend.xp
-        size = 4 * height * width * levels
+        path_depth = path_levels(levels)
+        size = 4 * height * width * path_depth
         held = self._buffers.get((height, width))
         volume_needed = self._lender is None
         if held is None or (volume_needed and held["volume"].size < size):
@@ -349,7 +368,7 @@ class GpuMatcher:
                 volume = xp.empty(size, dtype=xp.uint8)
         census = held["census"]
         return {"census": census, "raw": census[1].view(xp.float32),
-                "paths": volume[:size].reshape(4, height, width, levels)}
+                "paths": volume[:size].reshape(4, height, width, path_depth)}
 
     def __call__(self, left: Any, right: Any, kappa: Any, levels: int, p1: int, p2: int,
                  uniqueness_percent: int, lr_max_diff_px: int, median: bool,
@@ -382,8 +401,8 @@ class GpuMatcher:
                 walk((blocks,), (self.THREADS,),
                      (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
                       i32(p2)), shared_mem=kappa_bytes)
-        shared = 4 * (levels + 2 * width
-                      + self.THREADS // kernels["select_lanes"] * (levels + 1))
+        held = path_levels(levels)
+        shared = 4 * (held + 2 * width + self.THREADS // kernels["select_lanes"] * (held + 1))
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
