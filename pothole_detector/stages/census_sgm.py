@@ -323,12 +323,12 @@ class GpuMatcher:
         return self._kernel_sets[levels, lanes]
 
     def _build_kernels(self, levels: int, lanes: int) -> dict[str, Any]:
-        held = path_levels(levels)
-        defines = {"LEVELS": levels, "PATH_LEVELS": held, "LANES": lanes,
-                   "SELECT_LANES": select_lanes_for(held), "CENSUS_RY": CENSUS_RADIUS_Y,
+        path_depth = path_levels(levels)
+        defines = {"LEVELS": levels, "PATH_LEVELS": path_depth, "LANES": lanes,
+                   "SELECT_LANES": select_lanes_for(path_depth), "CENSUS_RY": CENSUS_RADIUS_Y,
                    "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
                    "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X,
-                   "HORIZONTALS_SECOND": int(horizontals_second(held, lanes))}
+                   "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes))}
         names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
                  "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
@@ -338,12 +338,12 @@ class GpuMatcher:
     def buffers(self, height: int, width: int, levels: int) -> dict[str, Any]:
         """The device buffers of an image size and level count: census (uint32 2xHxW), paths
         (uint8 4xHxWxpath_levels(levels); levels from ``levels`` on are padding) and raw
-        (float32 HxW, the right census's memory). Kept for one
-        image size and reused by every frame, whatever its level count: the path volume holds
-        the most levels asked for. Where the buffers are replaced (another size, more
-        levels), the old ones are freed first and ``generation`` counts up (graphs captured
-        with them are stale). With a lender, the path costs go into the lender's volume where
-        it is large enough, else into one of this call's own."""
+        (float32 HxW, the right census's memory). Kept for one image size and reused by every
+        frame, whatever its level count: the path volume holds the most levels asked for.
+        Where the buffers are replaced (another size, more levels), the old ones are freed
+        first and ``generation`` counts up (graphs captured with them are stale). With a
+        lender, the path costs go into the lender's volume where it is large enough, else into
+        one of this call's own."""
         xp = self.backend.xp
         path_depth = path_levels(levels)
         size = 4 * height * width * path_depth
@@ -401,8 +401,9 @@ class GpuMatcher:
                 walk((blocks,), (self.THREADS,),
                      (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
                       i32(p2)), shared_mem=kappa_bytes)
-        held = path_levels(levels)
-        shared = 4 * (held + 2 * width + self.THREADS // kernels["select_lanes"] * (held + 1))
+        path_depth = paths.shape[3]  # the levels the path lanes hold (path_levels)
+        shared = 4 * (path_depth + 2 * width
+                      + self.THREADS // kernels["select_lanes"] * (path_depth + 1))
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
