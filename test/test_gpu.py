@@ -65,12 +65,27 @@ CASES = [  # height, width, levels, shift, kappa pattern; lanes x levels each (s
 ]
 
 
+def case_kappa(height: int, pattern: str) -> np.ndarray:
+    """int32 (H,) row shifts of a CASES pattern: "ramp" (one more every 7 rows) or "zero"."""
+    return (np.arange(height) // 7 if pattern == "ramp" else np.zeros(height)).astype(np.int32)
+
+
+def reference_pair_sums(census_left, census_right, kappa, levels, p1, p2):
+    """NumPy reference: matching cost (HxWxlevels), the 8 path costs and their DIRECTION_PAIRS
+    sums (int32 4xHxWxlevels, the GPU path volume's real levels)."""
+    cost = census_sgm.matching_cost(census_left, census_right, kappa, levels)
+    paths = census_sgm.aggregate(cost, p1, p2)
+    pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
+                          for a, b in census_sgm.DIRECTION_PAIRS])
+    return cost, paths, pair_sums
+
+
 @pytest.mark.parametrize("fill_device", [True, False])
 @pytest.mark.parametrize("height,width,levels,shift,pattern", CASES)
 def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, levels, shift,
                                                         pattern, fill_device):
     left, right = random_pair(height, width, shift, seed=height * width)
-    kappa = (np.arange(height) // 7 if pattern == "ramp" else np.zeros(height)).astype(np.int32)
+    kappa = case_kappa(height, pattern)
     _, buffers, disparity = run_both(gpu, left, right, kappa, levels, fill_device=fill_device)
     census_left = census_sgm.census_transform(left)
     census_right = census_sgm.census_transform(right)
@@ -78,10 +93,7 @@ def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, leve
     # the right census words went into the path costs checked below; the winner search then
     # wrote over them
     assert buffers["raw"].data.ptr == buffers["census"][1].data.ptr
-    cost = census_sgm.matching_cost(census_left, census_right, kappa, levels)
-    paths = census_sgm.aggregate(cost, P1, P2)
-    pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
-                          for a, b in census_sgm.DIRECTION_PAIRS])
+    _, paths, pair_sums = reference_pair_sums(census_left, census_right, kappa, levels, P1, P2)
     np.testing.assert_array_equal(to_host(buffers["paths"])[..., :levels], pair_sums)
     raw = census_sgm.select_disparities(paths, 5, 1)
     np.testing.assert_array_equal(to_host(buffers["raw"]), raw)
@@ -99,26 +111,20 @@ def test_penalties_below_the_largest_cost_match_the_reference(gpu, height, width
     some steps' least path cost, where the step before's costs at the same or a neighbouring
     level would not (never on these pairs at P2 >= 20). Padded lanes among them (80 levels)."""
     left, right = random_pair(height, width, shift, seed=height + width)
-    kappa = (np.arange(height) // 7 if pattern == "ramp" else np.zeros(height)).astype(np.int32)
+    kappa = case_kappa(height, pattern)
     matcher = census_sgm.GpuMatcher(gpu)
     matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2, 5, 1, True)
-    cost = census_sgm.matching_cost(census_sgm.census_transform(left),
-                                    census_sgm.census_transform(right), kappa, levels)
-    paths = census_sgm.aggregate(cost, p1, p2)
-    pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
-                          for a, b in census_sgm.DIRECTION_PAIRS])
+    cost, paths, pair_sums = reference_pair_sums(census_sgm.census_transform(left),
+                                                 census_sgm.census_transform(right), kappa,
+                                                 levels, p1, p2)
     paths_held = to_host(matcher.buffers(height, width, levels)["paths"])
     np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
-    # along the rows (direction 0): some step's least cost + P2 below the least of its costs
-    # plus the reach from the step before (same level, or a neighbour + P1), less its minimum
-    previous = paths[0][:, :-1].astype(np.int32)
-    step_cost = cost[:, 1:]
-    outside = np.full(previous.shape[:2] + (1,), 1 << 20)
-    neighbours = np.minimum(np.concatenate([outside, previous[..., :-1]], axis=2),
-                            np.concatenate([previous[..., 1:], outside], axis=2))
-    reach = np.minimum(previous, neighbours + p1)
-    through = (step_cost + reach).min(axis=2) - previous.min(axis=2)
-    assert (step_cost.min(axis=2) + p2 < through).any()
+    # along the rows (direction 0): some step's least cost + P2 below its least path cost
+    # without the jump (the reference step with a P2 no cost reaches)
+    previous = paths[0][:, :-1].reshape(-1, levels).astype(np.int32)
+    step_cost = cost[:, 1:].reshape(-1, levels)
+    without_jump = census_sgm._path_step(step_cost, previous, p1, 1 << 20).min(axis=1)
+    assert (step_cost.min(axis=1) + p2 < without_jump).any()
 
 
 def test_largest_penalty_fits_the_byte_pairs(gpu):
