@@ -295,19 +295,31 @@ class UploadBuffer:
                      .reshape(shape)
                      for (shape, dtype), start in zip(self._layout, self._offsets))
 
-    def writable(self) -> tuple[np.ndarray, ...]:
-        """The host arrays, once the buffer's last transfer has finished (it waits for it)."""
-        for event in (self._sent, self._ahead):
+    def shape(self, index: int) -> tuple[int, ...]:
+        """The shape of array ``index`` (no wait)."""
+        return self._layout[index][0]
+
+    def writable(self, start: int = 0) -> tuple[np.ndarray, ...]:
+        """The host arrays from ``start`` on, once the transfers that read them have finished
+        (it waits for them): the buffer's last upload, and the transfer sent ahead if it
+        covers any of them (that one then counts as not sent). Arrays behind the ones sent
+        ahead can be written while those are still on their way."""
+        waits = [self._sent]
+        if start < self._ahead_count:
+            waits.append(self._ahead)
+            self._ahead_count = 0
+        for event in waits:
             if event is not None:
                 event.synchronize()
-        return self._views
+        return self._views[start:]
 
     def send_ahead(self, count: int) -> None:
         """Queue the transfer of the first ``count`` arrays now, on a copy stream of its own, so
         that it overlaps the device's work on the frame before; :meth:`upload` then sends the
         rest and orders the current stream after both. The device arrays must no longer be in
-        use by queued work (no-op on the CPU backend)."""
-        if not self._gpu:
+        use by queued work. No-op on the CPU backend, and where those arrays have already been
+        sent ahead since they were last written."""
+        if not self._gpu or self._ahead_count >= count:
             return
         assert _cupy is not None
         end = self._offsets[count]

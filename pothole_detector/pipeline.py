@@ -254,6 +254,9 @@ class Pipeline:
         self._graph_memory: GraphMemory | None = None  # shared by the graphs (one stream)
         self._readbacks: list[tuple[Readback, Readback]] = []  # used in turn, frame by frame
         self._unpublished: _Queued | None = None  # the last replayed frame, if not yet copied
+        # the last band worked out: (road model, config, image shape, (kappa, levels))
+        self._band_memo: tuple[Any, Config, tuple[int, ...], tuple[np.ndarray, int]] | None \
+            = None
 
     def reset(self) -> None:
         """Forget the previous frame's road model; the next frame runs the seed pass."""
@@ -274,6 +277,7 @@ class Pipeline:
             raise staged
         queued = self._queue(staged, started)
         self._read_road(queued)
+        self._band(staged.shape(0))  # the next frame's, while the device finishes this one
         self._read_report(queued)
         return self._finish(queued)
 
@@ -317,8 +321,8 @@ class Pipeline:
                send_ahead: bool = True) -> UploadBuffer | PotholeError:
         """Pair checked and converted to grey straight into the next upload buffer of its size
         (page-locked memory on the GPU; a new size replaces the buffers of the old one), its
-        images sent ahead where ``send_ahead`` (else they go up with kappa at the frame's
-        start). On the GPU the images then cost the device one transfer at bus speed, not a
+        images sent ahead where ``send_ahead`` (else they go up at the frame's start, while
+        the host works out its row shifts). On the GPU the images then cost the device one transfer at bus speed, not a
         copy from pageable memory (0.57-0.87 ms for a 2079x1040 pair on the lent H200s)."""
         try:
             _check_pair(*pair)
@@ -397,16 +401,16 @@ class Pipeline:
         """Match the pair in upload buffer ``staged``, then detect on the host (CPU) or queue
         the stages after matching on the device (GPU)."""
         config, backend = self.config, self.backend
-        left_gray, right_gray, _ = staged.writable()
+        height, width = staged.shape(0)
         clock = StageClock(backend)
         seeded = self._road is None or not config.gpt_enabled
         seeding = config.gpt_enabled and self._road is None
-        pair, kappa, levels = self._upload(left_gray, right_gray, clock, staged)
+        pair, kappa, levels = self._upload(staged, clock)
         if not backend.is_gpu:
             disparity = self._sgm(*pair, levels, clock)
             return _Queued(disparity, kappa, levels, seeded, started, clock,
                            found=self._detect_on_host(disparity, clock))
-        key = (left_gray.shape[0], left_gray.shape[1], levels)
+        key = (height, width, levels)
         graphed = config.cuda_graph and not seeding and config.threshold_mode == "pixels" \
             and self.matcher.kind(config) == "census"
         graph = self._graphs.get(key, self.matcher.generation, self._capture_frame) \
@@ -672,9 +676,11 @@ class Pipeline:
     def match_pair(self, left: np.ndarray, right: np.ndarray) -> tuple[Any, int]:
         """D1 of a host pair (float32 HxW px, NaN invalid, on the backend) and the number of
         disparity levels searched; seeds and updates the road model like :meth:`run`."""
-        left_gray, right_gray = _validate_pair(left, right)
+        staged = self._stage((left, right), send_ahead=False)
+        if isinstance(staged, PotholeError):
+            raise staged
         clock = StageClock(self.backend)
-        pair, _, levels = self._upload(left_gray, right_gray, clock)
+        pair, _, levels = self._upload(staged, clock)
         disparity = self._sgm(*pair, levels, clock)
         if self.config.gpt_enabled:
             try:
@@ -683,28 +689,30 @@ class Pipeline:
                 self.reset()
         return disparity, levels
 
-    def _upload(self, left_gray: np.ndarray, right_gray: np.ndarray, clock: StageClock,
-                staged: UploadBuffer | None = None
+    def _upload(self, staged: UploadBuffer, clock: StageClock
                 ) -> tuple[tuple[Any, Any, Any], np.ndarray, int]:
-        """One upload of the pair and the GPT row shifts (from ``staged``, the upload buffer
-        holding the pair, where given), then the seed pass where one is needed (kappa sent
-        again): ((left, right, kappa) on the backend, kappa (H,) on the host, levels)."""
-        config, backend = self.config, self.backend
-        seeding = config.gpt_enabled and self._road is None
+        """One upload of the pair in upload buffer ``staged`` and the GPT row shifts, then the
+        seed pass where one is needed (kappa sent again): ((left, right, kappa) on the
+        backend, kappa (H,) on the host, levels). The images go up first (unless sent ahead
+        already) and the host works out the row shifts while they are on their way."""
+        shape = staged.shape(0)
         with clock.stage("gpt"):
-            kappa, levels = self._band(left_gray.shape)
-            if staged is None:
-                left_dev, right_dev, kappa_dev = backend.upload_many(left_gray, right_gray,
-                                                                     kappa)
-            else:
-                staged.writable()[2][...] = kappa
-                left_dev, right_dev, kappa_dev = staged.upload()
-        if seeding:
+            staged.send_ahead(2)
+            kappa, levels = self._band(shape)
+            staged.writable(2)[0][...] = kappa
+            pair = staged.upload()
+        return self._seed_where_needed(pair, kappa, levels, shape, clock)
+
+    def _seed_where_needed(self, pair: tuple[Any, Any, Any], kappa: np.ndarray, levels: int,
+                           shape: tuple[int, ...], clock: StageClock
+                           ) -> tuple[tuple[Any, Any, Any], np.ndarray, int]:
+        """The seed pass where no road model is known yet (kappa then sent again)."""
+        if self.config.gpt_enabled and self._road is None:
             with clock.stage("seed"):
-                self._road = self._seed(left_dev, right_dev)
-                kappa, levels = self._band(left_gray.shape)
-                kappa_dev = backend.upload(kappa)
-        return (left_dev, right_dev, kappa_dev), kappa, levels
+                self._road = self._seed(pair[0], pair[1])
+                kappa, levels = self._band(shape)
+                pair = (pair[0], pair[1], self.backend.upload(kappa))
+        return pair, kappa, levels
 
     def _sgm(self, left: Any, right: Any, kappa: Any, levels: int, clock: StageClock) -> Any:
         """D1 of a pair on the backend (the ``sgm`` stage)."""
@@ -713,14 +721,22 @@ class Pipeline:
 
     def _band(self, shape: tuple[int, int]) -> tuple[np.ndarray, int]:
         """GPT row shifts kappa (int32 (H,), host) and level count from the current road model
-        (kappa = 0 and the full range without one or with GPT off)."""
+        (kappa = 0 and the full range without one or with GPT off); worked out once per road
+        model and image size (:meth:`run` does it for the next frame while the device
+        finishes the frame that fitted the model)."""
         config = self.config
+        road = self._road if config.gpt_enabled else None
+        memo = self._band_memo
+        if memo is not None and memo[0] is road and memo[1] is config and memo[2] == shape:
+            return memo[3]
         height, width = shape
-        if not config.gpt_enabled or self._road is None:
-            return np.zeros(height, np.int32), \
-                perspective.round_up_levels(config.max_disparity_px)
-        return perspective.band(np, self._road, height, width, config.gpt_margin_below_px,
-                                config.gpt_margin_above_px, config.max_disparity_px)
+        if road is None:
+            band = np.zeros(height, np.int32), perspective.round_up_levels(config.max_disparity_px)
+        else:
+            band = perspective.band(np, road, height, width, config.gpt_margin_below_px,
+                                    config.gpt_margin_above_px, config.max_disparity_px)
+        self._band_memo = (road, config, shape, band)
+        return band
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
         config = self.config
@@ -786,11 +802,6 @@ def metric_tolerance_px(xp: Any, u: Any, v: Any, road: road_model.RoadModel,
         + normal[2]
     road_d = road.at(xp, u, v)
     return road_d - calibration.fb / (calibration.fb / road_d + depth_m / incidence)
-
-
-def _validate_pair(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    _check_pair(left, right)
-    return matching.to_gray8(left), matching.to_gray8(right)
 
 
 def _check_pair(left: np.ndarray, right: np.ndarray) -> None:

@@ -41,6 +41,8 @@ def test_upload_buffer_lays_arrays_out_on_16_byte_boundaries_and_hands_them_over
     starts = [v.__array_interface__["data"][0] - views[0].__array_interface__["data"][0]
               for v in views]
     assert starts == [0, 16, 48]
+    assert [buffer.shape(i) for i in range(3)] == [(3, 5), (7,), (2, 3)]
+    assert all(a is b for a, b in zip(buffer.writable(1), views[1:]))
     views[1][...] = np.arange(7)
     uploaded = buffer.upload()
     assert all(a is b for a, b in zip(uploaded, views))

@@ -7,6 +7,7 @@ from pothole_detector.backend import CPU, Readback, get_backend, gpu_available, 
 from pothole_detector.errors import InputError, NoRoadError, NoTextureError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline, _FrameGraphs, metric_tolerance_px
+from pothole_detector.stages import perspective
 from pothole_detector.synthetic import drive_scenes, render
 
 BACKENDS = ["cpu", pytest.param("gpu", marks=[
@@ -48,6 +49,27 @@ def test_second_frame_reuses_the_road_and_matches_the_same(demo_sample):
     assert len(second.potholes) == len(first.potholes)
     error = np.abs(second.disparity - demo_sample.disparity)
     assert np.nanmedian(error) < 0.3
+
+
+def test_band_is_worked_out_once_per_road_model_and_follows_it(demo_sample):
+    config = Config()
+    pipeline = Pipeline(config, demo_sample.calibration)
+    shape = demo_sample.left.shape[:2]
+    pipeline.run(demo_sample.left, demo_sample.right)
+    road = pipeline._road
+    assert pipeline._band_memo[0] is road  # run worked out the next frame's band already
+    kappa, levels = pipeline._band(shape)
+    assert pipeline._band(shape)[0] is kappa
+    expected = perspective.band(np, road, *shape, config.gpt_margin_below_px,
+                                config.gpt_margin_above_px, config.max_disparity_px)
+    np.testing.assert_array_equal(kappa, expected[0])
+    assert levels == expected[1]
+    second = pipeline.run(demo_sample.left, demo_sample.right)
+    assert second.band == (int(kappa.min()), levels)
+    assert pipeline._road is not road and pipeline._band(shape)[0] is not kappa
+    pipeline.reset()
+    assert not pipeline._band(shape)[0].any()
+    assert pipeline._band(shape)[1] == perspective.round_up_levels(config.max_disparity_px)
 
 
 def test_without_gpt_full_range_gives_the_same_potholes(demo_sample):
