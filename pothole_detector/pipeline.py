@@ -694,7 +694,8 @@ class Pipeline:
         """One upload of the pair in upload buffer ``staged`` and the GPT row shifts, then the
         seed pass where one is needed (kappa sent again): ((left, right, kappa) on the
         backend, kappa (H,) on the host, levels). The images go up first (unless sent ahead
-        already) and the host works out the row shifts while they are on their way."""
+        already), so that the row shifts, where not worked out yet (see :meth:`_band`), are
+        worked out while they are on their way."""
         shape = staged.shape(0)
         with clock.stage("gpt"):
             staged.send_ahead(2)
