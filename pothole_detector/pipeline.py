@@ -697,23 +697,18 @@ class Pipeline:
         already), so that the row shifts, where not worked out yet (see :meth:`_band`), are
         worked out while they are on their way."""
         shape = staged.shape(0)
+        seeding = self.config.gpt_enabled and self._road is None
         with clock.stage("gpt"):
             staged.send_ahead(2)
             kappa, levels = self._band(shape)
             staged.writable(2)[0][...] = kappa
-            pair = staged.upload()
-        return self._seed_where_needed(pair, kappa, levels, shape, clock)
-
-    def _seed_where_needed(self, pair: tuple[Any, Any, Any], kappa: np.ndarray, levels: int,
-                           shape: tuple[int, ...], clock: StageClock
-                           ) -> tuple[tuple[Any, Any, Any], np.ndarray, int]:
-        """The seed pass where no road model is known yet (kappa then sent again)."""
-        if self.config.gpt_enabled and self._road is None:
+            left, right, kappa_dev = staged.upload()
+        if seeding:
             with clock.stage("seed"):
-                self._road = self._seed(pair[0], pair[1])
+                self._road = self._seed(left, right)
                 kappa, levels = self._band(shape)
-                pair = (pair[0], pair[1], self.backend.upload(kappa))
-        return pair, kappa, levels
+                kappa_dev = self.backend.upload(kappa)
+        return (left, right, kappa_dev), kappa, levels
 
     def _sgm(self, left: Any, right: Any, kappa: Any, levels: int, clock: StageClock) -> Any:
         """D1 of a pair on the backend (the ``sgm`` stage)."""

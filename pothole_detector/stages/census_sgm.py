@@ -352,7 +352,7 @@ class GpuMatcher:
         if held is None or (volume_needed and held["volume"].size < size):
             if self._buffers:  # another size's buffers or a smaller volume: of no use now
                 self._buffers.clear()
-                held = None
+                held = None  # their last reference, so that the allocator can free them
                 self.backend.release_memory()
             held = self._buffers[height, width] = {
                 "census": xp.empty((2, height, width), dtype=xp.uint32),
