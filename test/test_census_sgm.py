@@ -151,6 +151,22 @@ def test_horizontal_walks_go_second_where_lanes_hold_at_most_4_levels():
     assert not census_sgm.horizontals_second(256, 32)
 
 
+def test_gpt_bands_get_small_path_blocks_and_wide_winner_search_blocks():
+    # lanes of an even count up to 8 levels (the GPT bands, 1280x720's 32 lanes of 2 too)
+    for levels, lanes in ((96, 16), (64, 16), (64, 32), (128, 32), (256, 32)):
+        assert census_sgm.path_threads(levels, lanes) == 128
+        assert census_sgm.select_threads(levels, lanes) == 512
+    # one level a register, or more than 8 a lane (full ranges)
+    for levels, lanes in ((208, 16), (304, 16), (368, 16), (384, 32), (80, 16)):
+        assert census_sgm.path_threads(levels, lanes) == 256
+        assert census_sgm.select_threads(levels, lanes) == 256
+    # every block holds whole path lines
+    for levels in range(16, 513, 16):
+        held = census_sgm.path_levels(levels)
+        lanes = census_sgm.lanes_for(held)
+        assert census_sgm.path_threads(held, lanes) % lanes == 0
+
+
 def test_lanes_double_while_the_lines_leave_the_device_underfilled():
     resident = 132 * 2048
     lines_720p = census_sgm.path_lines(720, 1280)

@@ -7,8 +7,9 @@
 // FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a
 // pair fits a byte). In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE
 // and the next SELECT_PER_LANE - 1; sgm_paths_write and sgm_paths_add: see PACKED. Optional:
-// PATH_LEVELS (LEVELS unless padded), HORIZONTALS_SECOND, PREFETCH_STEPS, OLD_AHEAD,
-// SUMS_L2_AHEAD, PATH_BLOCKS (tuning).
+// PATH_LEVELS (LEVELS unless padded), HORIZONTALS_SECOND, PATH_THREADS; PATH_BLOCKS,
+// WRITE_PATH_BLOCKS, PREFETCH_STEPS, WRITE_PREFETCH_STEPS, OLD_AHEAD, SUMS_RING, SUMS_L2_AHEAD
+// (tuning).
 
 #ifndef PATH_LEVELS
 #define PATH_LEVELS LEVELS
@@ -40,31 +41,67 @@ __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 #endif
 #define SELECT_PER_LANE (PATH_LEVELS / SELECT_LANES)
 
-// Adds SELECT_PER_LANE consecutive path bytes of one lane (sgm_select) to its totals. With an
-// even count the lane's bytes start on a 2-byte boundary: they are read 4 or 2 at a time,
-// spread to 16-bit halves and added two levels per 32-bit add (a total of four slots is at
-// most 4 x 254, so no half carries into the next). Path bytes are written once and read once
-// per pass, so they go through the cache as streaming data (evict first), which leaves L2 to
-// the census words every step reads.
-__device__ __forceinline__ void add_path_bytes(const unsigned char* cell,
-                                               unsigned (&totals)[(SELECT_PER_LANE + 1) / 2]) {
+// One lane's SELECT_PER_LANE consecutive path bytes of a pixel in each of the four slots
+// (sgm_select), as loaded: with an even count the lane's bytes start on a 2-byte boundary and
+// are read 4 or 2 at a time. Path bytes are written once and read once per pass, so they go
+// through the cache as streaming data (evict first), which leaves L2 to the census words
+// every step reads.
 #if SELECT_PER_LANE % 4 == 0
-#pragma unroll
-    for (int w = 0; w < SELECT_PER_LANE / 4; ++w) {
-        const unsigned word = __ldcs(reinterpret_cast<const unsigned*>(cell) + w);
-        totals[2 * w] += __byte_perm(word, 0u, 0x4140);
-        totals[2 * w + 1] += __byte_perm(word, 0u, 0x4342);
-    }
+#define SELECT_READS (SELECT_PER_LANE / 4)
 #elif SELECT_PER_LANE % 2 == 0
-#pragma unroll
-    for (int h = 0; h < SELECT_PER_LANE / 2; ++h)
-        totals[h] += __byte_perm(__ldcs(reinterpret_cast<const unsigned short*>(cell) + h), 0u,
-                                 0x4140);
+#define SELECT_READS (SELECT_PER_LANE / 2)
 #else
-#pragma unroll
-    for (int k = 0; k < SELECT_PER_LANE; ++k)
-        totals[k / 2] += (unsigned)__ldcs(cell + k) << (16 * (k % 2));
+#define SELECT_READS SELECT_PER_LANE
 #endif
+struct PathReads {
+    unsigned slot[4][SELECT_READS];
+};
+// Whether each group reads its next pixel's path bytes while it searches the current one's
+// (measured on the H200 at 2079x1040: 96 / 80 / 64 levels 0.276 / 0.288 / 0.201 ms ->
+// 0.253 / 0.267 / 0.197 ms, 128 levels 0.462 -> 0.414 ms); not where a lane reads its bytes
+// one at a time (304 and 368 levels, 16 lanes of 19 and 23: 1.41 -> 1.88 and 1.82 -> 2.31 ms,
+// the registers the reads take).
+#ifndef SELECT_AHEAD
+#define SELECT_AHEAD (SELECT_READS <= 4)
+#endif
+
+__device__ __forceinline__ void read_path_bytes(const unsigned char* cell, size_t plane,
+                                                PathReads& reads) {
+#pragma unroll
+    for (int s = 0; s < 4; ++s) {
+        const unsigned char* at = cell + s * plane;
+#pragma unroll
+        for (int r = 0; r < SELECT_READS; ++r) {
+#if SELECT_PER_LANE % 4 == 0
+            reads.slot[s][r] = __ldcs(reinterpret_cast<const unsigned*>(at) + r);
+#elif SELECT_PER_LANE % 2 == 0
+            reads.slot[s][r] = __ldcs(reinterpret_cast<const unsigned short*>(at) + r);
+#else
+            reads.slot[s][r] = __ldcs(at + r);
+#endif
+        }
+    }
+}
+
+// The four slots' bytes of `reads` summed into 16-bit halves, two levels per 32-bit add (a
+// total of four slots is at most 4 x 254, so no half carries into the next).
+__device__ __forceinline__ void add_path_bytes(const PathReads& reads,
+                                               unsigned (&totals)[(SELECT_PER_LANE + 1) / 2]) {
+#pragma unroll
+    for (int s = 0; s < 4; ++s) {
+#pragma unroll
+        for (int r = 0; r < SELECT_READS; ++r) {
+            const unsigned word = reads.slot[s][r];
+#if SELECT_PER_LANE % 4 == 0
+            totals[2 * r] += __byte_perm(word, 0u, 0x4140);
+            totals[2 * r + 1] += __byte_perm(word, 0u, 0x4342);
+#elif SELECT_PER_LANE % 2 == 0
+            totals[r] += __byte_perm(word, 0u, 0x4140);
+#else
+            totals[r / 2] += word << (16 * (r % 2));
+#endif
+        }
+    }
 }
 
 // Minimum of `value` over groups of GROUP lanes (every lane of the warp takes part). With 16
@@ -89,19 +126,43 @@ __device__ __forceinline__ unsigned group_minimum(unsigned value) {
 
 __device__ __forceinline__ int clamp_index(int i, int n) { return min(max(i, 0), n - 1); }
 
-// blockIdx.z: 0 = left, 1 = right. One thread per pixel, blocks of CENSUS_BLOCK_X x
-// CENSUS_BLOCK_Y threads; each block first copies its pixels and the window's margin
-// (edge-replicated) into shared memory.
+// blockIdx.z: 0 = left, 1 = right. Blocks of CENSUS_BLOCK_X x CENSUS_BLOCK_Y threads, each
+// thread four adjacent pixels of a row; each block first copies its pixels and the window's
+// margin (edge-replicated) into shared memory, then every thread reads the window rows of its
+// four pixels as CENSUS_WORDS aligned 32-bit words each and compares four byte pairs at once
+// (SIMD within a register): for bytes a and b, with t = (b | 0x80) - (a & 0x7f) per byte (no
+// borrow between bytes), a > b is bit 7 of a & ~b where the top bits differ, else of ~t. Eight
+// comparisons' bits gather in one word (byte i: pixel i) by shifting; four such words are
+// transposed into the pixels' census words. Measured on the H200 at 2079x1040 (both images):
+// one pixel a thread with byte reads 0.064 ms, four pixels a thread 0.040 ms.
 #define CENSUS_BLOCK_X 32
 #define CENSUS_BLOCK_Y 8
-#define CENSUS_TILE_X (CENSUS_BLOCK_X + 2 * CENSUS_RX)
+#define CENSUS_WORDS ((2 * CENSUS_RX + 3) / 4 + 1)
+#define CENSUS_TILE_X (4 * (CENSUS_BLOCK_X - 1) + 4 * CENSUS_WORDS)
 #define CENSUS_TILE_Y (CENSUS_BLOCK_Y + 2 * CENSUS_RY)
+#define CENSUS_BITS (CENSUS_RY * (2 * CENSUS_RX + 1) + CENSUS_RX)
+static_assert(CENSUS_BITS <= 32, "a census word holds at most 32 comparisons");
+
+// The four bytes of a tile row starting `start` (known at compile time once the loops are
+// unrolled) bytes into the thread's words.
+__device__ __forceinline__ unsigned census_window(const unsigned (&words)[CENSUS_WORDS],
+                                                  int start) {
+    if (start % 4 == 0) return words[start / 4];
+    return __funnelshift_r(words[start / 4], words[start / 4 + 1], 8 * (start % 4));
+}
+
+// Bit 7 of each byte: whether that byte of `a` is above the same byte of `b` (unsigned).
+__device__ __forceinline__ unsigned bytes_above(unsigned a, unsigned b) {
+    const unsigned t = (b | 0x80808080u) - (a & 0x7f7f7f7fu);
+    return (a & ~b) | (~(a ^ b) & ~t);
+}
+
 extern "C" __global__ void __launch_bounds__(CENSUS_BLOCK_X * CENSUS_BLOCK_Y)
 census_pair(const unsigned char* left, const unsigned char* right, unsigned* census_left,
             unsigned* census_right, int height, int width) {
-    __shared__ unsigned char tile[CENSUS_TILE_Y][CENSUS_TILE_X];
+    __shared__ __align__(4) unsigned char tile[CENSUS_TILE_Y][CENSUS_TILE_X];
     const unsigned char* image = blockIdx.z == 0 ? left : right;
-    const int u0 = blockIdx.x * CENSUS_BLOCK_X - CENSUS_RX;
+    const int u0 = blockIdx.x * 4 * CENSUS_BLOCK_X - CENSUS_RX;
     const int v0 = blockIdx.y * CENSUS_BLOCK_Y - CENSUS_RY;
     for (int i = threadIdx.y * CENSUS_BLOCK_X + threadIdx.x; i < CENSUS_TILE_Y * CENSUS_TILE_X;
          i += CENSUS_BLOCK_X * CENSUS_BLOCK_Y) {
@@ -109,27 +170,67 @@ census_pair(const unsigned char* left, const unsigned char* right, unsigned* cen
         tile[y][x] = image[clamp_index(v0 + y, height) * width + clamp_index(u0 + x, width)];
     }
     __syncthreads();
-    const int u = blockIdx.x * CENSUS_BLOCK_X + threadIdx.x;
+    const int u = (blockIdx.x * CENSUS_BLOCK_X + threadIdx.x) * 4;
     const int v = blockIdx.y * CENSUS_BLOCK_Y + threadIdx.y;
     if (u >= width || v >= height) return;
-    const int x = threadIdx.x + CENSUS_RX, y = threadIdx.y + CENSUS_RY;
-    unsigned bits = 0;
+    unsigned rows[2 * CENSUS_RY + 1][CENSUS_WORDS];
+#pragma unroll
+    for (int r = 0; r <= 2 * CENSUS_RY; ++r) {
+#pragma unroll
+        for (int w = 0; w < CENSUS_WORDS; ++w)
+            rows[r][w] = reinterpret_cast<const unsigned*>(&tile[threadIdx.y + r][0])
+                [threadIdx.x + w];
+    }
+    unsigned gathered[4] = {0u, 0u, 0u, 0u};
+    unsigned bits = 0u;
     int bit = 0;
 #pragma unroll
     for (int dy = 0; dy <= CENSUS_RY; ++dy) {
 #pragma unroll
         for (int dx = -CENSUS_RX; dx <= CENSUS_RX; ++dx) {
             if (dy == 0 && dx <= 0) continue;
-            bits |= (unsigned)(tile[y + dy][x + dx] > tile[y - dy][x - dx]) << bit;
+            const unsigned ahead = census_window(rows[CENSUS_RY + dy], CENSUS_RX + dx);
+            const unsigned behind = census_window(rows[CENSUS_RY - dy], CENSUS_RX - dx);
+            bits = ((bits >> 1) & 0x7f7f7f7fu) | (bytes_above(ahead, behind) & 0x80808080u);
             ++bit;
+            if (bit % 8 == 0 || bit == CENSUS_BITS) {
+                const int count = bit % 8 == 0 ? 8 : bit % 8;  // the first at bit 0
+                gathered[(bit - 1) / 8] =
+                    (bits >> (8 - count)) & ((0xffu >> (8 - count)) * 0x01010101u);
+                bits = 0u;
+            }
         }
     }
-    (blockIdx.z == 0 ? census_left : census_right)[v * width + u] = bits;
+    // transpose: byte i of gathered[g] is bits 8g to 8g + 7 of pixel i's word
+    const unsigned low_even = __byte_perm(gathered[0], gathered[1], 0x5140);
+    const unsigned low_odd = __byte_perm(gathered[0], gathered[1], 0x7362);
+    const unsigned high_even = __byte_perm(gathered[2], gathered[3], 0x5140);
+    const unsigned high_odd = __byte_perm(gathered[2], gathered[3], 0x7362);
+    const unsigned words[4] = {__byte_perm(low_even, high_even, 0x5410),
+                               __byte_perm(low_even, high_even, 0x7632),
+                               __byte_perm(low_odd, high_odd, 0x5410),
+                               __byte_perm(low_odd, high_odd, 0x7632)};
+    unsigned* out = (blockIdx.z == 0 ? census_left : census_right) + (size_t)v * width + u;
+#pragma unroll
+    for (int i = 0; i < 4; ++i)
+        if (u + i < width) out[i] = words[i];
 }
 
-// Blocks of 256 threads the path kernels are built to fit on one multiprocessor.
+// Threads of a path block (the launcher's census_sgm.path_threads) and the blocks of them the
+// path kernels are built to fit on one multiprocessor: 20 warps (at most 102 registers) with
+// blocks of 128 threads where a lane holds at most 8 packed levels (longer ranges keep the
+// registers they need). Measured on the H200 at 2079x1040 (both passes, 96 / 80 / 64 levels):
+// blocks of 256 threads, 2 per multiprocessor (103-118 registers), 1.553 / 1.585 / 1.200 ms;
+// of 128, 5 per multiprocessor, 1.498 / 1.528 / 1.143 ms; 6 per multiprocessor (80
+// registers) 1.533 / 1.548 ms, of 96 threads, 7 per multiprocessor 1.663 / 1.683 ms.
+#ifndef PATH_THREADS
+#define PATH_THREADS 128
+#endif
 #ifndef PATH_BLOCKS
-#define PATH_BLOCKS 1
+#define PATH_BLOCKS (PACKED && PER_LANE <= 8 ? 640 / PATH_THREADS : 1)
+#endif
+#ifndef WRITE_PATH_BLOCKS
+#define WRITE_PATH_BLOCKS PATH_BLOCKS
 #endif
 
 // With an even number of levels per lane (PACKED) a lane holds consecutive levels
@@ -170,12 +271,37 @@ static_assert(!PADDED || (PACKED && LEVELS % 2 == 0), "padding needs packed even
 #define OLD_AHEAD PREFETCH_STEPS
 #endif
 static_assert(OLD_AHEAD >= 1 && OLD_AHEAD <= PREFETCH_STEPS, "OLD_AHEAD: 1 to PREFETCH_STEPS");
+// The first pass's own (measured on the H200 at 2079x1040, blocks of 128 threads, first pass
+// at 96 / 80 / 64 levels: 6 ahead 0.606 / 0.627 / 0.493 ms, 5 ahead 0.584 / 0.615 / 0.494, 4
+// ahead 0.585 / 0.608 / 0.494, 7 ahead 0.605 / 0.599 / 0.502; 1920x1040 at 64 levels: 6 and
+// 5 ahead 0.500, 4 ahead 0.516).
+#ifndef WRITE_PREFETCH_STEPS
+#define WRITE_PREFETCH_STEPS (PACKED && PER_LANE <= 8 ? 5 : 3)
+#endif
 // Steps ahead that the second pass asks L2 for the first pass's sums (0: never), so that
 // the loads OLD_AHEAD steps ahead find them there (measured at 96 levels: 24 ahead 1.03 ->
 // 0.95 ms).
 #ifndef SUMS_L2_AHEAD
 #define SUMS_L2_AHEAD 24
 #endif
+// SUMS_RING (a power of two, 0: off): the second pass copies the first pass's sums of each
+// line's pixel SUMS_RING - 1 steps ahead into a ring of SUMS_RING pixels per line in shared
+// memory, by asynchronous copies of 16 bytes a lane, instead of loading them into registers
+// OLD_AHEAD steps ahead (L2 still asked SUMS_L2_AHEAD steps ahead). Measured on the H200 at
+// 2079x1040 with blocks of 128 threads, second pass at 96 / 80 / 64 levels (16 lanes): 0.889
+// / 0.896 / 0.654 ms in registers, 0.814 / 0.824 / 0.618 with a ring of 16 (8: 0.916 /
+// 0.918 / 0.669 without the L2 requests, 32: 0.870 / 0.863 / 0.617); but with 32 lanes
+// (1280x720 at 64 levels, 2079x1040 at 128) 0.316 -> 0.409 and 1.101 -> 1.250 ms: 16
+// lanes or fewer only, packed levels, and rings of at most 16 KB a block (up to 128 levels
+// with 16 lanes), which leaves the rest of the 48 KB a block has without asking to kappa.
+#ifndef SUMS_RING
+#define SUMS_RING (LANES <= 16 && PACKED && PATH_LEVELS % 16 == 0 \
+                   && PATH_THREADS / LANES * 16 * PATH_LEVELS <= 16 * 1024 ? 16 : 0)
+#endif
+static_assert(SUMS_RING == 0 || (SUMS_RING >= 2 && (SUMS_RING & (SUMS_RING - 1)) == 0),
+              "SUMS_RING: 0 or a power of two");
+static_assert(SUMS_RING == 0 || (PACKED && PATH_LEVELS % 16 == 0),
+              "SUMS_RING: packed levels, 16-byte pixels");
 // A right census word that costs INVALID_COST against `left` (the census bits are the low
 // INVALID_COST bits): stands in for the columns left of the image.
 static_assert(INVALID_COST >= 1 && INVALID_COST <= 31, "census words of 1 to 31 bits");
@@ -242,6 +368,19 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
 
 __device__ __forceinline__ void prefetch_sums(const unsigned char* cells, unsigned pixel) {
     asm volatile("prefetch.global.L2 [%0];" : : "l"(cells + (size_t)pixel * PATH_LEVELS));
+}
+
+// The group's copies of one pixel's sums (PATH_LEVELS bytes at `cell`) into `ring` (a shared
+// address), 16 bytes a lane; then the lane's commit of its copy group.
+__device__ __forceinline__ void copy_sums(unsigned ring, const unsigned char* cell, int sub,
+                                          bool wanted) {
+    if (wanted) {
+#pragma unroll
+        for (int c = sub; c < PATH_LEVELS / 16; c += LANES)
+            asm volatile("cp.async.cg.shared.global [%0], [%1], 16;"
+                         : : "r"(ring + 16 * c), "l"(cell + 16 * c));
+    }
+    asm volatile("cp.async.commit_group;");
 }
 
 __device__ __forceinline__ void load_sums(const unsigned char* cells, unsigned pixel,
@@ -327,21 +466,34 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     // this lane's first path byte of pixel 0 in the slot
     unsigned char* cells = opaque(paths + (size_t)slot * height * width * PATH_LEVELS + first);
     const int delta = dy * width + dx;
-    // the census loads run PREFETCH_STEPS steps ahead of the step aggregated (the sums
-    // OLD_AHEAD), into one of PREFETCH_STEPS register sets used in turn
+    // the census loads run AHEAD steps ahead of the step aggregated (the sums
+    // OLD_AHEAD), into one of AHEAD register sets used in turn
+    constexpr int AHEAD = ADD ? PREFETCH_STEPS : WRITE_PREFETCH_STEPS;
     unsigned pixel = (unsigned)(v * width + u);
     Cursor ahead = {pixel, u - first, row_shift + v};
-    StepData sets[PREFETCH_STEPS];
+    StepData sets[AHEAD];
+#if SUMS_RING
+    // the group's ring: the sums of the pixels of steps step to step + SUMS_RING - 1
+    __shared__ __align__(16) unsigned char sums_ring[PATH_THREADS / LANES][SUMS_RING][PATH_LEVELS];
+    const unsigned ring = (unsigned)__cvta_generic_to_shared(sums_ring[threadIdx.x / LANES]);
+    const unsigned char* pixel_cells = cells - first;
+    if (ADD) {
+#pragma unroll 1
+        for (int s = 0; s < SUMS_RING - 1; ++s)
+            copy_sums(ring + s * PATH_LEVELS,
+                      pixel_cells + (size_t)(pixel + s * delta) * PATH_LEVELS, sub, s < steps);
+    }
+#endif
     if (ADD && SUMS_L2_AHEAD > 0) {
 #pragma unroll 1
         for (int s = OLD_AHEAD; s < min(steps, SUMS_L2_AHEAD); ++s)
             prefetch_sums(cells, pixel + s * delta);
     }
 #pragma unroll
-    for (int s = 0; s < PREFETCH_STEPS; ++s) {
+    for (int s = 0; s < AHEAD; ++s) {
         if (s < steps) {
             load_census<false>(census_left, census_right, ahead, first, sets[s]);
-            if (ADD && s < OLD_AHEAD) load_sums(cells, ahead.pixel, sets[s]);
+            if (ADD && !SUMS_RING && s < OLD_AHEAD) load_sums(cells, ahead.pixel, sets[s]);
         }
         ahead.pixel += delta;
         ahead.column += dx;
@@ -376,10 +528,27 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     auto advance = [&](StepData& data, StepData& later, auto fast) -> bool {
         constexpr bool FAST = decltype(fast)::value;
         unsigned old[OLD_WORDS];
+#if SUMS_RING
+        if (ADD) {
+            // this step's copies are done once at most SUMS_RING - 2 later groups are
+            // pending; the warp's barrier then shows each lane what the others copied
+            asm volatile("cp.async.wait_group %0;" : : "n"(SUMS_RING - 2));
+            __syncwarp();
+            const unsigned at = ring + (step & (SUMS_RING - 1)) * PATH_LEVELS + first;
+#pragma unroll
+            for (int w = 0; w < OLD_WORDS; ++w)
+                asm volatile("ld.shared.u16 %0, [%1];" : "=r"(old[w]) : "r"(at + 2 * w));
+            // into the entry the step before read
+            copy_sums(ring + ((step + SUMS_RING - 1) & (SUMS_RING - 1)) * PATH_LEVELS,
+                      pixel_cells + (size_t)(pixel + (SUMS_RING - 1) * delta) * PATH_LEVELS,
+                      sub, step + SUMS_RING - 1 < steps);
+        }
+#else
         if (ADD) {
 #pragma unroll
             for (int w = 0; w < OLD_WORDS; ++w) old[w] = data.old[w];
         }
+#endif
 #if PACKED
         // halfword pairs: level first + 2p in the low half, first + 2p + 1 in the high
         unsigned current[PAIRS];
@@ -398,9 +567,9 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
 #endif
         if (FAST)
             load_census<true>(census_left, census_right, ahead, first, data);
-        else if (step + PREFETCH_STEPS < steps)
+        else if (step + AHEAD < steps)
             load_census<false>(census_left, census_right, ahead, first, data);
-        if (ADD && (FAST || step + OLD_AHEAD < steps))
+        if (ADD && !SUMS_RING && (FAST || step + OLD_AHEAD < steps))
             load_sums(cells, pixel + sums_delta, later);
         if (ADD && SUMS_L2_AHEAD > 0 && step + SUMS_L2_AHEAD < steps)
             prefetch_sums(cells, pixel + l2_delta);
@@ -492,52 +661,52 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
         pixel += delta;
         return ++step < warp_steps;
     };
-    // whether the next PREFETCH_STEPS steps can run as one checked run: every line of the
+    // whether the next AHEAD steps can run as one checked run: every line of the
     // warp has them and the loads they make, and the loads' columns are inside the image
     auto run_ahead = [&]() -> bool {
-        bool inside = step + 2 * PREFETCH_STEPS <= steps;
+        bool inside = step + 2 * AHEAD <= steps;
 #pragma unroll
-        for (int j = 0; j < PREFETCH_STEPS; ++j)
+        for (int j = 0; j < AHEAD; ++j)
             inside = inside && ALL_INSIDE(ahead.column + j * dx - ahead.shift[j * dy]);
         return __all_sync(0xffffffffu, inside);
     };
     // written out: with many levels per lane the compiler would not unroll a loop over the
     // sets, and a set indexed at run time lives in local memory
-    static_assert(PREFETCH_STEPS >= 1 && PREFETCH_STEPS <= 8, "PREFETCH_STEPS: 1 to 8");
-#define SET(i) sets[(i) % PREFETCH_STEPS], sets[((i) + OLD_AHEAD) % PREFETCH_STEPS]
+    static_assert(AHEAD >= 1 && AHEAD <= 8, "PREFETCH_STEPS: 1 to 8");
+#define SET(i) sets[(i) % AHEAD], sets[((i) + OLD_AHEAD) % AHEAD]
     const Flag<true> fast;
     const Flag<false> checked;
     while (true) {
         if (run_ahead()) {
             advance(SET(0), fast);
-            if (PREFETCH_STEPS > 1) advance(SET(1), fast);
-            if (PREFETCH_STEPS > 2) advance(SET(2), fast);
-            if (PREFETCH_STEPS > 3) advance(SET(3), fast);
-            if (PREFETCH_STEPS > 4) advance(SET(4), fast);
-            if (PREFETCH_STEPS > 5) advance(SET(5), fast);
-            if (PREFETCH_STEPS > 6) advance(SET(6), fast);
-            if (PREFETCH_STEPS > 7) advance(SET(7), fast);
+            if (AHEAD > 1) advance(SET(1), fast);
+            if (AHEAD > 2) advance(SET(2), fast);
+            if (AHEAD > 3) advance(SET(3), fast);
+            if (AHEAD > 4) advance(SET(4), fast);
+            if (AHEAD > 5) advance(SET(5), fast);
+            if (AHEAD > 6) advance(SET(6), fast);
+            if (AHEAD > 7) advance(SET(7), fast);
             continue;
         }
         if (!advance(SET(0), checked)) return;
-        if (PREFETCH_STEPS > 1 && !advance(SET(1), checked)) return;
-        if (PREFETCH_STEPS > 2 && !advance(SET(2), checked)) return;
-        if (PREFETCH_STEPS > 3 && !advance(SET(3), checked)) return;
-        if (PREFETCH_STEPS > 4 && !advance(SET(4), checked)) return;
-        if (PREFETCH_STEPS > 5 && !advance(SET(5), checked)) return;
-        if (PREFETCH_STEPS > 6 && !advance(SET(6), checked)) return;
-        if (PREFETCH_STEPS > 7 && !advance(SET(7), checked)) return;
+        if (AHEAD > 1 && !advance(SET(1), checked)) return;
+        if (AHEAD > 2 && !advance(SET(2), checked)) return;
+        if (AHEAD > 3 && !advance(SET(3), checked)) return;
+        if (AHEAD > 4 && !advance(SET(4), checked)) return;
+        if (AHEAD > 5 && !advance(SET(5), checked)) return;
+        if (AHEAD > 6 && !advance(SET(6), checked)) return;
+        if (AHEAD > 7 && !advance(SET(7), checked)) return;
     }
 #undef SET
 }
 
-extern "C" __global__ void __launch_bounds__(256, PATH_BLOCKS)
+extern "C" __global__ void __launch_bounds__(PATH_THREADS, WRITE_PATH_BLOCKS)
 sgm_paths_write(const unsigned* census_left, const unsigned* census_right, const int* kappa,
                 unsigned char* paths, int height, int width, int p1, int p2) {
     walk_paths<false>(census_left, census_right, kappa, paths, height, width, p1, p2);
 }
 
-extern "C" __global__ void __launch_bounds__(256, PATH_BLOCKS)
+extern "C" __global__ void __launch_bounds__(PATH_THREADS, PATH_BLOCKS)
 sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const int* kappa,
               unsigned char* paths, int height, int width, int p1, int p2) {
     walk_paths<true>(census_left, census_right, kappa, paths, height, width, p1, p2);
@@ -548,7 +717,13 @@ sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const i
 // check. A group of SELECT_LANES threads takes one pixel at a time; the groups of a warp go
 // through the row together (a group past the row's end reads the last pixel and writes
 // nothing), so the group minima are whole-warp operations. raw: D0, -1 invalid.
-extern "C" __global__ void __launch_bounds__(256)
+// Threads of a winner search block (the launcher's census_sgm.select_threads): measured on
+// the H200 at 2079x1040, 96 / 80 / 64 levels: 256 threads 0.281 / 0.296 / 0.217 ms, 512
+// threads 0.276 / 0.288 / 0.201, 128 threads 0.315 / 0.319 / 0.234.
+#ifndef SELECT_THREADS
+#define SELECT_THREADS 512
+#endif
+extern "C" __global__ void __launch_bounds__(SELECT_THREADS)
 sgm_select(const unsigned char* paths, float* raw, int height, int width, int uniqueness,
            int lr_max_diff) {
     // the right view's best (cost << 16 | d) per column, after PATH_LEVELS columns left of
@@ -569,17 +744,30 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
     for (int x = threadIdx.x; x < width + PATH_LEVELS; x += blockDim.x)
         shared[x] = 0xffffffffu;
     __syncthreads();
+    // each group's next pixel's path bytes are read while it searches the current one's
+    const unsigned char* row_cells = paths + (size_t)v * width * PATH_LEVELS
+                                     + sub * SELECT_PER_LANE;
+    PathReads next;
+    if (SELECT_AHEAD)
+        read_path_bytes(row_cells + (size_t)min(group, width - 1) * PATH_LEVELS, plane, next);
     for (int first = 0; first < width; first += groups) {
         // a group past the row's end repeats the last pixel: its right-view candidates are
         // that pixel's own, so they change nothing
         const int u = min(first + group, width - 1);
         const bool inside = first + group < width;
-        const size_t cell = ((size_t)v * width + u) * PATH_LEVELS + sub * SELECT_PER_LANE;
+        PathReads reads;
+        if (SELECT_AHEAD) {
+            reads = next;
+            if (first + groups < width)
+                read_path_bytes(row_cells + (size_t)min(first + groups + group, width - 1)
+                                                * PATH_LEVELS, plane, next);
+        } else {
+            read_path_bytes(row_cells + (size_t)u * PATH_LEVELS, plane, reads);
+        }
         unsigned halves[(SELECT_PER_LANE + 1) / 2];
 #pragma unroll
         for (int h = 0; h < (SELECT_PER_LANE + 1) / 2; ++h) halves[h] = 0;
-#pragma unroll
-        for (int slot = 0; slot < 4; ++slot) add_path_bytes(paths + slot * plane + cell, halves);
+        add_path_bytes(reads, halves);
         unsigned total[SELECT_PER_LANE];
 #pragma unroll
         for (int k = 0; k < SELECT_PER_LANE; ++k)

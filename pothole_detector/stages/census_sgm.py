@@ -275,6 +275,25 @@ def horizontals_second(levels: int, lanes: int) -> bool:
     return levels // lanes <= 4
 
 
+def path_threads(levels: int, lanes: int) -> int:
+    """Threads of a GPU path block for the levels the lanes hold: 128 where each lane holds an
+    even count up to 8 (the GPT bands; sgm.cu fits five such blocks on a multiprocessor), else
+    256. Measured on the H200 at 2079x1040, both passes at 96 / 80 / 64 levels: blocks of
+    256, 1.553 / 1.585 / 1.200 ms; of 128, 1.498 / 1.528 / 1.143 ms; 1280x720 at 64 levels
+    (32 lanes of 2) 0.615 and 0.606 ms. Longer ranges were mixed in blocks of 128: paths at
+    304 levels (1920x1040) 6.03 -> 5.73 ms, at 368 levels equal (7.7 ms), the whole frame at
+    384 levels 8.35 -> 8.57 ms; they keep 256."""
+    per_lane = levels // lanes
+    return 128 if per_lane % 2 == 0 and per_lane <= 8 else 256
+
+
+def select_threads(levels: int, lanes: int) -> int:
+    """Threads of a GPU winner search block (one image row): 512 with path_threads' 128, else
+    256. Measured on the H200 at 2079x1040, 96 / 80 / 64 levels: 256 threads 0.281 / 0.296 /
+    0.217 ms, 512 threads 0.276 / 0.288 / 0.201 ms, 128 threads 0.315 / 0.319 / 0.234 ms."""
+    return 512 if path_threads(levels, lanes) == 128 else 256
+
+
 def path_lines(height: int, width: int) -> int:
     """Path lines of one pass of the GPU matcher, on average: one straight direction of each
     axis and two diagonals."""
@@ -292,10 +311,11 @@ class GpuMatcher:
     seed pass's matcher beside the frame's) writes its path costs into the lender's volume
     where that is large enough. Two path launches: the first walks the first direction of
     every pair and writes, the second walks the other and adds in place. The path kernels keep
-    kappa in shared memory and load each step's census words several steps ahead.
+    kappa in shared memory and load each step's census words several steps ahead; the second
+    copies the first's sums into a ring in shared memory ahead of its steps. Block sizes:
+    path_threads.
     """
 
-    THREADS = 256
 
     def __init__(self, backend: Backend, fill_device: bool = True,
                  lender: GpuMatcher | None = None) -> None:
@@ -328,11 +348,15 @@ class GpuMatcher:
                    "SELECT_LANES": select_lanes_for(path_depth), "CENSUS_RY": CENSUS_RADIUS_Y,
                    "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
                    "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X,
-                   "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes))}
+                   "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes)),
+                   "PATH_THREADS": path_threads(path_depth, lanes),
+                   "SELECT_THREADS": select_threads(path_depth, lanes)}
         names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
                  "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
             | {"lanes": lanes, "select_lanes": defines["SELECT_LANES"],
+               "path_threads": defines["PATH_THREADS"],
+               "select_threads": defines["SELECT_THREADS"],
                "horizontals_second": bool(defines["HORIZONTALS_SECOND"])}
 
     def buffers(self, height: int, width: int, levels: int) -> dict[str, Any]:
@@ -385,9 +409,11 @@ class GpuMatcher:
         out = xp.empty((height, width), dtype=xp.float32)
         i32 = np.int32
         with stage("census"):
-            kernels["census_pair"](((width + 31) // 32, (height + 7) // 8, 2), (32, 8, 1),
+            # blocks of 32 x 8 threads, four pixels of a row a thread
+            kernels["census_pair"](((width + 127) // 128, (height + 7) // 8, 2), (32, 8, 1),
                                    (left, right, census[0], census[1], i32(height), i32(width)))
-        groups = self.THREADS // kernels["lanes"]
+        path_block = kernels["path_threads"]
+        groups = path_block // kernels["lanes"]
         kappa_bytes = 4 * height
         diagonal_blocks = -(-(width + height - 1) // groups)
         with stage("paths"):
@@ -395,20 +421,20 @@ class GpuMatcher:
             straight = (width, height) if kernels["horizontals_second"] else (height, width)
             for name, straight_lines in zip(("sgm_paths_write", "sgm_paths_add"), straight):
                 walk = kernels[name]
-                if kappa_bytes > 48 * 1024:
+                if kappa_bytes > 32 * 1024:  # beside at most 16 KB of the sums' rings
                     walk.max_dynamic_shared_size_bytes = kappa_bytes
                 blocks = 2 * (-(-straight_lines // groups) + diagonal_blocks)
-                walk((blocks,), (self.THREADS,),
+                walk((blocks,), (path_block,),
                      (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
                       i32(p2)), shared_mem=kappa_bytes)
         path_depth = paths.shape[3]  # the levels the path lanes hold (path_levels)
         shared = 4 * (path_depth + 2 * width
-                      + self.THREADS // kernels["select_lanes"] * (path_depth + 1))
+                      + kernels["select_threads"] // kernels["select_lanes"] * (path_depth + 1))
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
         with stage("select"):
-            select((height,), (self.THREADS,),
+            select((height,), (kernels["select_threads"],),
                    (paths, raw, i32(height), i32(width), i32(uniqueness_percent),
                     i32(lr_max_diff_px)), shared_mem=shared)
         with stage("finish"):
