@@ -216,10 +216,10 @@ census_pair(const unsigned char* left, const unsigned char* right, unsigned* cen
         if (u + i < width) out[i] = words[i];
 }
 
-// Threads of a path block (the launcher's census_sgm.path_threads) and the blocks of them the
-// path kernels are built to fit on one multiprocessor: 20 warps (at most 102 registers) with
-// blocks of 128 threads where a lane holds at most 8 packed levels (longer ranges keep the
-// registers they need). Measured on the H200 at 2079x1040 (both passes, 96 / 80 / 64 levels):
+// Threads of a path block (the launcher's census_sgm.path_threads: 128 where a lane holds at
+// most 8 packed levels, else 256) and the blocks of them the path kernels are built to fit on
+// one multiprocessor: 20 warps (at most 102 registers) with blocks of 128 threads; blocks of
+// 256 (the longer ranges) keep the registers they need. Measured on the H200 at 2079x1040 (both passes, 96 / 80 / 64 levels):
 // blocks of 256 threads, 2 per multiprocessor (103-118 registers), 1.553 / 1.585 / 1.200 ms;
 // of 128, 5 per multiprocessor, 1.498 / 1.528 / 1.143 ms; 6 per multiprocessor (80
 // registers) 1.533 / 1.548 ms, of 96 threads, 7 per multiprocessor 1.663 / 1.683 ms.
@@ -227,7 +227,7 @@ census_pair(const unsigned char* left, const unsigned char* right, unsigned* cen
 #define PATH_THREADS 128
 #endif
 #ifndef PATH_BLOCKS
-#define PATH_BLOCKS (PACKED && PER_LANE <= 8 ? 640 / PATH_THREADS : 1)
+#define PATH_BLOCKS (PATH_THREADS <= 128 ? 640 / PATH_THREADS : 1)
 #endif
 #ifndef WRITE_PATH_BLOCKS
 #define WRITE_PATH_BLOCKS PATH_BLOCKS

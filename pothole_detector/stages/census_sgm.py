@@ -316,7 +316,6 @@ class GpuMatcher:
     path_threads.
     """
 
-
     def __init__(self, backend: Backend, fill_device: bool = True,
                  lender: GpuMatcher | None = None) -> None:
         if not backend.is_gpu:
