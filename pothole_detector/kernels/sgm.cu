@@ -219,10 +219,11 @@ census_pair(const unsigned char* left, const unsigned char* right, unsigned* cen
 // Threads of a path block (the launcher's census_sgm.path_threads: 128 where a lane holds at
 // most 8 packed levels, else 256) and the blocks of them the path kernels are built to fit on
 // one multiprocessor: 20 warps (at most 102 registers) with blocks of 128 threads; blocks of
-// 256 (the longer ranges) keep the registers they need. Measured on the H200 at 2079x1040 (both passes, 96 / 80 / 64 levels):
-// blocks of 256 threads, 2 per multiprocessor (103-118 registers), 1.553 / 1.585 / 1.200 ms;
-// of 128, 5 per multiprocessor, 1.498 / 1.528 / 1.143 ms; 6 per multiprocessor (80
-// registers) 1.533 / 1.548 ms, of 96 threads, 7 per multiprocessor 1.663 / 1.683 ms.
+// 256 (the longer ranges) keep the registers they need. Measured on the H200 at 2079x1040
+// (both passes, 96 / 80 / 64 levels): blocks of 256 threads, 2 per multiprocessor (103-118
+// registers), 1.553 / 1.585 / 1.200 ms; of 128, 5 per multiprocessor, 1.498 / 1.528 / 1.143
+// ms; 6 per multiprocessor (80 registers) 1.533 / 1.548 ms, of 96 threads, 7 per
+// multiprocessor 1.663 / 1.683 ms.
 #ifndef PATH_THREADS
 #define PATH_THREADS 128
 #endif
