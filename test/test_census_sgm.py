@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from pothole_detector.errors import ConfigError
+from pothole_detector.params import Config
 from pothole_detector.stages import census_sgm
 from pothole_detector.stages.census_sgm import (
     CENSUS_BITS, CENSUS_OFFSETS, DIRECTION_PAIRS, INVALID_COST, MAX_P2, _path_step, aggregate,
@@ -143,6 +144,22 @@ def test_winner_search_lanes_hold_whole_words_of_at_most_12_levels():
     for levels in range(16, 513, 16):
         lanes = census_sgm.select_lanes_for(levels)
         assert lanes in (4, 8, 16, 32) and levels % lanes == 0
+
+
+def test_slot_pairs_add_as_bytes_only_where_two_slots_stay_below_256():
+    for p2 in range(1, census_sgm.MAX_P2 + 1):
+        two_slots = 4 * (census_sgm.INVALID_COST + p2)  # four directions at their bound
+        assert census_sgm.slot_pair_bytes(p2) == (two_slots <= 255)
+    assert census_sgm.slot_pair_bytes(Config().census_p2)
+
+
+def test_winner_search_blocks_fit_the_shared_memory_of_a_block():
+    # the real frames' band (96 held levels, 8 lanes, blocks of 512) within the 48 KB a block
+    # has without asking; a full range at 1920 columns within a multiprocessor's 227 KB
+    assert census_sgm.select_shared_bytes(96, 2079, 512, 8) <= 48 * 1024
+    assert census_sgm.select_shared_bytes(384, 1920, 256, 32) <= 227 * 1024
+    # records (8 bytes a pixel), right view (4 bytes a column and level), totals (odd pitch)
+    assert census_sgm.select_shared_bytes(96, 100, 64, 8) == 4 * (300 + 96 + 8 * 49)
 
 
 def test_horizontal_walks_go_second_where_lanes_hold_at_most_4_levels():

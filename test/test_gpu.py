@@ -113,18 +113,46 @@ def test_penalties_below_the_largest_cost_match_the_reference(gpu, height, width
     left, right = random_pair(height, width, shift, seed=height + width)
     kappa = case_kappa(height, pattern)
     matcher = census_sgm.GpuMatcher(gpu)
-    matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2, 5, 1, True)
+    disparity = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2,
+                        5, 1, True)
     cost, paths, pair_sums = reference_pair_sums(census_sgm.census_transform(left),
                                                  census_sgm.census_transform(right), kappa,
                                                  levels, p1, p2)
     paths_held = to_host(matcher.buffers(height, width, levels)["paths"])
     np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
+    np.testing.assert_array_equal(
+        to_host(disparity),
+        census_sgm.reference_disparity(left, right, kappa, levels, p1, p2, 5, 1, True))
     # along the rows (direction 0): some step's least cost + P2 below its least path cost
     # without the jump (the reference step with a P2 no cost reaches)
     previous = paths[0][:, :-1].reshape(-1, levels).astype(np.int32)
     step_cost = cost[:, 1:].reshape(-1, levels)
     without_jump = census_sgm._path_step(step_cost, previous, p1, 1 << 20).min(axis=1)
     assert (step_cost.min(axis=1) + p2 < without_jump).any()
+
+
+@pytest.mark.parametrize("height,width,levels,shift,pattern", [CASES[i] for i in (1, 6, 8, 9, 10)])
+def test_default_penalties_add_slot_pairs_as_bytes_and_match_the_reference(gpu, height, width,
+                                                                          levels, shift,
+                                                                          pattern):
+    """At the default penalties a path cost fits 6 bits: the winner search adds two slots'
+    bytes before it spreads them (P2 = 90 in the other tests does not)."""
+    p1, p2 = Config().census_p1, Config().census_p2
+    assert census_sgm.slot_pair_bytes(p2) and not census_sgm.slot_pair_bytes(P2)
+    left, right = random_pair(height, width, shift, seed=height * 3 + width)
+    kappa = case_kappa(height, pattern)
+    matcher = census_sgm.GpuMatcher(gpu)
+    disparity = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2,
+                        5, 1, True)
+    _, _, pair_sums = reference_pair_sums(census_sgm.census_transform(left),
+                                          census_sgm.census_transform(right), kappa, levels,
+                                          p1, p2)
+    paths_held = to_host(matcher.buffers(height, width, levels)["paths"])
+    np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
+    assert int(pair_sums.max()) > 2 * census_sgm.INVALID_COST
+    np.testing.assert_array_equal(
+        to_host(disparity),
+        census_sgm.reference_disparity(left, right, kappa, levels, p1, p2, 5, 1, True))
 
 
 def test_largest_penalty_fits_the_byte_pairs(gpu):

@@ -294,6 +294,20 @@ def select_threads(levels: int, lanes: int) -> int:
     return 512 if path_threads(levels, lanes) == 128 else 256
 
 
+def slot_pair_bytes(p2: int) -> bool:
+    """Whether the GPU winner search may add two slots' path bytes as bytes before it spreads
+    them into halfwords: where a path cost is at most 63 (INVALID_COST + P2), so that two
+    slots of two directions each stay below 256."""
+    return INVALID_COST + p2 <= 63
+
+
+def select_shared_bytes(levels: int, width: int, threads: int, lanes: int) -> int:
+    """Shared memory of a GPU winner search block (bytes): an 8-byte record per pixel, the
+    right view's best per column after ``levels`` columns left of the image, and each group
+    of ``lanes`` threads' totals (halfwords, an odd number of words apart)."""
+    return 4 * (3 * width + levels + threads // lanes * (((levels + 1) // 2) | 1))
+
+
 def path_lines(height: int, width: int) -> int:
     """Path lines of one pass of the GPU matcher, on average: one straight direction of each
     axis and two diagonals."""
@@ -336,12 +350,13 @@ class GpuMatcher:
         return lanes_for(path_levels(levels), path_lines(height, width),
                          self.backend.resident_threads())
 
-    def _kernels(self, levels: int, lanes: int) -> dict[str, Any]:
-        if (levels, lanes) not in self._kernel_sets:
-            self._kernel_sets[levels, lanes] = self._build_kernels(levels, lanes)
-        return self._kernel_sets[levels, lanes]
+    def _kernels(self, levels: int, lanes: int, p2: int) -> dict[str, Any]:
+        key = (levels, lanes, slot_pair_bytes(p2))
+        if key not in self._kernel_sets:
+            self._kernel_sets[key] = self._build_kernels(*key)
+        return self._kernel_sets[key]
 
-    def _build_kernels(self, levels: int, lanes: int) -> dict[str, Any]:
+    def _build_kernels(self, levels: int, lanes: int, pair_bytes: bool) -> dict[str, Any]:
         path_depth = path_levels(levels)
         defines = {"LEVELS": levels, "PATH_LEVELS": path_depth, "LANES": lanes,
                    "SELECT_LANES": select_lanes_for(path_depth), "CENSUS_RY": CENSUS_RADIUS_Y,
@@ -349,7 +364,8 @@ class GpuMatcher:
                    "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X,
                    "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes)),
                    "PATH_THREADS": path_threads(path_depth, lanes),
-                   "SELECT_THREADS": select_threads(path_depth, lanes)}
+                   "SELECT_THREADS": select_threads(path_depth, lanes),
+                   "SLOT_PAIR_BYTES": int(pair_bytes)}
         names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
                  "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
@@ -402,7 +418,7 @@ class GpuMatcher:
         height, width = left.shape
         check_settings(left.shape, levels, p1, p2)
         xp = self.backend.xp
-        kernels = self._kernels(levels, self.lanes(height, width, levels))
+        kernels = self._kernels(levels, self.lanes(height, width, levels), p2)
         buffers = self.buffers(height, width, levels)
         census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
         out = xp.empty((height, width), dtype=xp.float32)
@@ -427,8 +443,8 @@ class GpuMatcher:
                      (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
                       i32(p2)), shared_mem=kappa_bytes)
         path_depth = paths.shape[3]  # the levels the path lanes hold (path_levels)
-        shared = 4 * (path_depth + 2 * width
-                      + kernels["select_threads"] // kernels["select_lanes"] * (path_depth + 1))
+        shared = select_shared_bytes(path_depth, width, kernels["select_threads"],
+                                     kernels["select_lanes"])
         select = kernels["sgm_select"]
         if shared > 48 * 1024:
             select.max_dynamic_shared_size_bytes = shared
