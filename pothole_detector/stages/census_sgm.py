@@ -317,8 +317,9 @@ def path_lines(height: int, width: int) -> int:
 class GpuMatcher:
     """Census SGM on the device with buffers kept per image size (see :meth:`buffers`).
 
-    Kernels come from kernels/sgm.cu, built once per level count and lane count (``lanes``:
-    more lanes per path line for images too small to fill the device). Memory: 4 bytes per
+    Kernels come from kernels/sgm.cu, built once per level count, lane count (``lanes``:
+    more lanes per path line for images too small to fill the device) and whether P2 lets the
+    winner search add slot pairs as bytes (slot_pair_bytes). Memory: 4 bytes per
     pixel and path level (path_levels) for the path costs (the sums of DIRECTION_PAIRS), plus
     8 bytes per pixel (the census words; the winner search writes over the right view's, no
     longer needed). A matcher with a ``lender`` (one that never runs at the same time, e.g. the
