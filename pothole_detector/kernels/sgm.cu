@@ -302,9 +302,10 @@ static_assert(OLD_AHEAD >= 1 && OLD_AHEAD <= PREFETCH_STEPS, "OLD_AHEAD: 1 to PR
 #define SUMS_L2_AHEAD 24
 #endif
 // SUMS_RING (a power of two, 0: off): the second pass copies the first pass's sums of each
-// line's pixel SUMS_RING - 1 steps ahead into a ring of SUMS_RING pixels per line in shared
-// memory, by asynchronous copies of 16 bytes a lane, instead of loading them into registers
-// OLD_AHEAD steps ahead (L2 still asked SUMS_L2_AHEAD steps ahead). Measured on the H200 at
+// line's pixel SUMS_COPY_AHEAD steps ahead (below) into a ring of SUMS_RING pixels per line in
+// shared memory, by asynchronous copies of 16 bytes a lane, instead of loading them into
+// registers OLD_AHEAD steps ahead (L2 still asked SUMS_L2_AHEAD steps ahead). Measured, with
+// copies SUMS_RING - 1 ahead and per step, on the H200 at
 // 2079x1040 with blocks of 128 threads, second pass at 96 / 80 / 64 levels (16 lanes): 0.889
 // / 0.896 / 0.654 ms in registers, 0.814 / 0.824 / 0.618 with a ring of 16 (8: 0.916 /
 // 0.918 / 0.669 without the L2 requests, 32: 0.870 / 0.863 / 0.617); but with 32 lanes
