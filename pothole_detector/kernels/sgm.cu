@@ -5,11 +5,12 @@
 // [4][H][W][PATH_LEVELS], the first LEVELS of each pixel's PATH_LEVELS bytes holding levels 0
 // to LEVELS - 1 (the rest: padding, see PADDED), slot s holding the sum of the directions
 // FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a
-// pair fits a byte). In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE
+// pair fits a byte; between the passes a pixel's bytes may lie pair by pair, see
+// INTERLEAVED_PAIRS). In sgm_select thread `sub` of a group holds levels sub * SELECT_PER_LANE
 // and the next SELECT_PER_LANE - 1; sgm_paths_write and sgm_paths_add: see PACKED. Optional:
 // PATH_LEVELS (LEVELS unless padded), HORIZONTALS_SECOND, PATH_THREADS; PATH_BLOCKS,
-// WRITE_PATH_BLOCKS, PREFETCH_STEPS, WRITE_PREFETCH_STEPS, OLD_AHEAD, SUMS_RING, SUMS_L2_AHEAD
-// (tuning).
+// WRITE_PATH_BLOCKS, PREFETCH_STEPS, WRITE_PREFETCH_STEPS, OLD_AHEAD, SUMS_RING, SUMS_L2_AHEAD,
+// INTERLEAVED_PAIRS (tuning).
 
 #ifndef PATH_LEVELS
 #define PATH_LEVELS LEVELS
@@ -269,10 +270,15 @@ static_assert(!PADDED || (PACKED && LEVELS % 2 == 0), "padding needs packed even
 #define LANE_FIRST_LEVEL(sub) ((sub) * PER_LANE)
 #define LEVEL_STEP 1
 #define OLD_WORDS PAIRS
+// a lane's first path byte in a pixel and the halfwords between its pairs, by layout
+#define LANE_OFFSET(interleaved, sub) ((interleaved) ? 2 * (sub) : LANE_FIRST_LEVEL(sub))
+#define PAIR_STRIDE(interleaved) ((interleaved) ? LANES : 1)
 #else
 #define LANE_FIRST_LEVEL(sub) (sub)
 #define LEVEL_STEP LANES
 #define OLD_WORDS PER_LANE
+#define LANE_OFFSET(interleaved, sub) LANE_FIRST_LEVEL(sub)
+#define PAIR_STRIDE(interleaved) 1
 #endif
 // The lane's highest level is at most `start` (u - kappa - the lane's first level) away:
 // every candidate column of the step lies inside the image.
@@ -341,6 +347,21 @@ static_assert(SUMS_RING == 0 || (PACKED && PATH_LEVELS % 16 == 0),
 #endif
 static_assert(SUMS_RING == 0 || (SUMS_COPY_AHEAD >= 1 && SUMS_COPY_AHEAD < SUMS_RING),
               "SUMS_COPY_AHEAD: 1 to SUMS_RING - 1");
+// INTERLEAVED_PAIRS: the first pass writes a pixel's path bytes pair by pair, pair p of lane
+// `sub` at byte 2 * LANES * p + 2 * sub (each of a group's pair stores 2 * LANES contiguous
+// bytes, whole 32-byte sectors, instead of 2 bytes every PER_LANE); the second pass reads
+// them from its ring in that layout (each pixel there whole before any lane writes it) and
+// writes its sums in the winner search's, lane by lane. Where the lanes hold two or more pairs
+// and the second pass has the ring. Measured on the H200 at 2079x1040, first pass at 96 / 80
+// / 64 / 128 levels: 0.587 / 0.618 / 0.493 / 0.967 -> 0.563 / 0.595 / 0.492 / 0.970 ms,
+// second pass unchanged; the second pass also writing it (and the winner search reading it,
+// a lane's 4 bytes of each pair) 0.834 / 0.842 / 0.563 -> 0.841 / 0.853 / 0.552 ms, winner
+// search 0.216 / 0.220 / 0.150 -> 0.222 / 0.226 / 0.152 ms.
+#ifndef INTERLEAVED_PAIRS
+#define INTERLEAVED_PAIRS (SUMS_RING && PER_LANE >= 4)
+#endif
+static_assert(!INTERLEAVED_PAIRS || (SUMS_RING && PER_LANE >= 4),
+              "INTERLEAVED_PAIRS: the second pass's ring and two or more pairs a lane");
 static_assert(!SUMS_RUN_COPIES || SUMS_RING == 0
                   || (SUMS_COPY_AHEAD >= PREFETCH_STEPS
                       && SUMS_COPY_AHEAD + PREFETCH_STEPS <= SUMS_RING),
@@ -474,6 +495,8 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
                                            const int* kappa, unsigned char* paths, int height,
                                            int width, int p1, int p2) {
     extern __shared__ int row_shift[];
+    // the layout this pass writes (the second pass: always the winner search's)
+    constexpr bool STORED = ADD ? false : INTERLEAVED_PAIRS;
     const int groups_per_block = blockDim.x / LANES;
     int slot = 0, block = blockIdx.x, direction = 0;
 #pragma unroll 1
@@ -507,7 +530,8 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     if (warp_steps == 0) return;
     const int first = LANE_FIRST_LEVEL(sub);
     // this lane's first path byte of pixel 0 in the slot
-    unsigned char* cells = opaque(paths + (size_t)slot * height * width * PATH_LEVELS + first);
+    unsigned char* cells =
+        opaque(paths + (size_t)slot * height * width * PATH_LEVELS + LANE_OFFSET(STORED, sub));
     const int delta = dy * width + dx;
     // the census loads run AHEAD steps ahead of the step aggregated (the sums
     // OLD_AHEAD), into one of AHEAD register sets used in turn
@@ -519,7 +543,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
     // the group's ring: the sums of the pixels of steps step to step + SUMS_RING - 1
     __shared__ __align__(16) unsigned char sums_ring[PATH_THREADS / LANES][SUMS_RING][PATH_LEVELS];
     const unsigned ring = (unsigned)__cvta_generic_to_shared(sums_ring[threadIdx.x / LANES]);
-    const unsigned char* pixel_cells = cells - first;
+    const unsigned char* pixel_cells = cells - LANE_OFFSET(STORED, sub);
     if (ADD) {
 #pragma unroll 1
         for (int s = 0; s < SUMS_COPY_AHEAD; ++s)
@@ -595,10 +619,12 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
                 asm volatile("cp.async.wait_group %0;" : : "n"(SUMS_COPY_AHEAD - 1));
                 __syncwarp();
             }
-            const unsigned at = ring + (step & (SUMS_RING - 1)) * PATH_LEVELS + first;
+            const unsigned at = ring + (step & (SUMS_RING - 1)) * PATH_LEVELS
+                                + LANE_OFFSET(INTERLEAVED_PAIRS, sub);
 #pragma unroll
             for (int w = 0; w < OLD_WORDS; ++w)
-                asm volatile("ld.shared.u16 %0, [%1];" : "=r"(old[w]) : "r"(at + 2 * w));
+                asm volatile("ld.shared.u16 %0, [%1];"
+                             : "=r"(old[w]) : "r"(at + 2 * PAIR_STRIDE(INTERLEAVED_PAIRS) * w));
             if (FAST && SUMS_RUN_COPIES) {
                 asm volatile("cp.async.commit_group;");
             } else {
@@ -685,7 +711,8 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
                 // below 256)
                 unsigned bytes = __byte_perm(current[p], 0u, 0x3320);
                 if (ADD) bytes += old[p];
-                __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
+                __stcs(reinterpret_cast<unsigned short*>(cell) + PAIR_STRIDE(STORED) * p,
+                       (unsigned short)bytes);
             }
         }
 #pragma unroll
