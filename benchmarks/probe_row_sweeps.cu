@@ -1,0 +1,261 @@
+// Probe of row sweeps (docs/gpu-notes.md, thirteenth session; not used by the package): one
+// launch walks the image's rows down (blockIdx.y 0) and up (1), three directions at once (the
+// vertical and both diagonals of that sense), each pixel's matching cost once, and writes the
+// three path costs' sum as one byte per level (uint8 HxWxLEVELS per sense). A block holds COLS
+// columns of 16 lanes (6 levels each at LEVELS 96); the diagonals' states of the row above lie
+// in shared memory. Block-edge columns: EXCHANGE 0 and CLUSTER 0 leave them stale (timing
+// only); EXCHANGE 1 hands edge states to the neighbouring blocks every row through global
+// memory (edges: uint32 2 x blocks x 2 x 4 x (LEVELS / 2 + 1), flags: uint32 2 x blocks, zero);
+// CLUSTER n reads them from the neighbouring block's shared memory in clusters of n blocks
+// (exact within a cluster). Census words AHEAD rows ahead.
+#define LANES 16
+#define PER_LANE (LEVELS / LANES)
+#define PAIRS (PER_LANE / 2)
+#ifndef EXCHANGE
+#define EXCHANGE 0
+#endif
+#ifndef COLS
+#define COLS 32
+#endif
+#define FAR_HALF 0x7fffu
+#define WORDS (LEVELS / 2)
+#define ESTRIDE (WORDS + 1)
+
+__device__ __forceinline__ unsigned pack_costs(unsigned low, unsigned high) {
+    unsigned pair;
+    asm("mad.lo.u32 %0, %1, 65536, %2;" : "=r"(pair) : "r"(high), "r"(low));
+    return pair;
+}
+
+__device__ __forceinline__ unsigned group_min16(unsigned value) {
+    const bool high = threadIdx.x & 16;
+    const unsigned low_min = __reduce_min_sync(0xffffffffu, high ? 0xffffffffu : value);
+    const unsigned high_min = __reduce_min_sync(0xffffffffu, high ? value : 0xffffffffu);
+    return high ? high_min : low_min;
+}
+
+__device__ __forceinline__ unsigned step_dir(const unsigned (&prev)[PAIRS], unsigned below,
+                                             unsigned above, unsigned minimum,
+                                             const unsigned (&cost)[PAIRS], unsigned p1_pair,
+                                             unsigned p2_pair, unsigned (&out)[PAIRS]) {
+    unsigned shifted[PAIRS + 1];
+    shifted[0] = __funnelshift_l(below, prev[0], 16);
+#pragma unroll
+    for (int p = 1; p < PAIRS; ++p) shifted[p] = __funnelshift_l(prev[p - 1], prev[p], 16);
+    shifted[PAIRS] = __funnelshift_l(prev[PAIRS - 1], above, 16);
+    const unsigned jump = minimum + p2_pair - p1_pair;
+#pragma unroll
+    for (int p = 0; p < PAIRS; ++p) {
+        const unsigned neighbours = __vimin3_u16x2(shifted[p], shifted[p + 1], jump);
+        const unsigned best = __viaddmin_u16x2(neighbours, p1_pair, prev[p]);
+        out[p] = cost[p] + best - minimum;
+    }
+    unsigned least = out[0];
+#pragma unroll
+    for (int p = 1; p < PAIRS; ++p) least = __vminu2(least, out[p]);
+    return __vminu2(least, __byte_perm(least, 0u, 0x1032));
+}
+
+#ifndef CLUSTER
+#define CLUSTER 0
+#endif
+__device__ __forceinline__ void cluster_barrier() {
+    asm volatile("barrier.cluster.arrive.release.aligned;\n\t"
+                 "barrier.cluster.wait.acquire.aligned;" ::: "memory");
+}
+template <typename T>
+__device__ __forceinline__ T* cluster_map(T* pointer, unsigned rank) {
+    T* out;
+    asm volatile("mapa.u64 %0, %1, %2;" : "=l"(out) : "l"(pointer), "r"(rank));
+    return out;
+}
+__device__ __forceinline__ unsigned cluster_rank() {
+    unsigned r;
+    asm volatile("mov.u32 %0, %%cluster_ctarank;" : "=r"(r));
+    return r;
+}
+extern "C" __global__ void __launch_bounds__(COLS * LANES)
+#if CLUSTER
+__cluster_dims__(CLUSTER, 1, 1)
+#endif
+sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict__ census_right,
+            const int* __restrict__ kappa, unsigned char* out_down, unsigned char* out_up,
+            int height, int width, int p1, int p2, unsigned* edges, unsigned* flags) {
+    // EXCHANGE: block-edge states handed to the neighbouring blocks through global memory
+    // every row (ring of 4 rows per edge; flags: rows published per block)
+    __shared__ unsigned diag[2][2][COLS + 2][WORDS];
+    __shared__ unsigned diag_min[2][2][COLS + 2];
+    const bool up = blockIdx.y == 1;
+    const int group = threadIdx.x / LANES, sub = threadIdx.x % LANES;
+    const int u = blockIdx.x * COLS + group;
+    const int uc = min(u, width - 1);
+    const int first = sub * PER_LANE;
+    unsigned char* out = (up ? out_up : out_down) + first;
+    for (int i = threadIdx.x; i < 2 * 2 * (COLS + 2) * WORDS; i += blockDim.x)
+        (&diag[0][0][0][0])[i] = 0u;
+    for (int i = threadIdx.x; i < 2 * 2 * (COLS + 2); i += blockDim.x)
+        (&diag_min[0][0][0])[i] = 0u;
+    __syncthreads();
+#if CLUSTER
+    cluster_barrier();
+#endif
+    const unsigned p1_pair = (unsigned)p1 * 0x10001u, p2_pair = (unsigned)p2 * 0x10001u;
+    unsigned vert[PAIRS];
+#pragma unroll
+    for (int p = 0; p < PAIRS; ++p) vert[p] = 0u;
+    unsigned vert_min = 0u;
+    const int dv = up ? -1 : 1;
+    int v = up ? height - 1 : 0;
+    // census loaded AHEAD rows ahead into rotating register sets
+#ifndef AHEAD
+#define AHEAD 1
+#endif
+    unsigned set_left[AHEAD], set_right[AHEAD][PER_LANE];
+    auto load = [&](int row, unsigned& left, unsigned (&right)[PER_LANE]) {
+        left = census_left[(size_t)row * width + uc];
+        const int base = uc - first - kappa[row];
+        const unsigned outside = ~left & 0x7fffffffu;
+#pragma unroll
+        for (int k = 0; k < PER_LANE; ++k)
+            right[k] = base - k >= 0 ? census_right[(size_t)row * width + base - k] : outside;
+    };
+#pragma unroll
+    for (int j = 0; j < AHEAD; ++j)
+        if (j < height) load(v + j * dv, set_left[j], set_right[j]);
+#pragma unroll 1
+    for (int r0 = 0; r0 < height; r0 += AHEAD) {
+#pragma unroll
+    for (int j = 0; j < AHEAD; ++j) {
+        const int r = r0 + j;
+        if (r >= height) break;
+        const int parity = r & 1;
+        unsigned cost[PAIRS];
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p)
+            cost[p] = pack_costs(__popc(set_left[j] ^ set_right[j][2 * p]),
+                                 __popc(set_left[j] ^ set_right[j][2 * p + 1]));
+        if (r + AHEAD < height) load(v + AHEAD * dv, set_left[j], set_right[j]);
+        unsigned below = __shfl_up_sync(0xffffffffu, vert[PAIRS - 1], 1, LANES);
+        unsigned above = __shfl_down_sync(0xffffffffu, vert[0], 1, LANES);
+        if (sub == 0) below = FAR_HALF << 16;
+        if (sub == LANES - 1) above = FAR_HALF;
+        unsigned nv[PAIRS], ntl[PAIRS], ntr[PAIRS];
+        const unsigned lv = step_dir(vert, below, above, vert_min, cost, p1_pair, p2_pair, nv);
+        const unsigned* tl = diag[parity][0][group];
+        const unsigned* tr = diag[parity][1][group + 2];
+        const unsigned* tl_min = &diag_min[parity][0][group];
+        const unsigned* tr_min = &diag_min[parity][1][group + 2];
+#if CLUSTER
+        {
+            // block-edge columns read the neighbouring block's edge column in its shared memory
+            const unsigned rank = cluster_rank();
+            if (group == 0 && rank > 0) {
+                tl = cluster_map(&diag[parity][0][COLS][0], rank - 1);
+                tl_min = cluster_map(&diag_min[parity][0][COLS], rank - 1);
+            }
+            if (group == COLS - 1 && rank + 1 < CLUSTER) {
+                tr = cluster_map(&diag[parity][1][1][0], rank + 1);
+                tr_min = cluster_map(&diag_min[parity][1][1], rank + 1);
+            }
+        }
+#endif
+        unsigned ptl[PAIRS], ptr[PAIRS];
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p) {
+            ptl[p] = tl[first / 2 + p];
+            ptr[p] = tr[first / 2 + p];
+        }
+        const unsigned btl = sub ? tl[first / 2 - 1] : FAR_HALF << 16;
+        const unsigned atl = sub < LANES - 1 ? tl[first / 2 + PAIRS] : FAR_HALF;
+        const unsigned btr = sub ? tr[first / 2 - 1] : FAR_HALF << 16;
+        const unsigned atr = sub < LANES - 1 ? tr[first / 2 + PAIRS] : FAR_HALF;
+        const unsigned ltl = step_dir(ptl, btl, atl, *tl_min, cost, p1_pair,
+                                      p2_pair, ntl);
+        const unsigned ltr = step_dir(ptr, btr, atr, *tr_min, cost,
+                                      p1_pair, p2_pair, ntr);
+        unsigned char* cell = out + ((size_t)v * width + uc) * LEVELS;
+        if (u < width) {
+#pragma unroll
+            for (int p = 0; p < PAIRS; ++p) {
+                const unsigned bytes = __byte_perm(nv[p], 0u, 0x3320)
+                                       + __byte_perm(ntl[p], 0u, 0x3320)
+                                       + __byte_perm(ntr[p], 0u, 0x3320);
+                __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
+            }
+        }
+        vert_min = group_min16(lv);
+        const unsigned mtl = group_min16(ltl), mtr = group_min16(ltr);
+#pragma unroll
+        for (int p = 0; p < PAIRS; ++p) {
+            vert[p] = nv[p];
+            diag[parity ^ 1][0][group + 1][first / 2 + p] = ntl[p];
+            diag[parity ^ 1][1][group + 1][first / 2 + p] = ntr[p];
+        }
+        if (sub == 0) {
+            diag_min[parity ^ 1][0][group + 1] = mtl;
+            diag_min[parity ^ 1][1][group + 1] = mtr;
+        }
+#if EXCHANGE
+        {
+            const int blocks = gridDim.x, b = blockIdx.x;
+            const int sweep = blockIdx.y;
+            unsigned* mine = edges + ((size_t)(sweep * blocks + b) * 2 * 4) * ESTRIDE;
+            // rightmost column's TL state (for block b + 1), leftmost's TR state (for b - 1)
+            if (group == COLS - 1) {
+#pragma unroll
+                for (int p = 0; p < PAIRS; ++p)
+                    __stcg(mine + ((0 * 4 + (r & 3)) * ESTRIDE) + first / 2 + p, ntl[p]);
+                if (sub == 0) __stcg(mine + (0 * 4 + (r & 3)) * ESTRIDE + WORDS, mtl);
+            }
+            if (group == 0) {
+#pragma unroll
+                for (int p = 0; p < PAIRS; ++p)
+                    __stcg(mine + ((1 * 4 + (r & 3)) * ESTRIDE) + first / 2 + p, ntr[p]);
+                if (sub == 0) __stcg(mine + (1 * 4 + (r & 3)) * ESTRIDE + WORDS, mtr);
+            }
+            __syncthreads();
+            if (threadIdx.x == 0) {
+                __threadfence();
+                atomicExch(flags + sweep * blocks + b, (unsigned)(r + 1));
+                // wait for both neighbours' row r
+                if (b > 0)
+                    while ((int)atomicAdd(flags + sweep * blocks + b - 1, 0u) < r + 1) {}
+                if (b + 1 < blocks)
+                    while ((int)atomicAdd(flags + sweep * blocks + b + 1, 0u) < r + 1) {}
+                __threadfence();
+            }
+            __syncthreads();
+            // neighbours' edges into the halo columns of the next row's buffer
+            if (group == 0 && b > 0) {
+                const unsigned* theirs = edges
+                                         + ((size_t)(sweep * blocks + b - 1) * 2 * 4) * ESTRIDE;
+#pragma unroll
+                for (int p = 0; p < PAIRS; ++p)
+                    diag[parity ^ 1][0][0][first / 2 + p] =
+                        __ldcg(theirs + (0 * 4 + (r & 3)) * ESTRIDE + first / 2 + p);
+                if (sub == 0)
+                    diag_min[parity ^ 1][0][0] =
+                        __ldcg(theirs + (0 * 4 + (r & 3)) * ESTRIDE + WORDS);
+            }
+            if (group == COLS - 1 && b + 1 < blocks) {
+                const unsigned* theirs = edges
+                                         + ((size_t)(sweep * blocks + b + 1) * 2 * 4) * ESTRIDE;
+#pragma unroll
+                for (int p = 0; p < PAIRS; ++p)
+                    diag[parity ^ 1][1][COLS + 1][first / 2 + p] =
+                        __ldcg(theirs + (1 * 4 + (r & 3)) * ESTRIDE + first / 2 + p);
+                if (sub == 0)
+                    diag_min[parity ^ 1][1][COLS + 1] =
+                        __ldcg(theirs + (1 * 4 + (r & 3)) * ESTRIDE + WORDS);
+            }
+        }
+#endif
+#if CLUSTER
+        cluster_barrier();
+#else
+        __syncthreads();
+#endif
+        v += dv;
+    }
+    }
+}

@@ -1,0 +1,144 @@
+"""Probe of row sweeps for the GPU path costs (docs/gpu-notes.md, thirteenth session).
+
+Times benchmarks/probe_row_sweeps.cu (both senses' three-direction sweeps, with block edges
+stale, handed over through global memory or through cluster shared memory) beside the
+matcher's two path passes on a real frame in one process, and checks the exchanged sweeps
+against the NumPy reference's three-direction sums on crops of it. Needs a GPU and a frame
+folder with left.png and right.png whose GPT band has 96 levels (model1_01 of the pothole
+data). Usage: python3 benchmarks/probe_row_sweeps.py [--data .devdata/fan_potholes/model1_01]
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from pothole_detector.backend import StageClock, get_backend
+from pothole_detector.calibration import StereoCalibration
+from pothole_detector.imageio import read_image
+from pothole_detector.params import Config
+from pothole_detector.pipeline import Pipeline
+from pothole_detector.stages import census_sgm
+from pothole_detector.stages.matching import to_gray8
+
+SOURCE = Path(__file__).with_name("probe_row_sweeps.cu").read_text()
+LEVELS = 96
+# (columns a block, census rows ahead, exchange through global memory, cluster size)
+VARIANTS = ((8, 1, 0, 0), (8, 2, 0, 0), (8, 4, 0, 0), (8, 6, 0, 0), (16, 4, 0, 0),
+            (32, 4, 0, 0), (8, 4, 1, 0), (16, 4, 1, 0), (8, 4, 0, 8), (8, 4, 0, 4),
+            (16, 4, 0, 8))
+
+
+def sweep_kernel(cp, columns: int, ahead: int, exchange: int, cluster: int):
+    options = ("-std=c++17", f"-DLEVELS={LEVELS}", f"-DCOLS={columns}", f"-DAHEAD={ahead}",
+               f"-DEXCHANGE={exchange}", f"-DCLUSTER={cluster}")
+    return cp.RawModule(code=SOURCE, options=options).get_function("sweep_probe")
+
+
+def run_sweeps(cp, kernel, census_left, census_right, kappa, out, senses: int, columns: int,
+               cluster: int, p1: int, p2: int) -> None:
+    """Both senses (``senses`` 2) or the downward one into ``out`` (uint8 2xHxWxLEVELS)."""
+    height, width = census_left.shape
+    blocks = -(-width // columns)
+    if cluster:
+        blocks = -(-blocks // cluster) * cluster
+    edges = cp.zeros(2 * blocks * 8 * (LEVELS // 2 + 1), dtype=cp.uint32)
+    flags = cp.zeros(2 * blocks, dtype=cp.uint32)
+    kernel((blocks, senses), (columns * 16,),
+           (census_left, census_right, kappa, out[0], out[1], np.int32(height),
+            np.int32(width), np.int32(p1), np.int32(p2), edges, flags))
+
+
+def median_ms(cp, launch, repeats: int = 30) -> float:
+    start, stop = cp.cuda.Event(), cp.cuda.Event()
+    times = []
+    for _ in range(repeats):
+        start.record()
+        launch()
+        stop.record()
+        stop.synchronize()
+        times.append(cp.cuda.get_elapsed_time(start, stop))
+    return float(np.median(times[5:]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path(".devdata/fan_potholes/model1_01"))
+    args = parser.parse_args()
+    backend = get_backend("gpu")
+    cp = backend.xp
+    config = Config({"cuda_graph": False})
+    p1, p2 = config.census_p1, config.census_p2
+    left = to_gray8(read_image(args.data / "left.png"))
+    right = to_gray8(read_image(args.data / "right.png"))
+    height, width = left.shape
+    pipeline = Pipeline(config, StereoCalibration.from_focal_baseline(1390, 0.1194, width,
+                                                                     height), backend)
+    pipeline.run(left, right)
+    pipeline.run(left, right)
+    kappa, levels = pipeline._band(left.shape)
+    if levels != LEVELS:
+        raise SystemExit(f"the frame's band has {levels} levels; the probe is built for 96")
+    matcher = census_sgm.GpuMatcher(backend)
+    device_kappa = backend.upload(kappa)
+    matcher(backend.upload(left), backend.upload(right), device_kappa, levels, p1, p2, 5, 1,
+            True)
+    # the winner search writes over the matcher's right census words: the host's own
+    census = [cp.asarray(census_sgm.census_transform(image)) for image in (left, right)]
+    out = cp.empty((2, height, width, LEVELS), dtype=cp.uint8)
+    stage_ms = matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2)
+    print(f"matcher paths (both passes, 8 directions): {stage_ms:.3f} ms")
+    for columns, ahead, exchange, cluster in VARIANTS:
+        kernel = sweep_kernel(cp, columns, ahead, exchange, cluster)
+        for senses in (1, 2):
+            try:
+                ms = median_ms(cp, lambda: run_sweeps(cp, kernel, census[0], census[1],
+                                                      device_kappa, out, senses, columns,
+                                                      cluster, p1, p2))
+            except cp.cuda.driver.CUDADriverError as error:
+                print(f"columns {columns} cluster {cluster}: {error}")
+                break
+            print(f"columns {columns}, {ahead} rows ahead, exchange {exchange}, cluster "
+                  f"{cluster}: {senses} sweep(s) {ms:.3f} ms ({3 * senses} directions)")
+    check_crops(cp, backend, left, right, kappa, p1, p2)
+
+
+def matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2) -> float:
+    """The matcher's two path passes (its ``paths`` stage), median ms."""
+    device_left, device_right = backend.upload(left), backend.upload(right)
+    samples = []
+    for _ in range(30):
+        clock = StageClock(backend)
+        matcher(device_left, device_right, device_kappa, levels, p1, p2, 5, 1, True,
+                clock=clock)
+        samples.append(clock.timings()["paths"])
+    return float(np.median(samples[5:]))
+
+
+def check_crops(cp, backend, left, right, kappa, p1: int, p2: int) -> None:
+    """Exchanged sweeps against the NumPy reference's three-direction sums on bottom-left
+    crops (60x200 by the global-memory hand-off, 60x64 within one cluster of 8 blocks)."""
+    rows = 60
+    crop_kappa = np.ascontiguousarray(kappa[-rows:])
+    for columns, exchange, cluster, crop_width in ((8, 1, 0, 200), (16, 1, 0, 200),
+                                                   (8, 0, 8, 64)):
+        crop_left = np.ascontiguousarray(left[-rows:, :crop_width])
+        crop_right = np.ascontiguousarray(right[-rows:, :crop_width])
+        census_left = census_sgm.census_transform(crop_left)
+        census_right = census_sgm.census_transform(crop_right)
+        cost = census_sgm.matching_cost(census_left, census_right, crop_kappa, LEVELS)
+        paths = census_sgm.aggregate(cost, p1, p2).astype(np.int32)
+        expected = (paths[2] + paths[4] + paths[5], paths[3] + paths[6] + paths[7])
+        out = cp.zeros((2, rows, crop_width, LEVELS), dtype=cp.uint8)
+        kernel = sweep_kernel(cp, columns, 4, exchange, cluster)
+        run_sweeps(cp, kernel, cp.asarray(census_left), cp.asarray(census_right),
+                   cp.asarray(crop_kappa), out, 2, columns, cluster, p1, p2)
+        got = cp.asnumpy(out)
+        print(f"{rows}x{crop_width}, columns {columns}, exchange {exchange}, cluster "
+              f"{cluster}: down {np.array_equal(got[0], expected[0])}, up "
+              f"{np.array_equal(got[1], expected[1])} (equal to the reference)")
+
+
+if __name__ == "__main__":
+    main()
