@@ -7,33 +7,23 @@
 // only); EXCHANGE 1 hands edge states to the neighbouring blocks every row through global
 // memory (edges: uint32 2 x blocks x 2 x 4 x (LEVELS / 2 + 1), flags: uint32 2 x blocks, zero);
 // CLUSTER n reads them from the neighbouring block's shared memory in clusters of n blocks
-// (exact within a cluster). Census words AHEAD rows ahead.
-#define LANES 16
-#define PER_LANE (LEVELS / LANES)
-#define PAIRS (PER_LANE / 2)
+// (exact within a cluster). Census words ROWS_AHEAD rows ahead.
+// Built on sgm.cu (LEVELS, LANES 16 and the census defines given; its PER_LANE, PAIRS,
+// FAR_HALF, pack_costs, group_minimum and invalid_word used as they are; nvcc: -I its
+// folder, probe_row_sweeps.py inlines it).
+#include "sgm.cu"
+static_assert(LANES == 16 && PACKED, "the probe: 16 lanes of packed level pairs");
 #ifndef EXCHANGE
 #define EXCHANGE 0
 #endif
 #ifndef COLS
 #define COLS 32
 #endif
-#define FAR_HALF 0x7fffu
 #define WORDS (LEVELS / 2)
 #define ESTRIDE (WORDS + 1)
 
-__device__ __forceinline__ unsigned pack_costs(unsigned low, unsigned high) {
-    unsigned pair;
-    asm("mad.lo.u32 %0, %1, 65536, %2;" : "=r"(pair) : "r"(high), "r"(low));
-    return pair;
-}
-
-__device__ __forceinline__ unsigned group_min16(unsigned value) {
-    const bool high = threadIdx.x & 16;
-    const unsigned low_min = __reduce_min_sync(0xffffffffu, high ? 0xffffffffu : value);
-    const unsigned high_min = __reduce_min_sync(0xffffffffu, high ? value : 0xffffffffu);
-    return high ? high_min : low_min;
-}
-
+// One packed path step of one direction, as sgm.cu's walk_paths takes it (there inside the
+// walk's step): prev the source pixel's pairs, below / above the levels beside the lane's.
 __device__ __forceinline__ unsigned step_dir(const unsigned (&prev)[PAIRS], unsigned below,
                                              unsigned above, unsigned minimum,
                                              const unsigned (&cost)[PAIRS], unsigned p1_pair,
@@ -106,26 +96,26 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
     unsigned vert_min = 0u;
     const int dv = up ? -1 : 1;
     int v = up ? height - 1 : 0;
-    // census loaded AHEAD rows ahead into rotating register sets
-#ifndef AHEAD
-#define AHEAD 1
+    // census loaded ROWS_AHEAD rows ahead into rotating register sets
+#ifndef ROWS_AHEAD
+#define ROWS_AHEAD 1
 #endif
-    unsigned set_left[AHEAD], set_right[AHEAD][PER_LANE];
+    unsigned set_left[ROWS_AHEAD], set_right[ROWS_AHEAD][PER_LANE];
     auto load = [&](int row, unsigned& left, unsigned (&right)[PER_LANE]) {
         left = census_left[(size_t)row * width + uc];
         const int base = uc - first - kappa[row];
-        const unsigned outside = ~left & 0x7fffffffu;
+        const unsigned outside = invalid_word(left);
 #pragma unroll
         for (int k = 0; k < PER_LANE; ++k)
             right[k] = base - k >= 0 ? census_right[(size_t)row * width + base - k] : outside;
     };
 #pragma unroll
-    for (int j = 0; j < AHEAD; ++j)
+    for (int j = 0; j < ROWS_AHEAD; ++j)
         if (j < height) load(v + j * dv, set_left[j], set_right[j]);
 #pragma unroll 1
-    for (int r0 = 0; r0 < height; r0 += AHEAD) {
+    for (int r0 = 0; r0 < height; r0 += ROWS_AHEAD) {
 #pragma unroll
-    for (int j = 0; j < AHEAD; ++j) {
+    for (int j = 0; j < ROWS_AHEAD; ++j) {
         const int r = r0 + j;
         if (r >= height) break;
         const int parity = r & 1;
@@ -134,7 +124,7 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
         for (int p = 0; p < PAIRS; ++p)
             cost[p] = pack_costs(__popc(set_left[j] ^ set_right[j][2 * p]),
                                  __popc(set_left[j] ^ set_right[j][2 * p + 1]));
-        if (r + AHEAD < height) load(v + AHEAD * dv, set_left[j], set_right[j]);
+        if (r + ROWS_AHEAD < height) load(v + ROWS_AHEAD * dv, set_left[j], set_right[j]);
         unsigned below = __shfl_up_sync(0xffffffffu, vert[PAIRS - 1], 1, LANES);
         unsigned above = __shfl_down_sync(0xffffffffu, vert[0], 1, LANES);
         if (sub == 0) below = FAR_HALF << 16;
@@ -183,8 +173,8 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
                 __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
             }
         }
-        vert_min = group_min16(lv);
-        const unsigned mtl = group_min16(ltl), mtr = group_min16(ltr);
+        vert_min = group_minimum<LANES>(lv);
+        const unsigned mtl = group_minimum<LANES>(ltl), mtr = group_minimum<LANES>(ltr);
 #pragma unroll
         for (int p = 0; p < PAIRS; ++p) {
             vert[p] = nv[p];

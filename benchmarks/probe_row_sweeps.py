@@ -22,7 +22,10 @@ from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import census_sgm
 from pothole_detector.stages.matching import to_gray8
 
-SOURCE = Path(__file__).with_name("probe_row_sweeps.cu").read_text()
+# sgm.cu inlined where the probe includes it, so that CuPy's compile cache sees its text
+SOURCE = Path(__file__).with_name("probe_row_sweeps.cu").read_text().replace(
+    '#include "sgm.cu"',
+    (Path(census_sgm.__file__).resolve().parents[1] / "kernels" / "sgm.cu").read_text())
 LEVELS = 96
 # (columns a block, census rows ahead, exchange through global memory, cluster size)
 VARIANTS = ((8, 1, 0, 0), (8, 2, 0, 0), (8, 4, 0, 0), (8, 6, 0, 0), (16, 4, 0, 0),
@@ -31,8 +34,13 @@ VARIANTS = ((8, 1, 0, 0), (8, 2, 0, 0), (8, 4, 0, 0), (8, 6, 0, 0), (16, 4, 0, 0
 
 
 def sweep_kernel(cp, columns: int, ahead: int, exchange: int, cluster: int):
-    options = ("-std=c++17", f"-DLEVELS={LEVELS}", f"-DCOLS={columns}", f"-DAHEAD={ahead}",
-               f"-DEXCHANGE={exchange}", f"-DCLUSTER={cluster}")
+    """The probe kernel, built on kernels/sgm.cu (its helpers for 16 lanes at LEVELS)."""
+    defines = {"LEVELS": LEVELS, "LANES": 16, "CENSUS_RY": census_sgm.CENSUS_RADIUS_Y,
+               "CENSUS_RX": census_sgm.CENSUS_RADIUS_X,
+               "INVALID_COST": census_sgm.INVALID_COST, "BORDER_Y": census_sgm.BORDER_Y,
+               "BORDER_X": census_sgm.BORDER_X, "COLS": columns, "ROWS_AHEAD": ahead,
+               "EXCHANGE": exchange, "CLUSTER": cluster}
+    options = ("-std=c++17",) + tuple(f"-D{name}={value}" for name, value in defines.items())
     return cp.RawModule(code=SOURCE, options=options).get_function("sweep_probe")
 
 
