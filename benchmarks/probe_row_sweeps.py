@@ -1,11 +1,14 @@
-"""Probe of row sweeps for the GPU path costs (docs/gpu-notes.md, thirteenth session).
+"""Probe of row sweeps for the GPU path costs (docs/gpu-notes.md, thirteenth and fourteenth
+sessions).
 
-Times benchmarks/probe_row_sweeps.cu (both senses' three-direction sweeps, with block edges
-stale, handed over through global memory or through cluster shared memory) beside the
-matcher's two path passes on a real frame in one process, and checks the exchanged sweeps
-against the NumPy reference's three-direction sums on crops of it. Needs a GPU and a frame
-folder with left.png and right.png whose GPT band has 96 levels (model1_01 of the pothole
-data). Usage: python3 benchmarks/probe_row_sweeps.py [--data .devdata/fan_potholes/model1_01]
+Times benchmarks/probe_row_sweeps.cu beside the matcher's two path passes on a real frame in
+one process: both senses' three-direction sweeps (block edges stale, handed over through
+global memory as tagged words, or through cluster shared memory), the two horizontal walks
+into volumes of their own, and all eight directions in one launch. Checks the sweeps and the
+horizontal walks against the NumPy reference's path costs on crops of the frame. Needs a GPU
+and a frame folder with left.png and right.png whose GPT band has 96 levels (model1_01 of the
+pothole data). Usage:
+python3 benchmarks/probe_row_sweeps.py [--data .devdata/fan_potholes/model1_01]
 """
 from __future__ import annotations
 
@@ -27,10 +30,12 @@ SOURCE = Path(__file__).with_name("probe_row_sweeps.cu").read_text().replace(
     '#include "sgm.cu"',
     (Path(census_sgm.__file__).resolve().parents[1] / "kernels" / "sgm.cu").read_text())
 LEVELS = 96
-# (columns a block, census rows ahead, exchange through global memory, cluster size)
-VARIANTS = ((8, 1, 0, 0), (8, 2, 0, 0), (8, 4, 0, 0), (8, 6, 0, 0), (16, 4, 0, 0),
-            (32, 4, 0, 0), (8, 4, 1, 0), (16, 4, 1, 0), (8, 4, 0, 8), (8, 4, 0, 4),
-            (16, 4, 0, 8))
+# (columns a block, census rows ahead, exchange through global memory (1: flags, 2: tagged
+# words), cluster size)
+VARIANTS = ((8, 4, 0, 0), (8, 4, 2, 0), (16, 4, 2, 0), (8, 2, 2, 0), (8, 6, 2, 0),
+            (8, 4, 0, 8))
+# what a launch walks: (first kind, end), kinds 0 / 1 horizontal, 2 / 3 sweeps
+LAUNCHES = {"sweeps": (2, 4), "horizontals": (0, 2), "all eight": (0, 4)}
 
 
 def sweep_kernel(cp, columns: int, ahead: int, exchange: int, cluster: int):
@@ -44,18 +49,39 @@ def sweep_kernel(cp, columns: int, ahead: int, exchange: int, cluster: int):
     return cp.RawModule(code=SOURCE, options=options).get_function("sweep_probe")
 
 
-def run_sweeps(cp, kernel, census_left, census_right, kappa, out, senses: int, columns: int,
-               cluster: int, p1: int, p2: int) -> None:
-    """Both senses (``senses`` 2) or the downward one into ``out`` (uint8 2xHxWxLEVELS)."""
-    height, width = census_left.shape
-    blocks = -(-width // columns)
-    if cluster:
-        blocks = -(-blocks // cluster) * cluster
-    edges = cp.zeros(2 * blocks * 8 * (LEVELS // 2 + 1), dtype=cp.uint32)
-    flags = cp.zeros(2 * blocks, dtype=cp.uint32)
-    kernel((blocks, senses), (columns * 16,),
-           (census_left, census_right, kappa, out[0], out[1], np.int32(height),
-            np.int32(width), np.int32(p1), np.int32(p2), edges, flags))
+class Sweeps:
+    """Launches of one probe kernel with its exchange buffers (kept, so that timing sees only
+    the kernel; EXCHANGE 2 tells launches apart by an epoch in its tags)."""
+
+    def __init__(self, cp, kernel, height: int, width: int, columns: int, cluster: int):
+        self.cp, self.kernel, self.columns = cp, kernel, columns
+        blocks = -(-width // columns)
+        if cluster:
+            blocks = -(-blocks // cluster) * cluster
+        self.blocks = blocks
+        self.edges = cp.zeros(2 * blocks * 2 * 4 * LEVELS, dtype=cp.uint64)
+        self.flags = cp.zeros(2 * blocks, dtype=cp.uint32)
+        self.epoch = 0
+
+    def __call__(self, census_left, census_right, kappa, out, kinds: tuple[int, int],
+                 p1: int, p2: int, horizontal_out=None) -> None:
+        """Kinds ``kinds[0]`` to ``kinds[1] - 1`` (0 / 1: horizontal walks into
+        ``horizontal_out`` (uint8 2xHxWxLEVELS), 2 / 3: sweeps into ``out``)."""
+        height, width = census_left.shape
+        blocks = self.blocks if kinds[1] > 2 else -(-height // self.columns)
+        if kinds[0] < 2:
+            blocks = max(blocks, -(-height // self.columns))
+        horizontal = out if horizontal_out is None else horizontal_out
+        self.epoch += 1
+        self.kernel((blocks, kinds[1] - kinds[0]), (self.columns * 16,),
+                    (census_left, census_right, kappa, out[0], out[1], np.int32(height),
+                     np.int32(width), np.int32(p1), np.int32(p2), self.edges, self.flags,
+                     horizontal[0], horizontal[1], np.uint32(self.epoch),
+                     np.int32(kinds[0])))
+
+    def failed(self) -> bool:
+        """Whether a wait for a neighbour's edge gave up (EXCHANGE 2)."""
+        return bool(int(self.flags[0].get()))
 
 
 def median_ms(cp, launch, repeats: int = 30) -> float:
@@ -97,18 +123,21 @@ def main() -> None:
     out = cp.empty((2, height, width, LEVELS), dtype=cp.uint8)
     stage_ms = matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2)
     print(f"matcher paths (both passes, 8 directions): {stage_ms:.3f} ms")
+    horizontal = cp.empty_like(out)
     for columns, ahead, exchange, cluster in VARIANTS:
         kernel = sweep_kernel(cp, columns, ahead, exchange, cluster)
-        for senses in (1, 2):
+        sweeps = Sweeps(cp, kernel, height, width, columns, cluster)
+        for name, kinds in LAUNCHES.items():
+            if cluster and kinds[0] < 2:
+                continue
             try:
-                ms = median_ms(cp, lambda: run_sweeps(cp, kernel, census[0], census[1],
-                                                      device_kappa, out, senses, columns,
-                                                      cluster, p1, p2))
+                ms = median_ms(cp, lambda: sweeps(census[0], census[1], device_kappa, out,
+                                                  kinds, p1, p2, horizontal))
             except cp.cuda.driver.CUDADriverError as error:
                 print(f"columns {columns} cluster {cluster}: {error}")
                 break
-            print(f"columns {columns}, {ahead} rows ahead, exchange {exchange}, cluster "
-                  f"{cluster}: {senses} sweep(s) {ms:.3f} ms ({3 * senses} directions)")
+            print(f"columns {columns}, {ahead} ahead, exchange {exchange}, cluster {cluster}: "
+                  f"{name} {ms:.3f} ms{' (a wait gave up)' if sweeps.failed() else ''}")
     check_crops(cp, backend, left, right, kappa, p1, p2)
 
 
@@ -125,27 +154,32 @@ def matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2) -> f
 
 
 def check_crops(cp, backend, left, right, kappa, p1: int, p2: int) -> None:
-    """Exchanged sweeps against the NumPy reference's three-direction sums on bottom-left
-    crops (60x200 by the global-memory hand-off, 60x64 within one cluster of 8 blocks)."""
+    """Exchanged sweeps and the horizontal walks against the NumPy reference's path costs on
+    bottom-left crops (one of them a partial last block)."""
     rows = 60
     crop_kappa = np.ascontiguousarray(kappa[-rows:])
-    for columns, exchange, cluster, crop_width in ((8, 1, 0, 200), (16, 1, 0, 200),
-                                                   (8, 0, 8, 64)):
+    for columns, exchange, cluster, crop_width in ((8, 2, 0, 200), (8, 2, 0, 203),
+                                                   (16, 2, 0, 203), (8, 0, 8, 64)):
         crop_left = np.ascontiguousarray(left[-rows:, :crop_width])
         crop_right = np.ascontiguousarray(right[-rows:, :crop_width])
         census_left = census_sgm.census_transform(crop_left)
         census_right = census_sgm.census_transform(crop_right)
         cost = census_sgm.matching_cost(census_left, census_right, crop_kappa, LEVELS)
         paths = census_sgm.aggregate(cost, p1, p2).astype(np.int32)
-        expected = (paths[2] + paths[4] + paths[5], paths[3] + paths[6] + paths[7])
+        expected = (paths[2] + paths[4] + paths[5], paths[3] + paths[6] + paths[7],
+                    paths[0], paths[1])
         out = cp.zeros((2, rows, crop_width, LEVELS), dtype=cp.uint8)
+        horizontal = cp.zeros_like(out)
         kernel = sweep_kernel(cp, columns, 4, exchange, cluster)
-        run_sweeps(cp, kernel, cp.asarray(census_left), cp.asarray(census_right),
-                   cp.asarray(crop_kappa), out, 2, columns, cluster, p1, p2)
-        got = cp.asnumpy(out)
+        sweeps = Sweeps(cp, kernel, rows, crop_width, columns, cluster)
+        sweeps(cp.asarray(census_left), cp.asarray(census_right), cp.asarray(crop_kappa), out,
+               (0, 4) if not cluster else (2, 4), p1, p2, horizontal)
+        got = np.concatenate([cp.asnumpy(out), cp.asnumpy(horizontal)])
+        equal = [bool(np.array_equal(got[k], expected[k])) for k in range(4 if not cluster
+                                                                            else 2)]
         print(f"{rows}x{crop_width}, columns {columns}, exchange {exchange}, cluster "
-              f"{cluster}: down {np.array_equal(got[0], expected[0])}, up "
-              f"{np.array_equal(got[1], expected[1])} (equal to the reference)")
+              f"{cluster}: down, up, left to right, right to left equal to the reference: "
+              f"{equal}{' (a wait gave up)' if sweeps.failed() else ''}")
 
 
 if __name__ == "__main__":
