@@ -55,6 +55,25 @@ __device__ __forceinline__ unsigned step_dir(const unsigned (&prev)[PAIRS], unsi
 }
 
 
+// One step's census words: the left word at `u` of its row and the right words of the lane's
+// levels, `base` - k for level first + k (invalid_word(left) left of the row's start).
+__device__ __forceinline__ void load_words(const unsigned* row_left, const unsigned* row_right,
+                                           int u, int base, unsigned& left,
+                                           unsigned (&right)[PER_LANE]) {
+    left = row_left[u];
+    const unsigned outside = invalid_word(left);
+#pragma unroll
+    for (int k = 0; k < PER_LANE; ++k) right[k] = base - k >= 0 ? row_right[base - k] : outside;
+}
+
+// The lane's matching costs as level pairs (levels first + 2p and first + 2p + 1).
+__device__ __forceinline__ void pair_costs(unsigned left, const unsigned (&right)[PER_LANE],
+                                           unsigned (&cost)[PAIRS]) {
+#pragma unroll
+    for (int p = 0; p < PAIRS; ++p)
+        cost[p] = pack_costs(__popc(left ^ right[2 * p]), __popc(left ^ right[2 * p + 1]));
+}
+
 // One horizontal walk a group (rows blockIdx.x * COLS + group), its direction's path costs
 // as one byte per level (uint8 HxWxLEVELS); census ROWS_AHEAD steps ahead.
 __device__ __forceinline__ void horizontal_walk(const unsigned* __restrict__ census_left,
@@ -79,12 +98,7 @@ __device__ __forceinline__ void horizontal_walk(const unsigned* __restrict__ cen
     const int du = leftward ? -1 : 1;
     unsigned set_left[ROWS_AHEAD], set_right[ROWS_AHEAD][PER_LANE];
     auto load = [&](int u, unsigned& left, unsigned (&right)[PER_LANE]) {
-        left = row_left[u];
-        const int base = u - first - shift;
-        const unsigned outside = invalid_word(left);
-#pragma unroll
-        for (int k = 0; k < PER_LANE; ++k)
-            right[k] = base - k >= 0 ? row_right[base - k] : outside;
+        load_words(row_left, row_right, u, u - first - shift, left, right);
     };
     int u = leftward ? width - 1 : 0;
 #pragma unroll
@@ -96,10 +110,7 @@ __device__ __forceinline__ void horizontal_walk(const unsigned* __restrict__ cen
         for (int j = 0; j < ROWS_AHEAD; ++j) {
             if (s0 + j >= width) break;
             unsigned cost[PAIRS];
-#pragma unroll
-            for (int p = 0; p < PAIRS; ++p)
-                cost[p] = pack_costs(__popc(set_left[j] ^ set_right[j][2 * p]),
-                                     __popc(set_left[j] ^ set_right[j][2 * p + 1]));
+            pair_costs(set_left[j], set_right[j], cost);
             if (s0 + j + ROWS_AHEAD < width) load(u + ROWS_AHEAD * du, set_left[j], set_right[j]);
             unsigned below = __shfl_up_sync(0xffffffffu, previous[PAIRS - 1], 1, LANES);
             unsigned above = __shfl_down_sync(0xffffffffu, previous[0], 1, LANES);
@@ -193,7 +204,7 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
     __shared__ unsigned diag[2][2][COLS + 2][WORDS];
     __shared__ unsigned diag_min[2][2][COLS + 2];
     const bool up = kind == 3;
-    const int sweep = kind - 2;
+    [[maybe_unused]] const int sweep = kind - 2;
     const unsigned sweep_blocks = (width + COLS - 1) / COLS;
 #if !CLUSTER
     // (a cluster's blocks all stay: each takes part in every cluster barrier)
@@ -222,12 +233,8 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
     // census loaded ROWS_AHEAD rows ahead into rotating register sets
     unsigned set_left[ROWS_AHEAD], set_right[ROWS_AHEAD][PER_LANE];
     auto load = [&](int row, unsigned& left, unsigned (&right)[PER_LANE]) {
-        left = census_left[(size_t)row * width + uc];
-        const int base = uc - first - kappa[row];
-        const unsigned outside = invalid_word(left);
-#pragma unroll
-        for (int k = 0; k < PER_LANE; ++k)
-            right[k] = base - k >= 0 ? census_right[(size_t)row * width + base - k] : outside;
+        load_words(census_left + (size_t)row * width, census_right + (size_t)row * width, uc,
+                   uc - first - kappa[row], left, right);
     };
 #pragma unroll
     for (int j = 0; j < ROWS_AHEAD; ++j)
@@ -240,10 +247,7 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
         if (r >= height) break;
         const int parity = r & 1;
         unsigned cost[PAIRS];
-#pragma unroll
-        for (int p = 0; p < PAIRS; ++p)
-            cost[p] = pack_costs(__popc(set_left[j] ^ set_right[j][2 * p]),
-                                 __popc(set_left[j] ^ set_right[j][2 * p + 1]));
+        pair_costs(set_left[j], set_right[j], cost);
         if (r + ROWS_AHEAD < height) load(v + ROWS_AHEAD * dv, set_left[j], set_right[j]);
         unsigned below = __shfl_up_sync(0xffffffffu, vert[PAIRS - 1], 1, LANES);
         unsigned above = __shfl_down_sync(0xffffffffu, vert[0], 1, LANES);
