@@ -471,6 +471,7 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
 #ifndef HORIZONTAL_REUSE
 #define HORIZONTAL_REUSE PACKED
 #endif
+static_assert(!HORIZONTAL_REUSE || PACKED, "HORIZONTAL_REUSE: packed lanes (consecutive levels)");
 template <int SIGN>
 __device__ __forceinline__ void derive_census(const unsigned* __restrict__ census_left,
                                               const unsigned* __restrict__ lane_right,
