@@ -7,12 +7,13 @@
 // all eight directions in four volumes with no read-modify-write. A block holds COLS columns
 // (rows for kinds 0 and 1) of 16 lanes (6 levels each at LEVELS 96); the diagonals' states of
 // the row above lie in shared memory. Block-edge columns: EXCHANGE 0 and CLUSTER 0 leave them
-// stale (timing only); EXCHANGE 1 hands edge states to the neighbouring blocks every row
-// through global memory (edges: uint32 2 x blocks x 2 x 4 x (LEVELS / 2 + 1), flags: uint32
-// 2 x blocks, zero); EXCHANGE 2 as 64-bit words that carry their row and the launch's epoch
-// (edges: uint64 2 x blocks x 2 x 4 x LEVELS / 2; no fence, no flag; flags[0] set where a wait
-// gave up); CLUSTER n reads them from the neighbouring block's shared memory in clusters of n
-// blocks (exact within a cluster). Census words ROWS_AHEAD rows (steps) ahead.
+// stale (timing only); EXCHANGE 2 hands edge states to the neighbouring blocks every row
+// through global memory as 64-bit words that carry their row and the launch's epoch (edges:
+// uint64 2 x blocks x 2 x 4 x LEVELS / 2; no fence, no flag; *failed set where a wait gave
+// up); CLUSTER n reads them from the neighbouring block's shared memory in clusters of n
+// blocks (exact within a cluster). Census words ROWS_AHEAD rows (steps) ahead. (EXCHANGE 1,
+// edge states and a row flag per block through global memory with fences and atomics, is in
+// this file at commit 423382f; docs/gpu-notes.md has its times.)
 // Built on sgm.cu (LEVELS, LANES 16 and the census defines given; its PER_LANE, PAIRS,
 // FAR_HALF, pack_costs, group_minimum and invalid_word used as they are; nvcc: -I its
 // folder, probe_row_sweeps.py inlines it).
@@ -28,7 +29,6 @@ static_assert(LANES == 16 && PACKED, "the probe: 16 lanes of packed level pairs"
 #define ROWS_AHEAD 1
 #endif
 #define WORDS (LEVELS / 2)
-#define ESTRIDE (WORDS + 1)
 
 // One packed path step of one direction, as sgm.cu's walk_paths takes it (there inside the
 // walk's step): prev the source pixel's pairs, below / above the levels beside the lane's.
@@ -189,7 +189,7 @@ __cluster_dims__(CLUSTER, 1, 1)
 #endif
 sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict__ census_right,
             const int* __restrict__ kappa, unsigned char* out_down, unsigned char* out_up,
-            int height, int width, int p1, int p2, unsigned* edges, unsigned* flags,
+            int height, int width, int p1, int p2, unsigned* edges, unsigned* failed,
             unsigned char* out_right, unsigned char* out_left, unsigned epoch, int first_kind) {
     // kind (blockIdx.y + first_kind): 0 / 1 the horizontal walks (left to right, right to
     // left), 2 / 3 the downward / upward sweeps
@@ -199,13 +199,13 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
                         width, p1, p2, kind == 1);
         return;
     }
-    // EXCHANGE 1 and 2: block-edge states handed to the neighbouring blocks through global
-    // memory every row (ring of 4 rows per edge; EXCHANGE 1's flags: rows published per block)
+    // EXCHANGE 2: block-edge states handed to the neighbouring blocks through global memory
+    // every row (ring of 4 rows per edge)
     __shared__ unsigned diag[2][2][COLS + 2][WORDS];
     __shared__ unsigned diag_min[2][2][COLS + 2];
     const bool up = kind == 3;
     [[maybe_unused]] const int sweep = kind - 2;
-    const unsigned sweep_blocks = (width + COLS - 1) / COLS;
+    [[maybe_unused]] const unsigned sweep_blocks = (width + COLS - 1) / COLS;
 #if !CLUSTER
     // (a cluster's blocks all stay: each takes part in every cluster barrier)
     if (blockIdx.x >= sweep_blocks) return;
@@ -333,72 +333,18 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
 #if EXCHANGE == 2
         if (group == 0 && blockIdx.x > 0) {
             unsigned pairs[PAIRS];
-            const unsigned m = receive(slot_of(blockIdx.x - 1, 0), tag, pairs, flags);
+            const unsigned m = receive(slot_of(blockIdx.x - 1, 0), tag, pairs, failed);
 #pragma unroll
             for (int p = 0; p < PAIRS; ++p) diag[parity ^ 1][0][0][first / 2 + p] = pairs[p];
             if (sub == 0) diag_min[parity ^ 1][0][0] = m;
         }
         if (group == COLS - 1 && blockIdx.x + 1 < sweep_blocks) {
             unsigned pairs[PAIRS];
-            const unsigned m = receive(slot_of(blockIdx.x + 1, 1), tag, pairs, flags);
+            const unsigned m = receive(slot_of(blockIdx.x + 1, 1), tag, pairs, failed);
 #pragma unroll
             for (int p = 0; p < PAIRS; ++p)
                 diag[parity ^ 1][1][COLS + 1][first / 2 + p] = pairs[p];
             if (sub == 0) diag_min[parity ^ 1][1][COLS + 1] = m;
-        }
-#endif
-#if EXCHANGE == 1
-        {
-            const int blocks = gridDim.x, b = blockIdx.x;
-            unsigned* mine = edges + ((size_t)(sweep * blocks + b) * 2 * 4) * ESTRIDE;
-            // rightmost column's TL state (for block b + 1), leftmost's TR state (for b - 1)
-            if (group == COLS - 1) {
-#pragma unroll
-                for (int p = 0; p < PAIRS; ++p)
-                    __stcg(mine + ((0 * 4 + (r & 3)) * ESTRIDE) + first / 2 + p, ntl[p]);
-                if (sub == 0) __stcg(mine + (0 * 4 + (r & 3)) * ESTRIDE + WORDS, mtl);
-            }
-            if (group == 0) {
-#pragma unroll
-                for (int p = 0; p < PAIRS; ++p)
-                    __stcg(mine + ((1 * 4 + (r & 3)) * ESTRIDE) + first / 2 + p, ntr[p]);
-                if (sub == 0) __stcg(mine + (1 * 4 + (r & 3)) * ESTRIDE + WORDS, mtr);
-            }
-            __syncthreads();
-            if (threadIdx.x == 0) {
-                __threadfence();
-                atomicExch(flags + sweep * blocks + b, (unsigned)(r + 1));
-                // wait for both neighbours' row r
-                if (b > 0)
-                    while ((int)atomicAdd(flags + sweep * blocks + b - 1, 0u) < r + 1) {}
-                if (b + 1 < blocks)
-                    while ((int)atomicAdd(flags + sweep * blocks + b + 1, 0u) < r + 1) {}
-                __threadfence();
-            }
-            __syncthreads();
-            // neighbours' edges into the halo columns of the next row's buffer
-            if (group == 0 && b > 0) {
-                const unsigned* theirs = edges
-                                         + ((size_t)(sweep * blocks + b - 1) * 2 * 4) * ESTRIDE;
-#pragma unroll
-                for (int p = 0; p < PAIRS; ++p)
-                    diag[parity ^ 1][0][0][first / 2 + p] =
-                        __ldcg(theirs + (0 * 4 + (r & 3)) * ESTRIDE + first / 2 + p);
-                if (sub == 0)
-                    diag_min[parity ^ 1][0][0] =
-                        __ldcg(theirs + (0 * 4 + (r & 3)) * ESTRIDE + WORDS);
-            }
-            if (group == COLS - 1 && b + 1 < blocks) {
-                const unsigned* theirs = edges
-                                         + ((size_t)(sweep * blocks + b + 1) * 2 * 4) * ESTRIDE;
-#pragma unroll
-                for (int p = 0; p < PAIRS; ++p)
-                    diag[parity ^ 1][1][COLS + 1][first / 2 + p] =
-                        __ldcg(theirs + (1 * 4 + (r & 3)) * ESTRIDE + first / 2 + p);
-                if (sub == 0)
-                    diag_min[parity ^ 1][1][COLS + 1] =
-                        __ldcg(theirs + (1 * 4 + (r & 3)) * ESTRIDE + WORDS);
-            }
         }
 #endif
 #if CLUSTER

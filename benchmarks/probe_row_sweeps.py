@@ -30,8 +30,8 @@ SOURCE = Path(__file__).with_name("probe_row_sweeps.cu").read_text().replace(
     '#include "sgm.cu"',
     (Path(census_sgm.__file__).resolve().parents[1] / "kernels" / "sgm.cu").read_text())
 LEVELS = 96
-# (columns a block, census rows ahead, exchange through global memory (1: flags, 2: tagged
-# words), cluster size)
+# (columns a block, census rows ahead, exchange through global memory (2: tagged words; 0:
+# none), cluster size)
 VARIANTS = ((8, 4, 0, 0), (8, 4, 2, 0), (16, 4, 2, 0), (8, 2, 2, 0), (8, 6, 2, 0),
             (8, 4, 0, 8))
 # what a launch walks: (first kind, end), kinds 0 / 1 horizontal, 2 / 3 sweeps
@@ -60,7 +60,7 @@ class Sweeps:
             blocks = -(-blocks // cluster) * cluster
         self.blocks = blocks
         self.edges = cp.zeros(2 * blocks * 2 * 4 * LEVELS, dtype=cp.uint64)
-        self.flags = cp.zeros(2 * blocks, dtype=cp.uint32)
+        self.failed_flag = cp.zeros(1, dtype=cp.uint32)
         self.epoch = 0
 
     def __call__(self, census_left, census_right, kappa, out, kinds: tuple[int, int],
@@ -75,13 +75,13 @@ class Sweeps:
         self.epoch += 1
         self.kernel((blocks, kinds[1] - kinds[0]), (self.columns * 16,),
                     (census_left, census_right, kappa, out[0], out[1], np.int32(height),
-                     np.int32(width), np.int32(p1), np.int32(p2), self.edges, self.flags,
+                     np.int32(width), np.int32(p1), np.int32(p2), self.edges, self.failed_flag,
                      horizontal[0], horizontal[1], np.uint32(self.epoch),
                      np.int32(kinds[0])))
 
     def failed(self) -> bool:
         """Whether a wait for a neighbour's edge gave up (EXCHANGE 2)."""
-        return bool(int(self.flags[0].get()))
+        return bool(int(self.failed_flag.get()[0]))
 
 
 def median_ms(cp, launch, repeats: int = 30) -> float:

@@ -577,15 +577,12 @@ __device__ __forceinline__ int lines_of(int direction, int height, int width) {
     return dy == 0 ? height : dx == 0 ? width : width + height - 1;
 }
 
-// One launch per pass walks all four slots: slot s takes the direction FIRST_PASS[s] in the
-// first pass (path costs written: ADD false) and SECOND_PASS[s] in the second (added). The
-// blocks of slot 0 come first, then those of slots 1, 2, 3, each slot with just enough blocks
-// for its lines (the straight walks start first and spread over the multiprocessors). Each
-// group of LANES threads walks one line from where it enters the image; the groups of a warp
-// step together as long as the longest of their lines (a group whose line has ended, or that
-// has none, computes on stale registers and stores nothing), so the group exchanges are
-// whole-warp operations.
-// HSIGN: the walk's dx where it is horizontal and HORIZONTAL_REUSE, else 0.
+// The lines of `block` of `slot` (walking `direction`; `rings`: the shared address of the
+// groups' rings of sums, SUMS_RING). Each group of LANES threads walks one line from where it
+// enters the image; the groups of a warp step together as long as the longest of their lines
+// (a group whose line has ended, or that has none, computes on stale registers and stores
+// nothing), so the group exchanges are whole-warp operations. HSIGN: the walk's dx where it
+// is horizontal and takes its census words from the step before (HORIZONTAL_REUSE), else 0.
 template <bool ADD, int HSIGN>
 __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_left,
                                           const unsigned* __restrict__ census_right,
@@ -937,6 +934,10 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
 #undef SET
 }
 
+// One launch per pass walks all four slots: slot s takes the direction FIRST_PASS[s] in the
+// first pass (path costs written: ADD false) and SECOND_PASS[s] in the second (added). The
+// blocks of slot 0 come first, then those of slots 1, 2, 3, each slot with just enough blocks
+// for its lines (the straight walks start first and spread over the multiprocessors).
 template <bool ADD>
 __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_left,
                                            const unsigned* __restrict__ census_right,
