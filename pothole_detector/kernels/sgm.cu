@@ -342,6 +342,19 @@ static_assert(SUMS_RING == 0 || (PACKED && PATH_LEVELS % 16 == 0),
 #ifndef SUMS_RUN_COPIES
 #define SUMS_RUN_COPIES 1
 #endif
+// A run's copies, lane by lane: part sub % COPY_PARTS (a pixel's 16-byte parts, rounded up to
+// a power of two; lanes past its parts copy nothing) of the run's pixels sub / COPY_PARTS,
+// that + COPY_STEP_LANES, ..., from one lane offset and one stride (bit operations only).
+// Measured on the H200 at 2079x1040 against chunk sub + LANES j of the run's chunks (by
+// divisions, which ptxas rebuilt in every run: 539 -> 508 instructions a 6-step run at 96
+// levels), second pass at 96 / 80 / 64 / 128 levels: 0.807 / 0.822 / 0.531 / 1.009 ->
+// 0.810 / 0.804 / 0.523 / 1.009 ms; 1280x720 at 64 levels equal (0.338).
+#define COPY_PARTS                                                                          \
+    (PATH_LEVELS <= 16 ? 1 : PATH_LEVELS <= 32 ? 2 : PATH_LEVELS <= 64 ? 4                  \
+     : PATH_LEVELS <= 128 ? 8 : 16)
+#define COPY_STEP_LANES (LANES / COPY_PARTS)
+static_assert(!SUMS_RUN_COPIES || SUMS_RING == 0 || COPY_STEP_LANES >= 1,
+              "SUMS_RUN_COPIES: a pixel's parts, rounded up to a power of two, fit the lanes");
 // Steps ahead that a pixel's sums are copied.
 #ifndef SUMS_COPY_AHEAD
 #define SUMS_COPY_AHEAD (SUMS_RUN_COPIES ? SUMS_RING - PREFETCH_STEPS : SUMS_RING - 1)
@@ -642,19 +655,14 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
                       pixel_cells + (size_t)(pixel + s * delta) * PATH_LEVELS, sub, s < steps);
     }
 #if SUMS_RUN_COPIES
-    // this lane's share of a run's copies: chunk c = sub + LANES j of the run's 16-byte
-    // chunks is part c % CHUNKS of the run's pixel c / CHUNKS
-    constexpr int CHUNKS = PATH_LEVELS / 16;
-    constexpr int RUN_CHUNKS = PREFETCH_STEPS * CHUNKS;
-    constexpr int LANE_CHUNKS = (RUN_CHUNKS + LANES - 1) / LANES;
-    int chunk_step[LANE_CHUNKS], chunk_source[LANE_CHUNKS], chunk_part[LANE_CHUNKS];
-#pragma unroll
-    for (int j = 0; j < LANE_CHUNKS; ++j) {
-        const int chunk = sub + LANES * j;
-        chunk_step[j] = chunk / CHUNKS;
-        chunk_part[j] = 16 * (chunk % CHUNKS);
-        chunk_source[j] = chunk_step[j] * delta * PATH_LEVELS + chunk_part[j];
-    }
+    // this lane's share of a run's copies: part sub % COPY_PARTS (if a pixel has it) of the
+    // run's pixels sub / COPY_PARTS, that + COPY_STEP_LANES, ...; the lane's first source
+    // byte less the run's first pixel's and its ring bytes' offset in an entry
+    const int copy_part = sub & (COPY_PARTS - 1);
+    const int copy_first = copy_part < PATH_LEVELS / 16 ? sub / COPY_PARTS : PREFETCH_STEPS;
+    const int copy_source = copy_first * delta * PATH_LEVELS + 16 * copy_part;
+    const int copy_stride = COPY_STEP_LANES * delta * PATH_LEVELS;
+    const unsigned copy_ring = ring + 16 * copy_part;
 #endif
 #endif
     if (ADD && SUMS_L2_AHEAD > 0) {
@@ -879,24 +887,25 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
         const unsigned char* source =
             pixel_cells + (size_t)(pixel + SUMS_COPY_AHEAD * delta) * PATH_LEVELS;
         const int copied = step + SUMS_COPY_AHEAD;
+        const unsigned char* lane_source = source + copy_source;
 #pragma unroll
-        for (int j = 0; j < LANE_CHUNKS; ++j) {
-            if ((RUN_CHUNKS % LANES == 0 || sub + LANES * j < RUN_CHUNKS)
-                && copied + chunk_step[j] < steps)
+        for (int i = 0; i * COPY_STEP_LANES < PREFETCH_STEPS; ++i) {
+            const int at = copy_first + i * COPY_STEP_LANES;
+            if (at < PREFETCH_STEPS && copied + at < steps)
                 asm volatile("cp.async.cg.shared.global [%0], [%1], 16;"
-                             : : "r"(ring + ((copied + chunk_step[j]) & (SUMS_RING - 1))
-                                                * PATH_LEVELS
-                                     + chunk_part[j]),
-                                 "l"(source + chunk_source[j]));
+                             : : "r"(copy_ring + ((copied + at) & (SUMS_RING - 1))
+                                                     * PATH_LEVELS),
+                                 "l"(lane_source + i * copy_stride));
         }
         if (SUMS_L2_AHEAD > 0 && sub < 2 * AHEAD) {
-            const int later = sub % AHEAD;
+            // lanes 2j and 2j + 1: the first and last byte of the pixel j steps on
+            const int later = sub >> 1;
             if (step + SUMS_L2_AHEAD + later < steps)
                 asm volatile("prefetch.global.L2 [%0];"
                              : : "l"(pixel_cells
                                      + (size_t)(pixel + (SUMS_L2_AHEAD + later) * delta)
                                            * PATH_LEVELS
-                                     + (sub < AHEAD ? 0 : PATH_LEVELS - 1)));
+                                     + (sub & 1) * (PATH_LEVELS - 1)));
         }
     };
 #endif
