@@ -242,117 +242,119 @@ sweep_probe(const unsigned* __restrict__ census_left, const unsigned* __restrict
 #pragma unroll 1
     for (int r0 = 0; r0 < height; r0 += ROWS_AHEAD) {
 #pragma unroll
-    for (int j = 0; j < ROWS_AHEAD; ++j) {
-        const int r = r0 + j;
-        if (r >= height) break;
-        const int parity = r & 1;
-        unsigned cost[PAIRS];
-        pair_costs(set_left[j], set_right[j], cost);
-        if (r + ROWS_AHEAD < height) load(v + ROWS_AHEAD * dv, set_left[j], set_right[j]);
-        unsigned below = __shfl_up_sync(0xffffffffu, vert[PAIRS - 1], 1, LANES);
-        unsigned above = __shfl_down_sync(0xffffffffu, vert[0], 1, LANES);
-        if (sub == 0) below = FAR_HALF << 16;
-        if (sub == LANES - 1) above = FAR_HALF;
-        unsigned nv[PAIRS], ntl[PAIRS], ntr[PAIRS];
-        const unsigned lv = step_dir(vert, below, above, vert_min, cost, p1_pair, p2_pair, nv);
-        const unsigned* tl = diag[parity][0][group];
-        const unsigned* tr = diag[parity][1][group + 2];
-        const unsigned* tl_min = &diag_min[parity][0][group];
-        const unsigned* tr_min = &diag_min[parity][1][group + 2];
+        for (int j = 0; j < ROWS_AHEAD; ++j) {
+            const int r = r0 + j;
+            if (r >= height) break;
+            const int parity = r & 1;
+            unsigned cost[PAIRS];
+            pair_costs(set_left[j], set_right[j], cost);
+            if (r + ROWS_AHEAD < height) load(v + ROWS_AHEAD * dv, set_left[j], set_right[j]);
+            unsigned below = __shfl_up_sync(0xffffffffu, vert[PAIRS - 1], 1, LANES);
+            unsigned above = __shfl_down_sync(0xffffffffu, vert[0], 1, LANES);
+            if (sub == 0) below = FAR_HALF << 16;
+            if (sub == LANES - 1) above = FAR_HALF;
+            unsigned nv[PAIRS], ntl[PAIRS], ntr[PAIRS];
+            const unsigned lv = step_dir(vert, below, above, vert_min, cost, p1_pair, p2_pair, nv);
+            const unsigned* tl = diag[parity][0][group];
+            const unsigned* tr = diag[parity][1][group + 2];
+            const unsigned* tl_min = &diag_min[parity][0][group];
+            const unsigned* tr_min = &diag_min[parity][1][group + 2];
 #if CLUSTER
-        {
-            // block-edge columns read the neighbouring block's edge column in its shared memory
-            const unsigned rank = cluster_rank();
-            if (group == 0 && rank > 0) {
-                tl = cluster_map(&diag[parity][0][COLS][0], rank - 1);
-                tl_min = cluster_map(&diag_min[parity][0][COLS], rank - 1);
+            {
+                // block-edge columns read the neighbouring block's edge column in its shared
+                // memory
+                const unsigned rank = cluster_rank();
+                if (group == 0 && rank > 0) {
+                    tl = cluster_map(&diag[parity][0][COLS][0], rank - 1);
+                    tl_min = cluster_map(&diag_min[parity][0][COLS], rank - 1);
+                }
+                if (group == COLS - 1 && rank + 1 < CLUSTER) {
+                    tr = cluster_map(&diag[parity][1][1][0], rank + 1);
+                    tr_min = cluster_map(&diag_min[parity][1][1], rank + 1);
+                }
             }
-            if (group == COLS - 1 && rank + 1 < CLUSTER) {
-                tr = cluster_map(&diag[parity][1][1][0], rank + 1);
-                tr_min = cluster_map(&diag_min[parity][1][1], rank + 1);
-            }
-        }
 #endif
-        unsigned ptl[PAIRS], ptr[PAIRS];
-#pragma unroll
-        for (int p = 0; p < PAIRS; ++p) {
-            ptl[p] = tl[first / 2 + p];
-            ptr[p] = tr[first / 2 + p];
-        }
-        const unsigned btl = sub ? tl[first / 2 - 1] : FAR_HALF << 16;
-        const unsigned atl = sub < LANES - 1 ? tl[first / 2 + PAIRS] : FAR_HALF;
-        const unsigned btr = sub ? tr[first / 2 - 1] : FAR_HALF << 16;
-        const unsigned atr = sub < LANES - 1 ? tr[first / 2 + PAIRS] : FAR_HALF;
-        const unsigned ltl = step_dir(ptl, btl, atl, *tl_min, cost, p1_pair,
-                                      p2_pair, ntl);
-        const unsigned ltr = step_dir(ptr, btr, atr, *tr_min, cost,
-                                      p1_pair, p2_pair, ntr);
-        unsigned char* cell = out + ((size_t)v * width + uc) * LEVELS;
-        if (u < width) {
+            unsigned ptl[PAIRS], ptr[PAIRS];
 #pragma unroll
             for (int p = 0; p < PAIRS; ++p) {
-                const unsigned bytes = __byte_perm(nv[p], 0u, 0x3320)
-                                       + __byte_perm(ntl[p], 0u, 0x3320)
-                                       + __byte_perm(ntr[p], 0u, 0x3320);
-                __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
+                ptl[p] = tl[first / 2 + p];
+                ptr[p] = tr[first / 2 + p];
             }
-        }
-        vert_min = group_minimum<LANES>(lv);
-        const unsigned mtl = group_minimum<LANES>(ltl), mtr = group_minimum<LANES>(ltr);
+            const unsigned btl = sub ? tl[first / 2 - 1] : FAR_HALF << 16;
+            const unsigned atl = sub < LANES - 1 ? tl[first / 2 + PAIRS] : FAR_HALF;
+            const unsigned btr = sub ? tr[first / 2 - 1] : FAR_HALF << 16;
+            const unsigned atr = sub < LANES - 1 ? tr[first / 2 + PAIRS] : FAR_HALF;
+            const unsigned ltl = step_dir(ptl, btl, atl, *tl_min, cost, p1_pair,
+                                          p2_pair, ntl);
+            const unsigned ltr = step_dir(ptr, btr, atr, *tr_min, cost,
+                                          p1_pair, p2_pair, ntr);
+            unsigned char* cell = out + ((size_t)v * width + uc) * LEVELS;
+            if (u < width) {
+#pragma unroll
+                for (int p = 0; p < PAIRS; ++p) {
+                    const unsigned bytes = __byte_perm(nv[p], 0u, 0x3320)
+                                           + __byte_perm(ntl[p], 0u, 0x3320)
+                                           + __byte_perm(ntr[p], 0u, 0x3320);
+                    __stcs(reinterpret_cast<unsigned short*>(cell) + p, (unsigned short)bytes);
+                }
+            }
+            vert_min = group_minimum<LANES>(lv);
+            const unsigned mtl = group_minimum<LANES>(ltl), mtr = group_minimum<LANES>(ltr);
 #if EXCHANGE == 2
-        // [sweep][block][side 0: rightmost column's TL state, 1: leftmost's TR][row % 4][WORDS]
-        const unsigned tag = (epoch & 31u) << 11 | (unsigned)(r + 1);
-        unsigned long long* const ring64 = reinterpret_cast<unsigned long long*>(edges);
-        auto slot_of = [&](int block, int side) {
-            return ring64 + ((((size_t)sweep * sweep_blocks + block) * 2 + side) * 4 + (r & 3))
-                                * WORDS + first / 2;
-        };
-        if (group == COLS - 1 && blockIdx.x + 1 < sweep_blocks) {
+            // [sweep][block][side 0: rightmost column's TL state, 1: leftmost's TR][row % 4]
+            // [WORDS]
+            const unsigned tag = (epoch & 31u) << 11 | (unsigned)(r + 1);
+            unsigned long long* const ring64 = reinterpret_cast<unsigned long long*>(edges);
+            auto slot_of = [&](int block, int side) {
+                return ring64 + ((((size_t)sweep * sweep_blocks + block) * 2 + side) * 4 + (r & 3))
+                                    * WORDS + first / 2;
+            };
+            if (group == COLS - 1 && blockIdx.x + 1 < sweep_blocks) {
 #pragma unroll
-            for (int p = 0; p < PAIRS; ++p)
-                publish(slot_of(blockIdx.x, 0) + p, ntl[p], tag << 16 | (mtl & 0xffffu));
-        }
-        if (group == 0 && blockIdx.x > 0) {
+                for (int p = 0; p < PAIRS; ++p)
+                    publish(slot_of(blockIdx.x, 0) + p, ntl[p], tag << 16 | (mtl & 0xffffu));
+            }
+            if (group == 0 && blockIdx.x > 0) {
 #pragma unroll
-            for (int p = 0; p < PAIRS; ++p)
-                publish(slot_of(blockIdx.x, 1) + p, ntr[p], tag << 16 | (mtr & 0xffffu));
-        }
+                for (int p = 0; p < PAIRS; ++p)
+                    publish(slot_of(blockIdx.x, 1) + p, ntr[p], tag << 16 | (mtr & 0xffffu));
+            }
 #endif
-        // columns right of the image: a fresh start for the down-left diagonal beside them
-        const bool real = u < width;
+            // columns right of the image: a fresh start for the down-left diagonal beside them
+            const bool real = u < width;
 #pragma unroll
-        for (int p = 0; p < PAIRS; ++p) {
-            vert[p] = nv[p];
-            diag[parity ^ 1][0][group + 1][first / 2 + p] = real ? ntl[p] : 0u;
-            diag[parity ^ 1][1][group + 1][first / 2 + p] = real ? ntr[p] : 0u;
-        }
-        if (sub == 0) {
-            diag_min[parity ^ 1][0][group + 1] = real ? mtl : 0u;
-            diag_min[parity ^ 1][1][group + 1] = real ? mtr : 0u;
-        }
+            for (int p = 0; p < PAIRS; ++p) {
+                vert[p] = nv[p];
+                diag[parity ^ 1][0][group + 1][first / 2 + p] = real ? ntl[p] : 0u;
+                diag[parity ^ 1][1][group + 1][first / 2 + p] = real ? ntr[p] : 0u;
+            }
+            if (sub == 0) {
+                diag_min[parity ^ 1][0][group + 1] = real ? mtl : 0u;
+                diag_min[parity ^ 1][1][group + 1] = real ? mtr : 0u;
+            }
 #if EXCHANGE == 2
-        if (group == 0 && blockIdx.x > 0) {
-            unsigned pairs[PAIRS];
-            const unsigned m = receive(slot_of(blockIdx.x - 1, 0), tag, pairs, failed);
+            if (group == 0 && blockIdx.x > 0) {
+                unsigned pairs[PAIRS];
+                const unsigned m = receive(slot_of(blockIdx.x - 1, 0), tag, pairs, failed);
 #pragma unroll
-            for (int p = 0; p < PAIRS; ++p) diag[parity ^ 1][0][0][first / 2 + p] = pairs[p];
-            if (sub == 0) diag_min[parity ^ 1][0][0] = m;
-        }
-        if (group == COLS - 1 && blockIdx.x + 1 < sweep_blocks) {
-            unsigned pairs[PAIRS];
-            const unsigned m = receive(slot_of(blockIdx.x + 1, 1), tag, pairs, failed);
+                for (int p = 0; p < PAIRS; ++p) diag[parity ^ 1][0][0][first / 2 + p] = pairs[p];
+                if (sub == 0) diag_min[parity ^ 1][0][0] = m;
+            }
+            if (group == COLS - 1 && blockIdx.x + 1 < sweep_blocks) {
+                unsigned pairs[PAIRS];
+                const unsigned m = receive(slot_of(blockIdx.x + 1, 1), tag, pairs, failed);
 #pragma unroll
-            for (int p = 0; p < PAIRS; ++p)
-                diag[parity ^ 1][1][COLS + 1][first / 2 + p] = pairs[p];
-            if (sub == 0) diag_min[parity ^ 1][1][COLS + 1] = m;
-        }
+                for (int p = 0; p < PAIRS; ++p)
+                    diag[parity ^ 1][1][COLS + 1][first / 2 + p] = pairs[p];
+                if (sub == 0) diag_min[parity ^ 1][1][COLS + 1] = m;
+            }
 #endif
 #if CLUSTER
-        cluster_barrier();
+            cluster_barrier();
 #else
-        __syncthreads();
+            __syncthreads();
 #endif
-        v += dv;
-    }
+            v += dv;
+        }
     }
 }
