@@ -54,7 +54,7 @@ class Sweeps:
     the kernel; EXCHANGE 2 tells launches apart by an epoch in its tags)."""
 
     def __init__(self, cp, kernel, height: int, width: int, columns: int, cluster: int):
-        self.cp, self.kernel, self.columns = cp, kernel, columns
+        self.kernel, self.columns = kernel, columns
         blocks = -(-width // columns)
         if cluster:
             blocks = -(-blocks // cluster) * cluster
@@ -115,13 +115,14 @@ def main() -> None:
     if levels != LEVELS:
         raise SystemExit(f"the frame's band has {levels} levels; the probe is built for 96")
     matcher = census_sgm.GpuMatcher(backend)
+    device_left, device_right = backend.upload(left), backend.upload(right)
     device_kappa = backend.upload(kappa)
-    matcher(backend.upload(left), backend.upload(right), device_kappa, levels, p1, p2, 5, 1,
-            True)
+    matcher(device_left, device_right, device_kappa, levels, p1, p2, 5, 1, True)
     # the winner search writes over the matcher's right census words: the host's own
     census = [cp.asarray(census_sgm.census_transform(image)) for image in (left, right)]
     out = cp.empty((2, height, width, LEVELS), dtype=cp.uint8)
-    stage_ms = matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2)
+    stage_ms = matcher_ms(matcher, backend, device_left, device_right, device_kappa, levels,
+                          p1, p2)
     print(f"matcher paths (both passes, 8 directions): {stage_ms:.3f} ms")
     horizontal = cp.empty_like(out)
     for columns, ahead, exchange, cluster in VARIANTS:
@@ -138,12 +139,12 @@ def main() -> None:
                 break
             print(f"columns {columns}, {ahead} ahead, exchange {exchange}, cluster {cluster}: "
                   f"{name} {ms:.3f} ms{' (a wait gave up)' if sweeps.failed() else ''}")
-    check_crops(cp, backend, left, right, kappa, p1, p2)
+    check_crops(cp, left, right, kappa, p1, p2)
 
 
-def matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2) -> float:
+def matcher_ms(matcher, backend, device_left, device_right, device_kappa, levels, p1,
+               p2) -> float:
     """The matcher's two path passes (its ``paths`` stage), median ms."""
-    device_left, device_right = backend.upload(left), backend.upload(right)
     samples = []
     for _ in range(30):
         clock = StageClock(backend)
@@ -153,7 +154,7 @@ def matcher_ms(matcher, backend, left, right, device_kappa, levels, p1, p2) -> f
     return float(np.median(samples[5:]))
 
 
-def check_crops(cp, backend, left, right, kappa, p1: int, p2: int) -> None:
+def check_crops(cp, left, right, kappa, p1: int, p2: int) -> None:
     """Exchanged sweeps and the horizontal walks against the NumPy reference's path costs on
     bottom-left crops (one of them a partial last block)."""
     rows = 60
