@@ -1,8 +1,9 @@
 """GPU speed of the whole pipeline and of each stage (CUDA events), beside OpenCV SGBM.
 
 Frames: the synthetic road at 1280x720 and 1920x1080 and the real 2079x1040 pothole frames
-(fan_potholes layout under --data). Each frame runs with the GPT band and with the full range
-the frame needs without GPT. Prints a Markdown table for docs/benchmarks.md.
+(fan_potholes layout under --data). Each frame runs with the GPT band (the default per-pixel
+shifts, and the paper's row shifts) and with the full range the frame needs without GPT.
+Prints a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_gpu.py [--frames 100] [--data DIR] [--long 10000] [--sgm-kernels]
 """
@@ -85,27 +86,28 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
 
 
 def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
-                count: int) -> str:
-    """The census matcher kernel by kernel on the GPT band of a frame: median ms of census,
-    paths (four launches on two streams), select and finish over ``count`` calls."""
+                count: int, shift: str) -> str:
+    """The census matcher kernel by kernel on the GPT band of a frame (``shift``: the
+    gpt_shift mode): median ms of census (with the GPT's gather of the right census words),
+    paths (two launches), select and finish over ``count`` calls."""
     backend = get_backend("gpu")
-    config = Config()
+    config = Config({"gpt_shift": shift})
     pipeline = Pipeline(config, calibration, backend)
     pipeline.run(left, right)
-    kappa, levels = pipeline._band(left.shape)
-    left_dev, right_dev, kappa_dev = backend.upload_many(left, right, kappa)
+    shifts, levels = pipeline._band(left.shape)
+    left_dev, right_dev, shifts_dev = backend.upload_many(left, right, shifts)
     matcher = census_sgm.GpuMatcher(backend)
     runs = []
     for index in range(count + 5):
         clock = StageClock(backend)
-        matcher(left_dev, right_dev, kappa_dev, levels, config.census_p1, config.census_p2,
+        matcher(left_dev, right_dev, shifts_dev, levels, config.census_p1, config.census_p2,
                 config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter,
                 clock=clock)
         if index >= 5:
             runs.append(clock.timings())
     parts = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
     lanes = matcher.lanes(left.shape[0], left.shape[1], levels)
-    return (f"{levels} levels, {lanes} lanes: "
+    return (f"{shift} shifts, {levels} levels, {lanes} lanes: "
             + ", ".join(f"{key} {value:.3f} ms" for key, value in parts.items())
             + f", sum {sum(parts.values()):.3f} ms")
 
@@ -185,6 +187,7 @@ def main() -> None:
         stages_streamed = measure(staged, calibration, left, right, args.frames, stream=True)
         band = measure(Config(), calibration, left, right, args.frames)
         streamed = measure(Config(), calibration, left, right, args.frames, stream=True)
+        rows = measure(Config({"gpt_shift": "row"}), calibration, left, right, args.frames)
         full_levels = round_up_levels(band["range_hi"] + 1)
         full_config = Config({"gpt_enabled": False, "max_disparity_px": full_levels})
         full = measure(full_config, calibration, left, right, args.frames)
@@ -192,7 +195,7 @@ def main() -> None:
         for label, row in (("GPT band, no graph", stages),
                            ("GPT band, no graph, stream", stages_streamed),
                            ("GPT band, graph", band), ("GPT band, graph, stream", streamed),
-                           ("full, graph", full)):
+                           ("GPT band of row shifts, graph", rows), ("full, graph", full)):
             print(f"| {name} | {label} | {row['levels']} | "
                   + " | ".join(f"{row.get(s, 0.0):.3f}" for s in STAGES)
                   + f" | {row['total']:.3f} | {row['host']:.2f} | {row['host_busy']:.2f} | "
@@ -201,7 +204,9 @@ def main() -> None:
                   + f"{sgbm:.0f} ({full_levels} levels) | {sgbm / stages['sgm']:.0f}x | "
                   + f"{sgbm / row['total']:.0f}x |", flush=True)
         if args.sgm_kernels:
-            kernel_lines.append(f"- {name}: {sgm_kernels(left, right, calibration, args.frames)}")
+            kernel_lines += [
+                f"- {name}: {sgm_kernels(left, right, calibration, args.frames, shift)}"
+                for shift in ("pixel", "row")]
     if kernel_lines:
         print("\nCensus matcher kernel by kernel (CUDA events, median):\n"
               + "\n".join(kernel_lines))

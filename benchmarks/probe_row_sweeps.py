@@ -24,6 +24,7 @@ from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import census_sgm
 from pothole_detector.stages.matching import to_gray8
+from pothole_detector.stages.perspective import SHIFT_FIRST
 
 # sgm.cu inlined where the probe includes it, so that CuPy's compile cache sees its text
 SOURCE = Path(__file__).with_name("probe_row_sweeps.cu").read_text().replace(
@@ -102,7 +103,7 @@ def main() -> None:
     args = parser.parse_args()
     backend = get_backend("gpu")
     cp = backend.xp
-    config = Config({"cuda_graph": False})
+    config = Config({"cuda_graph": False, "gpt_shift": "row"})
     p1, p2 = config.census_p1, config.census_p2
     left = to_gray8(read_image(args.data / "left.png"))
     right = to_gray8(read_image(args.data / "right.png"))
@@ -111,17 +112,18 @@ def main() -> None:
                                                                      height), backend)
     pipeline.run(left, right)
     pipeline.run(left, right)
-    kappa, levels = pipeline._band(left.shape)
+    shifts, levels = pipeline._band(left.shape)
     if levels != LEVELS:
         raise SystemExit(f"the frame's band has {levels} levels; the probe is built for 96")
     matcher = census_sgm.GpuMatcher(backend)
     device_left, device_right = backend.upload(left), backend.upload(right)
-    device_kappa = backend.upload(kappa)
-    matcher(device_left, device_right, device_kappa, levels, p1, p2, 5, 1, True)
+    device_shifts = backend.upload(shifts)
+    device_kappa = device_shifts[SHIFT_FIRST]  # row shifts: each row's shift
+    matcher(device_left, device_right, device_shifts, levels, p1, p2, 5, 1, True)
     # the winner search writes over the matcher's right census words: the host's own
     census = [cp.asarray(census_sgm.census_transform(image)) for image in (left, right)]
     out = cp.empty((2, height, width, LEVELS), dtype=cp.uint8)
-    stage_ms = matcher_ms(matcher, backend, device_left, device_right, device_kappa, levels,
+    stage_ms = matcher_ms(matcher, backend, device_left, device_right, device_shifts, levels,
                           p1, p2)
     print(f"matcher paths (both passes, 8 directions): {stage_ms:.3f} ms")
     horizontal = cp.empty_like(out)
@@ -139,33 +141,34 @@ def main() -> None:
                 break
             print(f"columns {columns}, {ahead} ahead, exchange {exchange}, cluster {cluster}: "
                   f"{name} {ms:.3f} ms{' (a wait gave up)' if sweeps.failed() else ''}")
-    check_crops(cp, left, right, kappa, p1, p2)
+    check_crops(cp, left, right, shifts, p1, p2)
 
 
-def matcher_ms(matcher, backend, device_left, device_right, device_kappa, levels, p1,
+def matcher_ms(matcher, backend, device_left, device_right, device_shifts, levels, p1,
                p2) -> float:
     """The matcher's two path passes (its ``paths`` stage), median ms."""
     samples = []
     for _ in range(30):
         clock = StageClock(backend)
-        matcher(device_left, device_right, device_kappa, levels, p1, p2, 5, 1, True,
+        matcher(device_left, device_right, device_shifts, levels, p1, p2, 5, 1, True,
                 clock=clock)
         samples.append(clock.timings()["paths"])
     return float(np.median(samples[5:]))
 
 
-def check_crops(cp, left, right, kappa, p1: int, p2: int) -> None:
+def check_crops(cp, left, right, shifts, p1: int, p2: int) -> None:
     """Exchanged sweeps and the horizontal walks against the NumPy reference's path costs on
-    bottom-left crops (one of them a partial last block)."""
+    bottom-left crops (one of them a partial last block); ``shifts``: row shifts."""
     rows = 60
-    crop_kappa = np.ascontiguousarray(kappa[-rows:])
+    crop_shifts = np.ascontiguousarray(shifts[:, -rows:])
+    crop_kappa = crop_shifts[SHIFT_FIRST]
     for columns, exchange, cluster, crop_width in ((8, 2, 0, 200), (8, 2, 0, 203),
                                                    (16, 2, 0, 203), (8, 0, 8, 64)):
         crop_left = np.ascontiguousarray(left[-rows:, :crop_width])
         crop_right = np.ascontiguousarray(right[-rows:, :crop_width])
         census_left = census_sgm.census_transform(crop_left)
         census_right = census_sgm.census_transform(crop_right)
-        cost = census_sgm.matching_cost(census_left, census_right, crop_kappa, LEVELS)
+        cost = census_sgm.matching_cost(census_left, census_right, crop_shifts, LEVELS)
         paths = census_sgm.aggregate(cost, p1, p2).astype(np.int32)
         expected = (paths[2] + paths[4] + paths[5], paths[3] + paths[6] + paths[7],
                     paths[0], paths[1])

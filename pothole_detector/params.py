@@ -69,10 +69,17 @@ PARAMETERS: tuple[Param, ...] = (
     Param("gpt_enabled", bool, True,
           "Match the perspective-transformed pair in a narrow band (true) or the raw pair over "
           "the full range (false)."),
+    Param("gpt_shift", str, "auto",
+          "How GPT shifts the right image: pixel (each column by the road's disparity there less "
+          "delta_PT, so the band need not hold the road's slope across a row that the roll "
+          "makes: 64 levels instead of 80-96 on the real frames), row (each row by its lowest "
+          "road disparity less delta_PT, the paper), or auto (pixel with the census matcher, "
+          "row with OpenCV SGBM: what measured best with each).",
+          choices=("auto", "pixel", "row")),
     Param("gpt_margin_below_px", float, 40.0,
           "delta_PT: band margin below the road (px); bounds the deepest pothole seen.", 0, 512),
     Param("gpt_margin_above_px", float, 16.0,
-          "Band margin above the road's highest disparity in a row (px), for bumps and noise.",
+          "Band margin above the road (px), for bumps and noise.",
           0, 512),
     # matching
     Param("matcher", str, "auto",

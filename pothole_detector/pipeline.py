@@ -166,7 +166,7 @@ class _Queued:
     (``device``)."""
 
     disparity: Any
-    kappa: np.ndarray
+    shifts: np.ndarray
     levels: int
     seeded: bool
     started: float
@@ -254,7 +254,7 @@ class Pipeline:
         self._graph_memory: GraphMemory | None = None  # shared by the graphs (one stream)
         self._readbacks: list[tuple[Readback, Readback]] = []  # used in turn, frame by frame
         self._unpublished: _Queued | None = None  # the last replayed frame, if not yet copied
-        # the last band worked out: (road model, config, image shape, (kappa, levels))
+        # the last band worked out: (road model, config, image shape, (shifts, levels))
         self._band_memo: tuple[Any, Config, tuple[int, ...], tuple[np.ndarray, int]] | None \
             = None
 
@@ -322,8 +322,8 @@ class Pipeline:
         """Pair checked and converted to grey straight into the next upload buffer of its size
         (page-locked memory on the GPU; a new size replaces the buffers of the old one), its
         images sent ahead where ``send_ahead`` (else they go up at the frame's start, ahead of
-        kappa). On the GPU the images then cost the device one transfer at bus speed, not a
-        copy from pageable memory (0.57-0.87 ms for a 2079x1040 pair on the lent H200s)."""
+        the GPT shifts). On the GPU the images then cost the device one transfer at bus speed,
+        not a copy from pageable memory (0.57-0.87 ms for a 2079x1040 pair on the lent H200s)."""
         try:
             _check_pair(*pair)
         except PotholeError as exc:
@@ -332,7 +332,7 @@ class Pipeline:
         buffers = self._uploads.get((height, width))
         if buffers is None:
             layout = [((height, width), np.uint8), ((height, width), np.uint8),
-                      ((height,), np.int32)]
+                      ((3, height), np.int32)]
             buffers = [UploadBuffer(self.backend, layout) for _ in range(2)]
             self._uploads = {(height, width): buffers}
         buffer = buffers.pop(0)
@@ -341,7 +341,7 @@ class Pipeline:
         matching.to_gray8(pair[0], out=left_host)
         matching.to_gray8(pair[1], out=right_host)
         if send_ahead:
-            buffer.send_ahead(2)  # the images now; kappa waits for this frame's road model
+            buffer.send_ahead(2)  # the images now; the shifts wait for this frame's road model
         return buffer
 
     def _queue_staged(self, staged: UploadBuffer | PotholeError) -> _Queued | PotholeError:
@@ -362,12 +362,13 @@ class Pipeline:
         timings["total"] = sum(timings.values())
         timings["host"] = (time.perf_counter() - queued.started) * 1e3 - queued.lent_ms
         timings["host_wait"] = found.wait_ms
-        kappa, levels = queued.kappa, queued.levels
+        levels = queued.levels
+        lowest, highest = perspective.shift_range(queued.shifts, queued.disparity.shape[1])
         return PipelineResult(
             disparity=queued.disparity, transformed=found.transformed, labels=found.labels,
             superpixels=found.superpixels, road=found.road, threshold_px=found.threshold_px,
-            band=(int(kappa.min()), int(levels)),
-            disparity_range=(float(kappa.min()), float(kappa.max()) + levels - 1),
+            band=(lowest, int(levels)),
+            disparity_range=(float(lowest), float(highest + levels - 1)),
             potholes=found.potholes, backend=self.backend.name, seeded=queued.seeded,
             timings_ms=timings,
         )
@@ -405,10 +406,10 @@ class Pipeline:
         clock = StageClock(backend)
         seeded = self._road is None or not config.gpt_enabled
         seeding = config.gpt_enabled and self._road is None
-        pair, kappa, levels = self._upload(staged, clock)
+        pair, shifts, levels = self._upload(staged, clock)
         if not backend.is_gpu:
             disparity = self._sgm(*pair, levels, clock)
-            return _Queued(disparity, kappa, levels, seeded, started, clock,
+            return _Queued(disparity, shifts, levels, seeded, started, clock,
                            found=self._detect_on_host(disparity, clock))
         key = (height, width, levels)
         graphed = config.cuda_graph and not seeding and config.threshold_mode == "pixels" \
@@ -423,16 +424,16 @@ class Pipeline:
             disparity, work = self._replay(graph, pair, clock)
         with clock.stage("readback"):
             work.readbacks[1].send(work.report.buffer)
-        queued = _Queued(disparity, kappa, levels, seeded, started, clock, device=work)
+        queued = _Queued(disparity, shifts, levels, seeded, started, clock, device=work)
         if work.replayed:
             self._unpublished = queued
         return queued
 
-    def _device_frame(self, left: Any, right: Any, kappa: Any, levels: int, clock: StageClock,
+    def _device_frame(self, left: Any, right: Any, shifts: Any, levels: int, clock: StageClock,
                       after_fit: Callable[[_DeviceWork], None]) -> tuple[Any, _DeviceWork]:
         """SGM and the stages after it queued on the device: (D1, the queued work);
         ``after_fit(work)`` is called once the road fit is queued."""
-        disparity = self._sgm(left, right, kappa, levels, clock)
+        disparity = self._sgm(left, right, shifts, levels, clock)
         work = self._fit_on_device(disparity, clock)
         after_fit(work)
         self._after_fit_on_device(disparity, work, clock)
@@ -451,14 +452,15 @@ class Pipeline:
 
     def _capture_frame(self, key: _GraphKey) -> CapturedGraph:
         """:meth:`_device_frame` of a (height, width, levels) captured as two CUDA graphs, cut
-        after the road fit; the outputs: the input arrays (left, right, kappa) they read, D1
+        after the road fit; the outputs: the input arrays (left, right, shifts) they read, D1
         and the queued work."""
         height, width, levels = key
         xp = self.backend.xp
 
         def body(cut: Callable[[], None]) -> tuple[tuple[Any, Any, Any], Any, _DeviceWork]:
             pair = (xp.empty((height, width), dtype=xp.uint8),
-                    xp.empty((height, width), dtype=xp.uint8), xp.empty(height, dtype=xp.int32))
+                    xp.empty((height, width), dtype=xp.uint8),
+                    xp.empty((3, height), dtype=xp.int32))
             return (pair, *self._device_frame(*pair, levels, StageClock(self.backend, timed=False),
                                               lambda work: cut()))
 
@@ -468,7 +470,7 @@ class Pipeline:
 
     def _replay(self, graph: CapturedGraph, pair: tuple[Any, Any, Any],
                 clock: StageClock) -> tuple[Any, _DeviceWork]:
-        """One replay of a frame's graphs on the uploaded ``pair`` (left, right, kappa), the
+        """One replay of a frame's graphs on the uploaded ``pair`` (left, right, shifts), the
         header's readback between them: D1 and the work, in the graph's arrays (see
         :meth:`_publish`; the frame replayed before is published first)."""
         self._publish(self._unpublished)
@@ -691,35 +693,35 @@ class Pipeline:
 
     def _upload(self, staged: UploadBuffer, clock: StageClock
                 ) -> tuple[tuple[Any, Any, Any], np.ndarray, int]:
-        """One upload of the pair in upload buffer ``staged`` and the GPT row shifts, then the
-        seed pass where one is needed (kappa sent again): ((left, right, kappa) on the
-        backend, kappa (H,) on the host, levels). The images go up first (unless sent ahead
-        already), so that the row shifts, where not worked out yet (see :meth:`_band`), are
-        worked out while they are on their way."""
+        """One upload of the pair in upload buffer ``staged`` and the GPT shift table, then the
+        seed pass where one is needed (shifts sent again): ((left, right, shifts) on the
+        backend, shifts (3, H) on the host, levels). The images go up first (unless sent ahead
+        already), so that the shifts, where not worked out yet (see :meth:`_band`), are worked
+        out while they are on their way."""
         shape = staged.shape(0)
         seeding = self.config.gpt_enabled and self._road is None
         with clock.stage("gpt"):
             staged.send_ahead(2)
-            kappa, levels = self._band(shape)
-            staged.writable(2)[0][...] = kappa
-            left, right, kappa_dev = staged.upload()
+            shifts, levels = self._band(shape)
+            staged.writable(2)[0][...] = shifts
+            left, right, shifts_dev = staged.upload()
         if seeding:
             with clock.stage("seed"):
                 self._road = self._seed(left, right)
-                kappa, levels = self._band(shape)
-                kappa_dev = self.backend.upload(kappa)
-        return (left, right, kappa_dev), kappa, levels
+                shifts, levels = self._band(shape)
+                shifts_dev = self.backend.upload(shifts)
+        return (left, right, shifts_dev), shifts, levels
 
-    def _sgm(self, left: Any, right: Any, kappa: Any, levels: int, clock: StageClock) -> Any:
+    def _sgm(self, left: Any, right: Any, shifts: Any, levels: int, clock: StageClock) -> Any:
         """D1 of a pair on the backend (the ``sgm`` stage)."""
         with clock.stage("sgm"):
-            return self.matcher(left, right, kappa, levels, self.config)
+            return self.matcher(left, right, shifts, levels, self.config)
 
     def _band(self, shape: tuple[int, int]) -> tuple[np.ndarray, int]:
-        """GPT row shifts kappa (int32 (H,), host) and level count from the current road model
-        (kappa = 0 and the full range without one or with GPT off); worked out once per road
-        model and image size (:meth:`run` does it for the next frame while the device
-        finishes the frame that fitted the model)."""
+        """GPT shift table (int32 (3, H), host; stages/perspective.py) and level count from the
+        current road model (no shifts and the full range without one or with GPT off); worked
+        out once per road model and image size (:meth:`run` does it for the next frame while
+        the device finishes the frame that fitted the model)."""
         config = self.config
         road = self._road if config.gpt_enabled else None
         memo = self._band_memo
@@ -727,12 +729,22 @@ class Pipeline:
             return memo[3]
         height, width = shape
         if road is None:
-            band = np.zeros(height, np.int32), perspective.round_up_levels(config.max_disparity_px)
+            band = (perspective.no_shifts(height),
+                    perspective.round_up_levels(config.max_disparity_px))
         else:
             band = perspective.band(np, road, height, width, config.gpt_margin_below_px,
-                                    config.gpt_margin_above_px, config.max_disparity_px)
+                                    config.gpt_margin_above_px, config.max_disparity_px,
+                                    self.shift_mode())
         self._band_memo = (road, config, shape, band)
         return band
+
+    def shift_mode(self) -> str:
+        """pixel or row: the GPT shifts ``gpt_shift`` asks for on this backend (auto: pixel
+        with the census matcher, row with OpenCV SGBM)."""
+        mode = self.config.gpt_shift
+        if mode != "auto":
+            return mode
+        return "pixel" if self.matcher.kind(self.config) == "census" else "row"
 
     def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
         config = self.config
@@ -750,8 +762,8 @@ class Pipeline:
         small_right = matching.downsample(xp, right, scale)
         half_width = small_left.shape[1] // 2
         levels = perspective.round_up_levels(min(config.max_disparity_px / scale, half_width))
-        kappa = xp.zeros(small_left.shape[0], dtype=xp.int32)
-        coarse = self._seed_matcher(small_left, small_right, kappa, levels, config,
+        shifts = xp.asarray(perspective.no_shifts(small_left.shape[0]))
+        coarse = self._seed_matcher(small_left, small_right, shifts, levels, config,
                                     block_size=min(config.sgm_block_size, 5))
         if float(xp.isfinite(coarse).mean()) < config.min_valid_fraction:
             raise NoTextureError(

@@ -1,14 +1,18 @@
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from pothole_detector.errors import ConfigError
 from pothole_detector.params import Config
-from pothole_detector.stages import census_sgm
+from pothole_detector.stages import census_sgm, perspective
 from pothole_detector.stages.census_sgm import (
     CENSUS_BITS, CENSUS_OFFSETS, DIRECTION_PAIRS, INVALID_COST, MAX_P2, _path_step, aggregate,
     aggregate_path, census_transform, matching_cost, reference_disparity, select_disparities)
+from pothole_detector.stages.perspective import no_shifts, row_shifts
+from pothole_detector.stages.road_model import RoadModel
 
 
 def textured_pair(height: int, width: int, shift: np.ndarray, seed: int = 0):
@@ -30,7 +34,7 @@ def test_census_of_a_ramp_sets_exactly_the_rightward_bits():
 
 def test_cost_is_zero_at_the_true_shift_and_invalid_left_of_the_image():
     left, right = textured_pair(10, 50, np.full(10, 6))
-    cost = matching_cost(census_transform(left), census_transform(right), np.zeros(10, int), 16)
+    cost = matching_cost(census_transform(left), census_transform(right), no_shifts(10), 16)
     assert (cost[4:-4, 20:-5, 6] == 0).all()
     assert (cost[4:-4, 20:-5, 5] > 3).mean() > 0.9
     assert (cost[:, 3, 4:] == INVALID_COST).all()
@@ -61,11 +65,31 @@ def test_reference_recovers_a_road_like_shift_with_gpt_row_shifts(with_gpt):
     height, width = 24, 64
     true_shift = 9 + np.arange(height) // 6
     left, right = textured_pair(height, width, true_shift, seed=2)
-    kappa = np.arange(height) // 6 if with_gpt else np.zeros(height, int)
-    disparity = reference_disparity(left, right, kappa, 16, 7, 86, 5, 1, True)
+    shifts = row_shifts(np.arange(height) // 6) if with_gpt else no_shifts(height)
+    disparity = reference_disparity(left, right, shifts, 16, 7, 86, 5, 1, True)
     error = np.abs(disparity - true_shift[:, None])[6:-6, 24:-8]
     assert np.isfinite(error).mean() > 0.9
     assert np.nanmedian(error) < 0.2 and np.nanmean(error > 1.0) < 0.02
+    assert np.isnan(disparity[:, :9]).all()
+
+
+@pytest.mark.parametrize("slope", [0.07, -0.07])
+def test_reference_recovers_a_rolled_road_with_gpt_pixel_shifts(slope):
+    """Disparity changes along the rows too (a rolled rig): 6.6 px over the row, which the
+    pixel shifts follow, so 16 levels hold it with a 4 px margin on either side."""
+    height, width = 24, 96
+    rng = np.random.default_rng(5)
+    right = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    columns, rows = np.arange(width)[None, :], np.arange(height)[:, None]
+    true_d = np.floor(15.5 + slope * (columns - 48) + rows / 6)
+    left = np.take_along_axis(right, np.maximum(columns - true_d.astype(int), 0), axis=1)
+    model = RoadModel(15.5 - 48 * slope, math.hypot(1 / 6, slope), math.atan2(-slope, 1 / 6))
+    shifts, levels = perspective.band(np, model, height, width, 4.0, 4.0, 64, "pixel")
+    assert levels == 16
+    disparity = reference_disparity(left, right, shifts, levels, 7, 86, 5, 1, True)
+    error = np.abs(disparity - true_d)[6:-6, 30:-6]
+    assert np.isfinite(error).mean() > 0.9
+    assert np.nanmedian(error) < 0.2 and np.nanmean(error > 1.0) < 0.03
     assert np.isnan(disparity[:, :9]).all()
 
 
@@ -88,9 +112,9 @@ def test_uniqueness_and_left_right_check_invalidate():
 def test_settings_the_matcher_cannot_run_are_refused():
     image = np.zeros((8, 8), np.uint8)
     with pytest.raises(ConfigError, match="multiple of 16"):
-        reference_disparity(image, image, np.zeros(8, int), 24, 5, 50, 5, 1, True)
+        reference_disparity(image, image, no_shifts(8), 24, 5, 50, 5, 1, True)
     with pytest.raises(ConfigError, match="P1 < P2"):
-        reference_disparity(image, image, np.zeros(8, int), 16, 50, 250, 5, 1, True)
+        reference_disparity(image, image, no_shifts(8), 16, 50, 250, 5, 1, True)
 
 
 def test_path_costs_stay_within_the_byte_pair_bound():
@@ -99,7 +123,7 @@ def test_path_costs_stay_within_the_byte_pair_bound():
     rng = np.random.default_rng(11)
     left = rng.integers(0, 256, (16, 40), dtype=np.uint8)
     right = rng.integers(0, 256, (16, 40), dtype=np.uint8)
-    cost = matching_cost(census_transform(left), census_transform(right), np.zeros(16, int), 16)
+    cost = matching_cost(census_transform(left), census_transform(right), no_shifts(16), 16)
     paths = aggregate(cost, 0, MAX_P2).astype(np.int32)
     assert paths.max() <= INVALID_COST + MAX_P2 == 127
     assert paths.max() > INVALID_COST + MAX_P2 // 2
@@ -111,7 +135,7 @@ def test_textureless_patches_are_invalid_and_textured_ones_are_not():
     left, right = textured_pair(40, 90, np.full(40, 6), seed=4)
     left[10:30, 40:70] = 120
     right[10:30, 34:64] = 120
-    disparity = reference_disparity(left, right, np.zeros(40, int), 16, 3, 20, 5, 1, True)
+    disparity = reference_disparity(left, right, no_shifts(40), 16, 3, 20, 5, 1, True)
     # windows (9x7) that lie inside the flat patch, and their 3x3 neighbourhoods
     assert not np.isfinite(disparity[15:25, 46:64]).any()
     textured = disparity[5:35, 10:30]

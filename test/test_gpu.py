@@ -15,7 +15,8 @@ from pothole_detector.backend import (CPU, Readback, StageClock, UploadBuffer, g
 from pothole_detector.errors import BackendError, InputError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
-from pothole_detector.stages import census_sgm, components, measure, superpixels, threshold
+from pothole_detector.stages import (census_sgm, components, measure, perspective, superpixels,
+                                     threshold)
 from pothole_detector.stages.matching import to_gray8
 from pothole_detector.stages.road_model import fit_road
 from pothole_detector.stages.transform import transform_disparity
@@ -39,41 +40,64 @@ def random_pair(height: int, width: int, shift: int, seed: int):
     return np.ascontiguousarray(wide[:, shift:]), np.ascontiguousarray(wide[:, :width]) + noise
 
 
-def run_both(gpu, left, right, kappa, levels, uniqueness=5, lr=1, median=True,
+def run_both(gpu, left, right, shifts, levels, uniqueness=5, lr=1, median=True,
              fill_device=True):
     matcher = census_sgm.GpuMatcher(gpu, fill_device)
-    device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa.astype(np.int32)),
-                     levels, P1, P2, uniqueness, lr, median)
+    device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(shifts), levels, P1, P2,
+                     uniqueness, lr, median)
     buffers = matcher.buffers(left.shape[0], left.shape[1], levels)
     return matcher, buffers, to_host(device)
 
 
-CASES = [  # height, width, levels, shift, kappa pattern; lanes x levels each (small images:
-    # lanes doubled / fill_device False)
+CASES = [  # height, width, levels, shift, GPT shift pattern; lanes x levels each (small
+    # images: lanes doubled / fill_device False)
     (24, 64, 16, 9, "zero"),      # 8 x 2 / 4 x 4
     (23, 37, 32, 5, "ramp"),      # odd sizes; 16 x 2 / 8 x 4
     (1, 40, 16, 3, "zero"),       # one row
     (12, 20, 32, 4, "zero"),      # narrower than the band
-    (40, 96, 128, 17, "ramp"),    # 32 x 4
-    (33, 70, 64, 11, "ramp"),     # 32 x 2 / 16 x 4
+    (40, 96, 128, 17, "rising"),  # 32 x 4
+    (33, 70, 64, 11, "falling"),  # 32 x 2 / 16 x 4
     (31, 75, 48, 12, "ramp"),     # 8 x 6
-    (8, 240, 208, 30, "ramp"),    # 16 x 13: one level per register, byte reads
-    (21, 150, 96, 10, "ramp"),    # the real frames' band: 16 x 6
+    (8, 240, 208, 30, "falling"),  # 16 x 13: one level per register, byte reads
+    (21, 150, 96, 10, "rising"),  # the real frames' band: 16 x 6
     (6, 330, 256, 20, "ramp"),    # 32 x 8: one line per warp
-    (19, 140, 80, 9, "ramp"),     # 16 x 6 holding 96: levels 80-95 padding
-    (13, 180, 112, 14, "ramp"),   # 32 x 4 holding 128: levels 112-127 padding
+    (19, 140, 80, 9, "falling"),  # 16 x 6 holding 96: levels 80-95 padding
+    (13, 180, 112, 14, "rising"),  # 32 x 4 holding 128: levels 112-127 padding
 ]
 
 
-def case_kappa(height: int, pattern: str) -> np.ndarray:
-    """int32 (H,) row shifts of a CASES pattern: "ramp" (one more every 7 rows) or "zero"."""
-    return (np.arange(height) // 7 if pattern == "ramp" else np.zeros(height)).astype(np.int32)
+def case_shifts(height: int, pattern: str) -> np.ndarray:
+    """int32 (3, H) GPT shift table of a CASES pattern: "zero"; "ramp", row shifts one more
+    every 7 rows; "rising", per-pixel shifts from 0.3 px (one more every 9 rows) up by 0.04 px
+    a column (the transformed right image repeats a column now and then); "falling", from 6 px
+    (one more every 7 rows) down by 0.05 px a column, clipped at 0 (it skips columns)."""
+    rows = np.arange(height)
+    one = perspective.SHIFT_ONE
+    if pattern == "zero":
+        return perspective.no_shifts(height)
+    if pattern == "ramp":
+        return perspective.row_shifts(rows // 7)
+    if pattern == "rising":
+        return perspective.shifts_table(one * 3 // 10 + one * (rows // 9),
+                                        np.full(height, one // 25))
+    return perspective.shifts_table(one * 6 + one * (rows // 7) + 1234,
+                                    np.full(height, -one // 20))
 
 
-def reference_pair_sums(census_left, census_right, kappa, levels, p1, p2):
+def transformed_census(census_right, shifts):
+    """The GPU's transformed right census words (sgm.cu gpt_census) as the NumPy reference
+    defines them, and a mask of the words the path kernels read (y < width - first(v))."""
+    width = census_right.shape[1]
+    columns = np.arange(width)[None, :] + shifts[perspective.SHIFT_FIRST][:, None]
+    words = np.take_along_axis(perspective.transform_right(np, census_right, shifts),
+                               np.minimum(columns, width - 1), axis=1)
+    return words, columns < width
+
+
+def reference_pair_sums(census_left, census_right, shifts, levels, p1, p2):
     """NumPy reference: matching cost (HxWxlevels), the 8 path costs and their DIRECTION_PAIRS
     sums (int32 4xHxWxlevels, the GPU path volume's real levels)."""
-    cost = census_sgm.matching_cost(census_left, census_right, kappa, levels)
+    cost = census_sgm.matching_cost(census_left, census_right, shifts, levels)
     paths = census_sgm.aggregate(cost, p1, p2)
     pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
                           for a, b in census_sgm.DIRECTION_PAIRS])
@@ -85,19 +109,21 @@ def reference_pair_sums(census_left, census_right, kappa, levels, p1, p2):
 def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, levels, shift,
                                                         pattern, fill_device):
     left, right = random_pair(height, width, shift, seed=height * width)
-    kappa = case_kappa(height, pattern)
-    _, buffers, disparity = run_both(gpu, left, right, kappa, levels, fill_device=fill_device)
+    shifts = case_shifts(height, pattern)
+    _, buffers, disparity = run_both(gpu, left, right, shifts, levels, fill_device=fill_device)
     census_left = census_sgm.census_transform(left)
     census_right = census_sgm.census_transform(right)
     np.testing.assert_array_equal(to_host(buffers["census"][0]), census_left)
-    # the right census words went into the path costs checked below; the winner search then
-    # wrote over them
+    words, read = transformed_census(census_right, shifts)
+    np.testing.assert_array_equal(to_host(buffers["census"][2])[read], words[read])
+    # the right census words went into the transformed ones; the winner search then wrote
+    # over them
     assert buffers["raw"].data.ptr == buffers["census"][1].data.ptr
-    _, paths, pair_sums = reference_pair_sums(census_left, census_right, kappa, levels, P1, P2)
+    _, paths, pair_sums = reference_pair_sums(census_left, census_right, shifts, levels, P1, P2)
     np.testing.assert_array_equal(to_host(buffers["paths"])[..., :levels], pair_sums)
     raw = census_sgm.select_disparities(paths, 5, 1)
     np.testing.assert_array_equal(to_host(buffers["raw"]), raw)
-    expected = census_sgm.finish(raw, kappa, True, census_left)
+    expected = census_sgm.finish(raw, shifts, True, census_left)
     np.testing.assert_array_equal(disparity, expected)
     if height > 2 * census_sgm.BORDER_Y and width > 2 * census_sgm.BORDER_X + shift:
         assert np.isfinite(disparity).any()
@@ -111,18 +137,18 @@ def test_penalties_below_the_largest_cost_match_the_reference(gpu, height, width
     some steps' least path cost, where the step before's costs at the same or a neighbouring
     level would not (never on these pairs at P2 >= 20). Padded lanes among them (80 levels)."""
     left, right = random_pair(height, width, shift, seed=height + width)
-    kappa = case_kappa(height, pattern)
+    shifts = case_shifts(height, pattern)
     matcher = census_sgm.GpuMatcher(gpu)
-    disparity = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2,
-                        5, 1, True)
+    disparity = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(shifts), levels, p1,
+                        p2, 5, 1, True)
     cost, paths, pair_sums = reference_pair_sums(census_sgm.census_transform(left),
-                                                 census_sgm.census_transform(right), kappa,
+                                                 census_sgm.census_transform(right), shifts,
                                                  levels, p1, p2)
     paths_held = to_host(matcher.buffers(height, width, levels)["paths"])
     np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
     np.testing.assert_array_equal(
         to_host(disparity),
-        census_sgm.reference_disparity(left, right, kappa, levels, p1, p2, 5, 1, True))
+        census_sgm.reference_disparity(left, right, shifts, levels, p1, p2, 5, 1, True))
     # along the rows (direction 0): some step's least cost + P2 below its least path cost
     # without the jump (the reference step with a P2 no cost reaches)
     previous = paths[0][:, :-1].reshape(-1, levels).astype(np.int32)
@@ -140,19 +166,19 @@ def test_default_penalties_add_slot_pairs_as_bytes_and_match_the_reference(gpu, 
     p1, p2 = Config().census_p1, Config().census_p2
     assert census_sgm.slot_pair_bytes(p2) and not census_sgm.slot_pair_bytes(P2)
     left, right = random_pair(height, width, shift, seed=height * 3 + width)
-    kappa = case_kappa(height, pattern)
+    shifts = case_shifts(height, pattern)
     matcher = census_sgm.GpuMatcher(gpu)
-    disparity = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels, p1, p2,
-                        5, 1, True)
+    disparity = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(shifts), levels, p1,
+                        p2, 5, 1, True)
     _, _, pair_sums = reference_pair_sums(census_sgm.census_transform(left),
-                                          census_sgm.census_transform(right), kappa, levels,
+                                          census_sgm.census_transform(right), shifts, levels,
                                           p1, p2)
     paths_held = to_host(matcher.buffers(height, width, levels)["paths"])
     np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
     assert int(pair_sums.max()) > 2 * census_sgm.INVALID_COST
     np.testing.assert_array_equal(
         to_host(disparity),
-        census_sgm.reference_disparity(left, right, kappa, levels, p1, p2, 5, 1, True))
+        census_sgm.reference_disparity(left, right, shifts, levels, p1, p2, 5, 1, True))
 
 
 def test_largest_penalty_fits_the_byte_pairs(gpu):
@@ -160,11 +186,11 @@ def test_largest_penalty_fits_the_byte_pairs(gpu):
     rng = np.random.default_rng(3)
     left = rng.integers(0, 256, (20, 48), dtype=np.uint8)
     right = rng.integers(0, 256, (20, 48), dtype=np.uint8)
-    kappa = np.zeros(20, np.int32)
+    shifts = perspective.no_shifts(20)
     matcher = census_sgm.GpuMatcher(gpu)
-    device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), 32, 0,
+    device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(shifts), 32, 0,
                      census_sgm.MAX_P2, 0, -1, False)
-    expected = census_sgm.reference_disparity(left, right, kappa, 32, 0, census_sgm.MAX_P2, 0,
+    expected = census_sgm.reference_disparity(left, right, shifts, 32, 0, census_sgm.MAX_P2, 0,
                                               -1, False)
     np.testing.assert_array_equal(to_host(device), expected)
     assert int(to_host(matcher.buffers(20, 48, 32)["paths"]).max()) > 160
@@ -173,18 +199,18 @@ def test_largest_penalty_fits_the_byte_pairs(gpu):
 @pytest.mark.parametrize("uniqueness,lr,median", [(0, -1, False), (30, 0, True), (100, 3, True)])
 def test_census_sgm_settings_match_the_reference(gpu, uniqueness, lr, median):
     left, right = random_pair(30, 70, 8, seed=7)
-    kappa = np.zeros(30, np.int32)
-    _, _, disparity = run_both(gpu, left, right, kappa, 32, uniqueness, lr, median)
-    expected = census_sgm.reference_disparity(left, right, kappa, 32, P1, P2, uniqueness, lr,
+    shifts = perspective.no_shifts(30)
+    _, _, disparity = run_both(gpu, left, right, shifts, 32, uniqueness, lr, median)
+    expected = census_sgm.reference_disparity(left, right, shifts, 32, P1, P2, uniqueness, lr,
                                               median)
     np.testing.assert_array_equal(disparity, expected)
 
 
 def test_textureless_pair_gives_the_same_ties_on_both(gpu):
     flat = np.full((20, 50), 90, np.uint8)
-    kappa = np.zeros(20, np.int32)
-    _, _, disparity = run_both(gpu, flat, flat, kappa, 16)
-    expected = census_sgm.reference_disparity(flat, flat, kappa, 16, P1, P2, 5, 1, True)
+    shifts = perspective.no_shifts(20)
+    _, _, disparity = run_both(gpu, flat, flat, shifts, 16)
+    expected = census_sgm.reference_disparity(flat, flat, shifts, 16, P1, P2, 5, 1, True)
     np.testing.assert_array_equal(disparity, expected)
     # a flat window has a zero census word: no texture, so nothing is valid
     assert not np.isfinite(expected).any()
@@ -192,35 +218,35 @@ def test_textureless_pair_gives_the_same_ties_on_both(gpu):
 
 def test_buffers_are_reused_across_frames_and_level_counts(gpu):
     left, right = random_pair(24, 64, 9, seed=3)
-    kappa = np.zeros(24, np.int32)
-    matcher, buffers, first = run_both(gpu, left, right, kappa, 32)
+    shifts = perspective.no_shifts(24)
+    matcher, buffers, first = run_both(gpu, left, right, shifts, 32)
     generation = matcher.generation
 
     def match(levels):
-        return to_host(matcher(gpu.upload(left), gpu.upload(right), gpu.upload(kappa), levels,
+        return to_host(matcher(gpu.upload(left), gpu.upload(right), gpu.upload(shifts), levels,
                                P1, P2, 5, 1, True))
 
     np.testing.assert_array_equal(match(32), first)
     fewer = match(16)
     np.testing.assert_array_equal(
-        fewer, census_sgm.reference_disparity(left, right, kappa, 16, P1, P2, 5, 1, True))
+        fewer, census_sgm.reference_disparity(left, right, shifts, 16, P1, P2, 5, 1, True))
     for levels in (32, 16):
         assert matcher.buffers(24, 64, levels)["paths"].data.ptr == buffers["paths"].data.ptr
     assert matcher.generation == generation
     more = match(48)  # the volume grows: new buffers, a new generation
     assert matcher.generation == generation + 1
     np.testing.assert_array_equal(
-        more, census_sgm.reference_disparity(left, right, kappa, 48, P1, P2, 5, 1, True))
+        more, census_sgm.reference_disparity(left, right, shifts, 48, P1, P2, 5, 1, True))
     np.testing.assert_array_equal(match(32), first)
 
 
 def test_matcher_kernel_clock_times_each_kernel_and_changes_nothing(gpu):
     left, right = random_pair(30, 80, 7, seed=9)
-    kappa = gpu.upload(np.zeros(30, np.int32))
+    shifts = gpu.upload(perspective.no_shifts(30))
     matcher = census_sgm.GpuMatcher(gpu)
-    plain = to_host(matcher(gpu.upload(left), gpu.upload(right), kappa, 32, P1, P2, 5, 1, True))
+    plain = to_host(matcher(gpu.upload(left), gpu.upload(right), shifts, 32, P1, P2, 5, 1, True))
     clock = StageClock(gpu)
-    timed = matcher(gpu.upload(left), gpu.upload(right), kappa, 32, P1, P2, 5, 1, True,
+    timed = matcher(gpu.upload(left), gpu.upload(right), shifts, 32, P1, P2, 5, 1, True,
                     clock=clock)
     np.testing.assert_array_equal(to_host(timed), plain)
     timings = clock.timings()
@@ -820,10 +846,10 @@ def varying_band(pipeline, extra_levels):
     band, seen = pipeline._band, []
 
     def alternating(shape):
-        kappa, levels = band(shape)  # one kappa array per road model and size
-        if not seen or seen[-1] is not kappa:
-            seen.append(kappa)
-        return kappa, levels + extra_levels * (len(seen) % 2)
+        shifts, levels = band(shape)  # one shift table per road model and size
+        if not seen or seen[-1] is not shifts:
+            seen.append(shifts)
+        return shifts, levels + extra_levels * (len(seen) % 2)
 
     pipeline._band = alternating
 

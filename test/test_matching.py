@@ -6,10 +6,11 @@ import pytest
 from pothole_detector.backend import CPU
 from pothole_detector.params import Config
 from pothole_detector.stages.matching import Matcher, downsample, to_gray8
+from pothole_detector.stages.perspective import no_shifts, row_shifts
 
 
 def match(backend, left, right, levels, config):
-    return Matcher(backend)(left, right, np.zeros(left.shape[0], np.int32), levels, config)
+    return Matcher(backend)(left, right, no_shifts(left.shape[0]), levels, config)
 
 
 def test_sgm_on_a_rendered_road_is_subpixel_accurate(flat_sample):
@@ -70,8 +71,8 @@ def test_census_reference_on_the_cpu_matches_a_rendered_road(flat_sample):
     left = to_gray8(flat_sample.left)[100:164, 200:456]
     right = to_gray8(flat_sample.right)[100:164, 200:456]
     truth = flat_sample.disparity[100:164, 200:456]
-    kappa = np.floor(np.nanmin(truth, axis=1) - 8).astype(np.int32)
-    disparity = Matcher(CPU)(left, right, kappa, 32, Config({"matcher": "census"}))
+    shifts = row_shifts(np.floor(np.nanmin(truth, axis=1) - 8).astype(int))
+    disparity = Matcher(CPU)(left, right, shifts, 32, Config({"matcher": "census"}))
     error = np.abs(disparity - truth)
     assert np.isfinite(disparity[:, 80:]).mean() > 0.8
     assert np.nanmedian(error) < 0.3 and np.nanmean(error > 1.0) < 0.03

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -8,7 +10,7 @@ from pothole_detector.errors import InputError, NoRoadError, NoTextureError, Pot
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline, _FrameGraphs, metric_tolerance_px
 from pothole_detector.stages import perspective
-from pothole_detector.synthetic import drive_scenes, render
+from pothole_detector.synthetic import demo_scene, drive_scenes, render
 
 BACKENDS = ["cpu", pytest.param("gpu", marks=[
     pytest.mark.gpu,
@@ -58,18 +60,47 @@ def test_band_is_worked_out_once_per_road_model_and_follows_it(demo_sample):
     pipeline.run(demo_sample.left, demo_sample.right)
     road = pipeline._road
     assert pipeline._band_memo[0] is road  # run worked out the next frame's band already
-    kappa, levels = pipeline._band(shape)
-    assert pipeline._band(shape)[0] is kappa
+    shifts, levels = pipeline._band(shape)
+    assert pipeline._band(shape)[0] is shifts
     expected = perspective.band(np, road, *shape, config.gpt_margin_below_px,
-                                config.gpt_margin_above_px, config.max_disparity_px)
-    np.testing.assert_array_equal(kappa, expected[0])
+                                config.gpt_margin_above_px, config.max_disparity_px,
+                                pipeline.shift_mode())
+    np.testing.assert_array_equal(shifts, expected[0])
     assert levels == expected[1]
     second = pipeline.run(demo_sample.left, demo_sample.right)
-    assert second.band == (int(kappa.min()), levels)
-    assert pipeline._road is not road and pipeline._band(shape)[0] is not kappa
+    lowest, highest = perspective.shift_range(shifts, shape[1])
+    assert second.band == (lowest, levels)
+    assert second.disparity_range == (lowest, highest + levels - 1)
+    assert pipeline._road is not road and pipeline._band(shape)[0] is not shifts
     pipeline.reset()
     assert not pipeline._band(shape)[0].any()
     assert pipeline._band(shape)[1] == perspective.round_up_levels(config.max_disparity_px)
+
+
+def test_gpt_shift_auto_follows_the_matcher(demo_sample):
+    def mode(settings):
+        return Pipeline(Config(settings), demo_sample.calibration).shift_mode()
+
+    assert mode({}) == "row" and mode({"matcher": "census"}) == "pixel"
+    assert mode({"gpt_shift": "pixel"}) == "pixel"
+    assert mode({"gpt_shift": "row", "matcher": "census"}) == "row"
+
+
+@pytest.mark.parametrize("matcher", ["opencv", "census"])
+def test_pixel_shifts_narrow_the_band_of_a_rolled_rig_and_find_the_same_potholes(matcher):
+    """A rig rolled by 6 degrees: the road's slope across a row needs 80 levels with the
+    paper's row shifts, 64 with shifts that follow it; both find the three potholes."""
+    sample = render(replace(demo_scene(640, 360), roll_deg=6.0))
+    found = {}
+    for mode in ("row", "pixel"):
+        pipeline = Pipeline(Config({"gpt_shift": mode, "matcher": matcher}), sample.calibration)
+        pipeline.run(sample.left, sample.right)
+        found[mode] = result = pipeline.run(sample.left, sample.right)
+        covered, false = detection_coverage(result, sample)
+        assert len(result.potholes) == 3 and min(covered) > 0.4 and false < 0.1
+        error = np.abs(result.disparity - sample.disparity)
+        assert np.nanmedian(error) < 0.3 and np.nanmean(error > 1.0) < 0.01
+    assert (found["row"].band[1], found["pixel"].band[1]) == (80, 64)
 
 
 def test_without_gpt_full_range_gives_the_same_potholes(demo_sample):

@@ -1,7 +1,8 @@
 // Census semi-global matching on the device. Algorithm and reference:
 // pothole_detector/stages/census_sgm.py. Compile-time: LEVELS (a multiple of LANES), LANES (4
 // to 32 threads per path line), SELECT_LANES (threads per pixel in sgm_select; LANES if not
-// given), CENSUS_RY, CENSUS_RX, INVALID_COST, BORDER_Y, BORDER_X. Path costs: uint8
+// given), CENSUS_RY, CENSUS_RX, INVALID_COST, BORDER_Y, BORDER_X, SHIFT_BITS (the GPT shift
+// table's fixed point, perspective.SHIFT_BITS; 16 if not given). Path costs: uint8
 // [4][H][W][PATH_LEVELS], the first LEVELS of each pixel's PATH_LEVELS bytes holding levels 0
 // to LEVELS - 1 (the rest: padding, see PADDED), slot s holding the sum of the directions
 // FIRST_PASS[s] and SECOND_PASS[s] (each path cost is at most INVALID_COST + P2 <= 127, so a
@@ -14,6 +15,9 @@
 
 #ifndef PATH_LEVELS
 #define PATH_LEVELS LEVELS
+#endif
+#ifndef SHIFT_BITS
+#define SHIFT_BITS 16
 #endif
 #define PER_LANE (PATH_LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
@@ -231,6 +235,27 @@ census_pair(const unsigned char* left, const unsigned char* right, unsigned* cen
 #pragma unroll
     for (int i = 0; i < 4; ++i)
         if (u + i < width) out[i] = words[i];
+}
+
+// kappa(x, v) of the GPT shift table `shifts` (int32 [3][height]: each row's first column
+// that shows a right pixel, then the rows' lines base and step in 1 / 2^SHIFT_BITS px; see
+// stages/perspective.py): max(0, floor((base + step x) / 2^SHIFT_BITS)).
+__device__ __forceinline__ int gpt_shift(const int* shifts, int height, int v, int x) {
+    return max(0, (shifts[height + v] + shifts[2 * height + v] * x) >> SHIFT_BITS);
+}
+
+// The GPT-transformed right census: word y of row v is the right census word of column
+// x - kappa(x, v), x = y + first(v), so that the path kernels, taking first(v) as the row's
+// shift, read column u - d of the transformed census at level d. Words from width - first(v)
+// on are never read (a copy of the row's last word).
+extern "C" __global__ void gpt_census(const unsigned* census_right, const int* shifts,
+                                      unsigned* transformed, int height, int width) {
+    const int y = blockIdx.x * blockDim.x + threadIdx.x;
+    const int v = blockIdx.y;
+    if (y >= width) return;
+    const int x = y + shifts[v];
+    const int source = clamp_index(x - gpt_shift(shifts, height, v, x), width);
+    transformed[(size_t)v * width + y] = census_right[(size_t)v * width + source];
 }
 
 // Threads of a path block (the launcher's census_sgm.path_threads: 128 where a lane holds at
@@ -1168,12 +1193,14 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
     }
 }
 
-// 3x3 median (edge-replicated; -1 = invalid takes part), census border, kappa added back,
+// 3x3 median (edge-replicated; -1 = invalid takes part), census border, the GPT shift added
+// back (kappa(u - D0, v), interpolated between the columns beside u - D0, as
+// perspective.add_shifts: the product is exact, so a fused multiply-add rounds alike),
 // matches left of the image dropped, and textureless pixels: a zero left census word here and
 // at the 8 neighbours (edge-replicated).
 // out: D1, NaN invalid.
 extern "C" __global__ void sgm_finish(const float* raw, const unsigned* census_left,
-                                      const int* kappa, float* out, int height, int width,
+                                      const int* shifts, float* out, int height, int width,
                                       int median) {
     const int u = blockIdx.x * blockDim.x + threadIdx.x;
     const int v = blockIdx.y * blockDim.y + threadIdx.y;
@@ -1199,7 +1226,12 @@ extern "C" __global__ void sgm_finish(const float* raw, const unsigned* census_l
     } else {
         value = raw[v * width + u];
     }
-    const float disparity = value + (float)kappa[v];
+    const float column = (float)u - value;
+    const float left_column = floorf(column);
+    const float fraction = column - left_column;
+    const int lower = gpt_shift(shifts, height, v, (int)left_column);
+    const int upper = gpt_shift(shifts, height, v, (int)left_column + 1);
+    const float disparity = value + ((float)lower + fraction * (float)(upper - lower));
     const bool border = v < BORDER_Y || v >= height - BORDER_Y || u < BORDER_X
                         || u >= width - BORDER_X;
     bool textureless = true;

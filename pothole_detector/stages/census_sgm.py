@@ -5,10 +5,11 @@ The algorithm, the same on both backends to the integer disparity:
 1. Centre-symmetric census over a 9x7 window (31 bits, edge-clamped): bit i of pixel (v, u)
    says whether I(v + dy_i, u + dx_i) > I(v - dy_i, u - dx_i) for the 31 offsets with
    dy > 0, or dy = 0 and dx > 0.
-2. Matching cost of left pixel (v, u) at level d against the right pixel u - d - kappa(v)
-   (kappa: the GPT row shift, so the perspective transformation needs no shifted image):
-   the Hamming distance of the two census words, or 31 where that pixel lies left of the
-   image.
+2. Matching cost of left pixel (v, u) at level d against column u - d of the GPT-transformed
+   right census (stages/perspective.py: that column shows the right pixel x - kappa(x, v) of
+   x = u - d; the census is of the untransformed right image, so the transformation moves
+   whole census words and needs no shifted image): the Hamming distance of the two census
+   words, or 31 where x shows no right pixel (left of the image).
 3. Eight path costs L_r(p, d) = C(p, d) + min(L_r(q, d), L_r(q, d -+ 1) + P1,
    min_k L_r(q, k) + P2) - min_k L_r(q, k), q the predecessor of p along r; pixels whose
    predecessor lies outside the image start with L_r = C. Each path cost fits a byte
@@ -19,7 +20,8 @@ The algorithm, the same on both backends to the integer disparity:
    smallest d on ties) differs from d* by more than the left-right tolerance. Subpixel:
    d* + (S(d*-1) - S(d*+1)) / (2 max(S(d*-1) + S(d*+1) - 2 S(d*), 1)) inside the band.
 5. 3x3 median (edge-replicated, invalid = -1 takes part), then the census border is invalid,
-   kappa is added back and pixels whose match falls left of the image are invalid.
+   the shift is added back (D1 = D0 + kappa(u - D0, v), perspective.add_shifts) and pixels
+   whose match falls left of the image are invalid.
 
 Disparities are float32 px, NaN where invalid.
 """
@@ -33,6 +35,7 @@ import numpy as np
 
 from ..backend import Backend, StageClock
 from ..errors import ConfigError
+from . import perspective
 
 CENSUS_RADIUS_Y, CENSUS_RADIUS_X = 3, 4
 CENSUS_OFFSETS: tuple[tuple[int, int], ...] = tuple(
@@ -65,15 +68,15 @@ def census_transform(image: np.ndarray) -> np.ndarray:
     return words
 
 
-def matching_cost(census_left: np.ndarray, census_right: np.ndarray, kappa: np.ndarray,
+def matching_cost(census_left: np.ndarray, census_right: np.ndarray, shifts: np.ndarray,
                   levels: int) -> np.ndarray:
-    """int32 HxWxD Hamming costs of left (v, u) against right (v, u - d - kappa(v))."""
+    """int32 HxWxD Hamming costs of left (v, u) against column u - d of the right census
+    transformed by the GPT ``shifts`` (int32 (3, H), stages/perspective.py)."""
     height, width = census_left.shape
-    source = np.arange(width)[None, :, None] - np.arange(levels)[None, None, :] \
-        - kappa.astype(np.int64)[:, None, None]
-    inside = source >= 0
-    rows = np.arange(height)[:, None, None]
-    right = census_right[rows, np.maximum(source, 0)]
+    transformed = perspective.transform_right(np, census_right, shifts)
+    column = np.arange(width)[None, :, None] - np.arange(levels)[None, None, :]
+    inside = column >= shifts[perspective.SHIFT_FIRST].astype(np.int64)[:, None, None]
+    right = transformed[np.arange(height)[:, None, None], np.clip(column, 0, width - 1)]
     cost = np.bitwise_count(census_left[:, :, None] ^ right).astype(np.int32)
     return np.where(inside, cost, np.int32(INVALID_COST))
 
@@ -164,18 +167,19 @@ def textureless(census_left: np.ndarray) -> np.ndarray:
                                   for a in range(3) for b in range(3)])
 
 
-def finish(raw: np.ndarray, kappa: np.ndarray, median: bool,
+def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
            census_left: np.ndarray) -> np.ndarray:
     """D1 (float32 HxW px, NaN invalid) from the raw D0 (-1 invalid): median, census border,
-    kappa added back, matches left of the image dropped, and textureless pixels dropped: those
-    whose left census word is 0 together with their 8 neighbours' (edge-replicated), i.e. no
-    pair of the window differs upwards anywhere in 3x3 windows (NumPy reference)."""
+    the GPT ``shifts`` added back (perspective.add_shifts), matches left of the image dropped,
+    and textureless pixels dropped: those whose left census word is 0 together with their 8
+    neighbours' (edge-replicated), i.e. no pair of the window differs upwards anywhere in 3x3
+    windows (NumPy reference)."""
     height, width = raw.shape
     if median:
         padded = np.pad(raw, 1, mode="edge")
         stack = np.stack([padded[a:a + height, b:b + width] for a in range(3) for b in range(3)])
         raw = np.sort(stack, axis=0)[4]
-    disparity = raw + kappa.astype(np.float32)[:, None]
+    disparity = perspective.add_shifts(np, raw, shifts)
     invalid = (raw < 0) | (np.arange(width, dtype=np.float32)[None, :] - disparity < 0) \
         | textureless(census_left)
     invalid[:BORDER_Y] = invalid[height - BORDER_Y:] = True
@@ -183,16 +187,16 @@ def finish(raw: np.ndarray, kappa: np.ndarray, median: bool,
     return np.where(invalid, np.float32(np.nan), disparity).astype(np.float32)
 
 
-def reference_disparity(left: np.ndarray, right: np.ndarray, kappa: np.ndarray, levels: int,
+def reference_disparity(left: np.ndarray, right: np.ndarray, shifts: np.ndarray, levels: int,
                         p1: int, p2: int, uniqueness_percent: int, lr_max_diff_px: int,
                         median: bool) -> np.ndarray:
     """The whole census SGM in NumPy on uint8 HxW images; float32 HxW D1 (px, NaN invalid).
     Slow (seconds per megapixel): for tests and for checking the GPU matcher."""
     check_settings(left.shape, levels, p1, p2)
     census_left = census_transform(left)
-    cost = matching_cost(census_left, census_transform(right), kappa, levels)
+    cost = matching_cost(census_left, census_transform(right), shifts, levels)
     raw = select_disparities(aggregate(cost, p1, p2), uniqueness_percent, lr_max_diff_px)
-    return finish(raw, kappa, median, census_left)
+    return finish(raw, shifts, median, census_left)
 
 
 def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> None:
@@ -321,14 +325,17 @@ class GpuMatcher:
     more lanes per path line for images too small to fill the device) and whether P2 lets the
     winner search add slot pairs as bytes (slot_pair_bytes). Memory: 4 bytes per
     pixel and path level (path_levels) for the path costs (the sums of DIRECTION_PAIRS), plus
-    8 bytes per pixel (the census words; the winner search writes over the right view's, no
-    longer needed). A matcher with a ``lender`` (one that never runs at the same time, e.g. the
-    seed pass's matcher beside the frame's) writes its path costs into the lender's volume
-    where that is large enough. Two path launches: the first walks the first direction of
-    every pair and writes, the second walks the other and adds in place. The path kernels keep
-    kappa in shared memory and load each step's census words several steps ahead; the second
-    copies the first's sums into a ring in shared memory ahead of its steps. Block sizes:
-    path_threads.
+    12 bytes per pixel (the census words: left, right and the GPT-transformed right; the
+    winner search writes over the right view's, no longer needed once transformed). A
+    matcher with a ``lender`` (one that never runs at the same time, e.g. the seed pass's
+    matcher beside the frame's) writes its path costs into the lender's volume where that is
+    large enough. The GPT (stages/perspective.py) is one gather of the right census words
+    (``gpt_census``); the path kernels take each row's first column that shows a right pixel
+    as the row's shift, and ``sgm_finish`` adds kappa(u - D0, v) back. Two path launches: the
+    first walks the first direction of every pair and writes, the second walks the other and
+    adds in place. The path kernels keep the row shifts in shared memory and load each step's
+    census words several steps ahead; the second copies the first's sums into a ring in
+    shared memory ahead of its steps. Block sizes: path_threads.
     """
 
     def __init__(self, backend: Backend, fill_device: bool = True,
@@ -366,9 +373,9 @@ class GpuMatcher:
                    "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes)),
                    "PATH_THREADS": path_threads(path_depth, lanes),
                    "SELECT_THREADS": select_threads(path_depth, lanes),
-                   "SLOT_PAIR_BYTES": int(pair_bytes)}
-        names = ("census_pair", "sgm_paths_write", "sgm_paths_add", "sgm_select",
-                 "sgm_finish")
+                   "SLOT_PAIR_BYTES": int(pair_bytes), "SHIFT_BITS": perspective.SHIFT_BITS}
+        names = ("census_pair", "gpt_census", "sgm_paths_write", "sgm_paths_add",
+                 "sgm_select", "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \
             | {"lanes": lanes, "select_lanes": defines["SELECT_LANES"],
                "path_threads": defines["PATH_THREADS"],
@@ -376,10 +383,11 @@ class GpuMatcher:
                "horizontals_second": bool(defines["HORIZONTALS_SECOND"])}
 
     def buffers(self, height: int, width: int, levels: int) -> dict[str, Any]:
-        """The device buffers of an image size and level count: census (uint32 2xHxW), paths
-        (uint8 4xHxWxpath_levels(levels); levels from ``levels`` on are padding) and raw
-        (float32 HxW, the right census's memory). Kept for one image size and reused by every
-        frame, whatever its level count: the path volume holds the most levels asked for.
+        """The device buffers of an image size and level count: census (uint32 3xHxW: left,
+        right, transformed right), paths (uint8 4xHxWxpath_levels(levels); levels from
+        ``levels`` on are padding) and raw (float32 HxW, the right census's memory). Kept for
+        one image size and reused by every frame, whatever its level count: the path volume
+        holds the most levels asked for.
         Where the buffers are replaced (another size, more levels), the old ones are freed
         first and ``generation`` counts up (graphs captured with them are stale). With a
         lender, the path costs go into the lender's volume where it is large enough, else into
@@ -395,7 +403,7 @@ class GpuMatcher:
                 held = None  # their last reference, so that the allocator can free them
                 self.backend.release_memory()
             held = self._buffers[height, width] = {
-                "census": xp.empty((2, height, width), dtype=xp.uint32),
+                "census": xp.empty((3, height, width), dtype=xp.uint32),
                 "volume": xp.empty(size if volume_needed else 0, dtype=xp.uint8),
             }
             self.generation += 1
@@ -410,11 +418,12 @@ class GpuMatcher:
         return {"census": census, "raw": census[1].view(xp.float32),
                 "paths": volume[:size].reshape(4, height, width, path_depth)}
 
-    def __call__(self, left: Any, right: Any, kappa: Any, levels: int, p1: int, p2: int,
+    def __call__(self, left: Any, right: Any, shifts: Any, levels: int, p1: int, p2: int,
                  uniqueness_percent: int, lr_max_diff_px: int, median: bool,
                  clock: StageClock | None = None) -> Any:
-        """D1 (float32 HxW px, NaN invalid) of device uint8 HxW images, int32 (H,) kappa.
-        With a ``clock``, its stages census, paths, select and finish time the kernels."""
+        """D1 (float32 HxW px, NaN invalid) of device uint8 HxW images and the device int32
+        (3, H) GPT shift table (stages/perspective.py). With a ``clock``, its stages census,
+        paths, select and finish time the kernels."""
         stage = clock.stage if clock is not None else _no_stage
         height, width = left.shape
         check_settings(left.shape, levels, p1, p2)
@@ -423,11 +432,14 @@ class GpuMatcher:
         buffers = self.buffers(height, width, levels)
         census, paths, raw = buffers["census"], buffers["paths"], buffers["raw"]
         out = xp.empty((height, width), dtype=xp.float32)
+        first_columns = shifts[perspective.SHIFT_FIRST]
         i32 = np.int32
         with stage("census"):
             # blocks of 32 x 8 threads, four pixels of a row a thread
             kernels["census_pair"](((width + 127) // 128, (height + 7) // 8, 2), (32, 8, 1),
                                    (left, right, census[0], census[1], i32(height), i32(width)))
+            kernels["gpt_census"](((width + 255) // 256, height), (256,),
+                                  (census[1], shifts, census[2], i32(height), i32(width)))
         path_block = kernels["path_threads"]
         groups = path_block // kernels["lanes"]
         kappa_bytes = 4 * height
@@ -441,8 +453,8 @@ class GpuMatcher:
                     walk.max_dynamic_shared_size_bytes = kappa_bytes
                 blocks = 2 * (-(-straight_lines // groups) + diagonal_blocks)
                 walk((blocks,), (path_block,),
-                     (census[0], census[1], kappa, paths, i32(height), i32(width), i32(p1),
-                      i32(p2)), shared_mem=kappa_bytes)
+                     (census[0], census[2], first_columns, paths, i32(height), i32(width),
+                      i32(p1), i32(p2)), shared_mem=kappa_bytes)
         path_depth = paths.shape[3]  # the levels the path lanes hold (path_levels)
         shared = select_shared_bytes(path_depth, width, kernels["select_threads"],
                                      kernels["select_lanes"])
@@ -455,7 +467,7 @@ class GpuMatcher:
                     i32(lr_max_diff_px)), shared_mem=shared)
         with stage("finish"):
             kernels["sgm_finish"](((width + 31) // 32, (height + 7) // 8), (32, 8),
-                                  (raw, census[0], kappa, out, i32(height), i32(width),
+                                  (raw, census[0], shifts, out, i32(height), i32(width),
                                    i32(bool(median))))
         return out
 

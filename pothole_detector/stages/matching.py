@@ -18,7 +18,7 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..params import Config
 from . import census_sgm
-from .perspective import shift_rows
+from .perspective import add_shifts, transform_right
 
 _SGBM_MODES = {
     "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
@@ -137,24 +137,25 @@ class Matcher:
             return config.matcher
         return "census" if self.backend.is_gpu else "opencv"
 
-    def __call__(self, left: Any, right: Any, kappa: Any, levels: int, config: Config,
+    def __call__(self, left: Any, right: Any, shifts: Any, levels: int, config: Config,
                  block_size: int | None = None) -> Any:
         """D1 (float32 HxW px, NaN invalid) of uint8 HxW images on the backend, matched over
-        kappa(v) + [0, levels) with the int32 (H,) GPT row shifts ``kappa``."""
+        levels [0, levels) of the pair with the right image transformed by the GPT shift table
+        ``shifts`` (int32 (3, H), stages/perspective.py): left pixel u at level d against the
+        right pixel x - kappa(x, v) of x = u - d."""
         kind = self.kind(config)
         if kind == "census" and self._gpu is not None:
-            return self._gpu(left, right, kappa, levels, config.census_p1, config.census_p2,
+            return self._gpu(left, right, shifts, levels, config.census_p1, config.census_p2,
                              config.sgm_uniqueness_percent, config.lr_max_diff_px,
                              config.median_filter)
-        left, right, kappa = to_host(left), to_host(right), to_host(kappa)
+        left, right, shifts = to_host(left), to_host(right), to_host(shifts)
         if kind == "census":
             disparity = census_sgm.reference_disparity(
-                left, right, kappa, levels, config.census_p1, config.census_p2,
+                left, right, shifts, levels, config.census_p1, config.census_p2,
                 config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter)
         else:
-            disparity = sgm_disparity(left, shift_rows(np, right, kappa), levels, config,
-                                      block_size)
-            disparity += kappa[:, None].astype(np.float32)
+            disparity = add_shifts(np, sgm_disparity(left, transform_right(np, right, shifts),
+                                                     levels, config, block_size), shifts)
             outside = np.arange(left.shape[1], dtype=np.float32)[None, :] - disparity < 0
             # SGBM matches a blank patch at the lowest level (every cost 0), which on the GPT
             # band is the road prior itself: drop such pixels as the census matcher does
