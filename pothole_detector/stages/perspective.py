@@ -35,7 +35,6 @@ SHIFT_ONE = 1 << SHIFT_BITS
 # slope is clipped and the band widens to hold the rest.
 MAX_STEP = SHIFT_ONE // 2
 SHIFT_FIRST, SHIFT_BASE, SHIFT_STEP = 0, 1, 2
-SHIFT_MODES = ("pixel", "row")
 
 
 def round_up_levels(levels: float) -> int:
@@ -50,7 +49,8 @@ def shifts_table(base: np.ndarray, step: np.ndarray) -> np.ndarray:
     base = np.asarray(base, dtype=np.int64)
     step = np.asarray(step, dtype=np.int64)
     if np.any(np.abs(step) >= SHIFT_ONE):
-        raise ValueError("GPT shift steps must be below one pixel per column")
+        raise ValueError("GPT shift steps must be below one pixel per column (|step| < 2^16): "
+                         "clip them to MAX_STEP as band() does")
     first = np.maximum((base - SHIFT_ONE) // (SHIFT_ONE - step) + 1, 0)
     return np.stack([first, base, step]).astype(np.int32)
 
