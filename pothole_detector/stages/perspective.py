@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .road_model import CURVATURE_SCALE_PX, RoadModel
+from .road_model import RoadModel
 
 LEVEL_MULTIPLE = 16
 SHIFT_BITS = 16
@@ -143,7 +143,7 @@ def band(xp: Any, model: RoadModel, height: int, width: int, margin_below_px: fl
         # the vertex
         tilt = step / SHIFT_ONE
         gaps = [ends[0], ends[1] - tilt * last]
-        vertex = _vertex(model, v, tilt, last)
+        vertex = model.row_vertex(np, v, width, tilt)
         if vertex is not None:
             gaps.append(model.at(np, vertex, v) - tilt * vertex)
         lowest, highest = np.minimum.reduce(gaps), np.maximum.reduce(gaps)
@@ -154,14 +154,3 @@ def band(xp: Any, model: RoadModel, height: int, width: int, margin_below_px: fl
     levels = min(round_up_levels(needed + margin_above_px), round_up_levels(max_levels))
     return xp.asarray(shifts), levels
 
-
-def _vertex(model: RoadModel, v: np.ndarray, tilt: np.ndarray, last: float) -> Any:
-    """Per row, the column (clipped to the row) where f(u, v) - tilt u has its vertex; None
-    for a planar model (f is linear along a row)."""
-    c3 = model.curvature[3] if model.kind != "planar" else 0.0
-    if c3 == 0.0:
-        return None
-    c1, c4 = model.curvature[1], model.curvature[4]
-    slope = (-model.a1 * math.sin(model.roll_rad) - tilt) * CURVATURE_SCALE_PX + c1
-    x_vertex = -(slope + c4 * v / CURVATURE_SCALE_PX) / (2.0 * c3)
-    return np.clip(x_vertex * CURVATURE_SCALE_PX, 0.0, last)

@@ -65,15 +65,24 @@ class RoadModel:
         Along a row f is quadratic in u, so the extremes lie at the ends or the vertex."""
         v = xp.arange(height, dtype=xp.float64)
         ends = [self.at(xp, 0.0, v), self.at(xp, float(width - 1), v)]
-        c3 = self.curvature[3] if self.kind != "planar" else 0.0
-        if c3 != 0.0:
-            c1, c4 = self.curvature[1], self.curvature[4]
-            slope = -self.a1 * math.sin(self.roll_rad) * CURVATURE_SCALE_PX + c1
-            x_vertex = -(slope + c4 * v / CURVATURE_SCALE_PX) / (2.0 * c3)
-            u_vertex = xp.clip(x_vertex * CURVATURE_SCALE_PX, 0.0, float(width - 1))
-            ends.append(self.at(xp, u_vertex, v))
+        vertex = self.row_vertex(xp, v, width)
+        if vertex is not None:
+            ends.append(self.at(xp, vertex, v))
         stacked = xp.stack(ends)
         return stacked.min(axis=0), stacked.max(axis=0)
+
+    def row_vertex(self, xp: Any, v: Any, width: int, tilt: Any = 0.0) -> Any:
+        """Per row v (array, px), the column (px, clipped to [0, width - 1]) where
+        f(u, v) - tilt u has its vertex (along a row f is quadratic in u); None where f has no
+        u^2 term (a planar model), so that the row's ends hold its extremes. ``tilt``: px of
+        disparity per px, a number or one per row."""
+        c3 = self.curvature[3] if self.kind != "planar" else 0.0
+        if c3 == 0.0:
+            return None
+        c1, c4 = self.curvature[1], self.curvature[4]
+        slope = (-self.a1 * math.sin(self.roll_rad) - tilt) * CURVATURE_SCALE_PX + c1
+        x_vertex = -(slope + c4 * v / CURVATURE_SCALE_PX) / (2.0 * c3)
+        return xp.clip(x_vertex * CURVATURE_SCALE_PX, 0.0, float(width - 1))
 
     def kernel_params(self) -> np.ndarray:
         """The model as the GPU kernels read it (float64 (ROAD_PARAMS,)): a0, a1, cos(roll),
