@@ -19,21 +19,14 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from .errors import InputError, PotholeError
+from .outputs import OUTPUT_TYPES
+from .transport import large_image_transport
 from .params import Config
 
 MSG_PACKAGE = "pothole_detector_msgs"
 MSG_NAMES = ("Pothole", "PotholeArray")
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-OUTPUT_TYPES = {
-    "disparity": "stereo_msgs/msg/DisparityImage",
-    "disparity_transformed": IMAGE_TYPE,
-    "pothole_labels": IMAGE_TYPE,
-    "pothole_points": "sensor_msgs/msg/PointCloud2",
-    "potholes": f"{MSG_PACKAGE}/msg/PotholeArray",
-    "pothole_markers": "visualization_msgs/msg/MarkerArray",
-    "overlay": IMAGE_TYPE,
-}
 
 
 def msg_directory() -> Path:
@@ -143,7 +136,6 @@ def play(bag: str | Path, rate: float = 1.0, loop: bool = False,
     reader = open_bag(bag)
     own_context = not rclpy.ok()
     if own_context:
-        from .node import large_image_transport
         large_image_transport()
         rclpy.init(args=[])
     node = rclpy.create_node("pothole_detector_player")
@@ -203,7 +195,6 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
     store = typestore()
     own_context = not rclpy.ok()
     if own_context:
-        from .node import large_image_transport
         large_image_transport()
         rclpy.init(args=[])
     node = rclpy.create_node("pothole_detector_recorder")
@@ -375,7 +366,8 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
 
     from . import conversions
     from .backend import get_backend
-    from .imageio import overlay, write_rgb
+    from .imageio import write_rgb
+    from .outputs import output_messages
     from .pipeline import Pipeline
 
     reader = open_bag(bag)
@@ -436,32 +428,14 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
                         summary.errors.append(f"stamp {stamp}: {outcome}")
                         continue
                     result = outcome
-                    labels = backend.to_host(result.labels)
-                    disparity = backend.to_host(result.disparity)
+                    made = output_messages(result, left_px, calibration, header)
                     summary.milliseconds.append((time.perf_counter() - started) * 1e3)
                     summary.frames += 1
                     summary.potholes += len(result.potholes)
-                    picture = overlay(left_px, labels, result.potholes)
-                    messages = {
-                        "disparity": conversions.disparity_message(
-                            disparity, calibration, result.disparity_range, header),
-                        "disparity_transformed": conversions.array_to_image(
-                            backend.to_host(result.transformed), "32FC1", header),
-                        "pothole_labels": conversions.array_to_image(
-                            labels.astype(np.uint16), "mono16", header),
-                        "pothole_points": conversions.pointcloud_message(
-                            conversions.pothole_points(labels, disparity, result.road,
-                                                       calibration), header),
-                        "potholes": conversions.potholes_message(result.potholes,
-                                                                 result.road, header),
-                        "pothole_markers": conversions.markers_message(
-                            labels, result.potholes, result.road, calibration, header),
-                        "overlay": conversions.array_to_image(picture, "rgb8", header),
-                    }
-                    for name, message in messages.items():
+                    for name, message in made.messages.items():
                         writer.write(output[name], stamp, serialize_message(message))
                     if pictures is not None:
-                        write_rgb(Path(pictures) / f"overlay_{stamp}.png", picture)
+                        write_rgb(Path(pictures) / f"overlay_{stamp}.png", made.overlay)
             if progress is not None:
                 progress(image_count, image_count)
         finally:

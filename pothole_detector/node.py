@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -31,19 +29,17 @@ from . import conversions
 from .backend import Backend, get_backend
 from .calibration import StereoCalibration
 from .errors import ConfigError, PotholeError
-from .imageio import overlay
+from .outputs import ON_REQUEST, output_messages
 from .params import NODE_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
+from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
 QOS_PARAMETERS = frozenset({"qos_reliability", "qos_depth"})
 SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
                              "queue_size"})
-IMAGE_OUTPUTS = ("disparity", "disparity_transformed", "pothole_labels", "pothole_points",
-                 "pothole_markers", "overlay")
 INFO_HISTORY = 32
-LARGE_IMAGE_PROFILE = "fastdds_large_images.xml"
 
 
 def descriptor(param: Param) -> ParameterDescriptor:
@@ -369,37 +365,12 @@ class PotholeDetectorNode(Node):
         if reset:
             pipeline.reset()
         result = pipeline.run(left, right)
-        backend = pipeline.backend
         header = job.left.header
         publishers = self._outputs
-        wanted = {name: publishers[name].get_subscription_count() > 0 for name in IMAGE_OUTPUTS}
-        labels = None
-        if any(wanted[n] for n in ("pothole_labels", "pothole_points", "pothole_markers",
-                                   "overlay")):
-            labels = backend.to_host(result.labels)
-        disparity = None
-        if wanted["disparity"] or wanted["pothole_points"]:
-            disparity = backend.to_host(result.disparity)
-        publishers["potholes"].publish(
-            conversions.potholes_message(result.potholes, result.road, header))
-        if wanted["disparity"]:
-            publishers["disparity"].publish(conversions.disparity_message(
-                disparity, calibration, result.disparity_range, header))
-        if wanted["disparity_transformed"]:
-            publishers["disparity_transformed"].publish(conversions.array_to_image(
-                backend.to_host(result.transformed), "32FC1", header))
-        if wanted["pothole_labels"]:
-            publishers["pothole_labels"].publish(conversions.array_to_image(
-                labels.astype(np.uint16), "mono16", header))
-        if wanted["pothole_points"]:
-            points = conversions.pothole_points(labels, disparity, result.road, calibration)
-            publishers["pothole_points"].publish(conversions.pointcloud_message(points, header))
-        if wanted["pothole_markers"]:
-            publishers["pothole_markers"].publish(conversions.markers_message(
-                labels, result.potholes, result.road, calibration, header))
-        if wanted["overlay"]:
-            publishers["overlay"].publish(conversions.array_to_image(
-                overlay(left, labels, result.potholes), "rgb8", header))
+        wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
+        for name, message in output_messages(result, left, calibration, header,
+                                             wanted).messages.items():
+            publishers[name].publish(message)
         self._stats.done((time.monotonic() - job.received) * 1e3,
                          result.road.inlier_fraction, len(result.potholes))
 
@@ -436,25 +407,6 @@ class PotholeDetectorNode(Node):
             self._lock.notify_all()
         self._worker.join(timeout=5.0)
         super().destroy_node()
-
-
-def large_image_transport() -> None:
-    """Point Fast DDS at config/fastdds_large_images.xml (32 MiB shared memory, 4 MiB socket
-    buffers) unless the user chose a profile; call before rclpy.init. Without it, camera
-    images between processes on this host arrive in bursts seconds late."""
-    if os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") or \
-            os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
-        return
-    profile = Path(__file__).resolve().parents[1] / "config" / LARGE_IMAGE_PROFILE
-    if not profile.is_file():
-        try:
-            from ament_index_python.packages import get_package_share_directory
-            profile = Path(get_package_share_directory(NODE_NAME)) / "config" / \
-                LARGE_IMAGE_PROFILE
-        except (ImportError, LookupError, OSError):
-            return
-    if profile.is_file():
-        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(profile)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

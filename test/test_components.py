@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.components import corner_mask, pothole_components, relabel
+from pothole_detector.stages.components import components_found, corner_mask, relabel
 
 
 def grid_superpixels(height, width, step):
@@ -19,7 +19,7 @@ def test_filters_corner_single_superpixel_and_keeps_diagonal_neighbours():
     candidate[40:50, 40:50] = True        # one superpixel
     candidate[60:70, 60:70] = True        # two superpixels touching diagonally
     candidate[70:80, 70:80] = True
-    labels, count = pothole_components(CPU, candidate, np.ones_like(candidate), superpixels, n,
+    labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
                                        0.1, 2)
     assert count == 1
     assert labels[65, 65] == 1 and labels[75, 75] == 1
@@ -53,7 +53,7 @@ def test_labelling_the_reduced_grid_gives_the_full_resolution_labels():
         valid[:, :7] = False
         superpixels = (np.arange(height)[:, None] // 8) * 64 + np.arange(width)[None, :] // 8
         n = int(superpixels.max()) + 1
-        expected = pothole_components(CPU, full, valid, superpixels, n, 0.1, 1)
-        found = pothole_components(CPU, small, valid, superpixels, n, 0.1, 1, factor=factor)
+        expected = components_found(CPU, full, valid, superpixels, n, 0.1, 1)
+        found = components_found(CPU, small, valid, superpixels, n, 0.1, 1, factor=factor)
         assert found[1] == expected[1] > 3
         np.testing.assert_array_equal(found[0], expected[0])

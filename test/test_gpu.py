@@ -384,7 +384,7 @@ def test_road_fit_kernel_matches_the_reference(gpu, kind, rounds, stride, keys_i
         monkeypatch.setattr(road_model, "MAX_SHARED_KEY_BYTES", 0)
     disparity = crowned_road(150, 260, seed=rounds + stride)
     cpu = road_model.fit_road(np, disparity, stride=stride, rounds=rounds, kind=kind)
-    dev = road_model.fit(gpu, gpu.upload(disparity), stride=stride, rounds=rounds, kind=kind)
+    dev = road_model.fit_model(gpu, gpu.upload(disparity), stride=stride, rounds=rounds, kind=kind)
     assert dev.kind == cpu.kind
     np.testing.assert_allclose([dev.a0, dev.a1, dev.roll_rad], [cpu.a0, cpu.a1, cpu.roll_rad],
                                rtol=1e-7, atol=1e-10)
@@ -399,15 +399,15 @@ def test_road_fit_kernel_in_seed_coordinates_and_errors(gpu):
     coarse = crowned_road(40, 70, seed=5) / 4
     options = dict(stride=1, kind="auto", coordinate_scale=4.0, coordinate_offset=1.5)
     cpu = road_model.fit_road(np, coarse, **options)
-    dev = road_model.fit(gpu, gpu.upload(coarse), **options)
+    dev = road_model.fit_model(gpu, gpu.upload(coarse), **options)
     np.testing.assert_allclose([dev.a0, dev.a1, dev.roll_rad], [cpu.a0, cpu.a1, cpu.roll_rad],
                                rtol=1e-7, atol=1e-10)
     with pytest.raises(NoRoadError, match="fewer than 3"):
-        road_model.fit(gpu, gpu.upload(np.full((20, 20), np.nan, np.float32)))
+        road_model.fit_model(gpu, gpu.upload(np.full((20, 20), np.nan, np.float32)))
     line = np.full((20, 20), np.nan, np.float32)
     line[5, :] = 10.0
     with pytest.raises(NoRoadError, match="on a line"):
-        road_model.fit(gpu, gpu.upload(line))
+        road_model.fit_model(gpu, gpu.upload(line))
 
 
 def test_road_fit_kernel_on_a_rank_deficient_quadratic_system(gpu):
@@ -420,7 +420,7 @@ def test_road_fit_kernel_on_a_rank_deficient_quadratic_system(gpu):
         disparity[row] = 20 + 0.1 * row + 2e-4 * (np.arange(120) - 60) ** 2 \
             + rng.normal(0, 0.05, 120)
     cpu = road_model.fit_road(np, disparity, kind="quadratic", rounds=1)
-    dev = road_model.fit(gpu, gpu.upload(disparity), kind="quadratic", rounds=1)
+    dev = road_model.fit_model(gpu, gpu.upload(disparity), kind="quadratic", rounds=1)
     probe_u, probe_v = np.arange(0, 120, 7.0), np.full(18, 20.0)
     np.testing.assert_allclose(dev.at(np, probe_u, probe_v), cpu.at(np, probe_u, probe_v),
                                rtol=1e-6)
@@ -522,9 +522,9 @@ def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min
     sp = (np.arange(height)[:, None] // 10 * 16 + np.arange(width)[None, :] // 10)
     sp = sp.astype(np.int32)
     n = int(sp.max()) + 1
-    cpu = components.pothole_components(CPU, candidate, valid, sp, n, corner_fraction,
+    cpu = components.components_found(CPU, candidate, valid, sp, n, corner_fraction,
                                         min_superpixels)
-    dev = components.pothole_components(gpu, gpu.upload(small), gpu.upload(valid),
+    dev = components.components_found(gpu, gpu.upload(small), gpu.upload(valid),
                                         gpu.upload(sp), n, corner_fraction, min_superpixels,
                                         factor=factor)
     assert dev[1] == cpu[1] > 0
@@ -541,8 +541,8 @@ def test_component_filters_with_thousands_of_components(gpu):
     sp = ((np.arange(height)[:, None] // 2) * 120 + np.arange(width)[None, :] // 2)
     sp = sp.astype(np.int32)
     n = int(sp.max()) + 1
-    cpu = components.pothole_components(CPU, candidate, valid, sp, n, 0.05, 1)
-    dev = components.pothole_components(gpu, gpu.upload(candidate), gpu.upload(valid),
+    cpu = components.components_found(CPU, candidate, valid, sp, n, 0.05, 1)
+    dev = components.components_found(gpu, gpu.upload(candidate), gpu.upload(valid),
                                         gpu.upload(sp), n, 0.05, 1)
     assert dev[1] == cpu[1] > 2000
     np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
@@ -595,8 +595,10 @@ def test_transform_superpixels_threshold_components_measure_match_the_cpu(gpu, d
                                  config.delta_dt_px)
     np.testing.assert_allclose(to_host(d2_gpu), d2_cpu, rtol=0, atol=1e-4)
     d2_gpu = gpu.upload(d2_cpu)
-    labels_cpu, n = superpixels.superpixels(CPU, d2_cpu, 32, 2.0, 6, 2)
-    labels_gpu, n_gpu = superpixels.superpixels(gpu, d2_gpu, 32, 2.0, 6, 2)
+    found_cpu_sp = superpixels.superpixels(CPU, d2_cpu, 32, 2.0, 6, 2)
+    found_gpu_sp = superpixels.superpixels(gpu, d2_gpu, 32, 2.0, 6, 2)
+    labels_cpu, n = found_cpu_sp.labels, found_cpu_sp.count
+    labels_gpu, n_gpu = found_gpu_sp.labels, found_gpu_sp.count
     assert n_gpu == n
     assert (to_host(labels_gpu) == labels_cpu).mean() > 0.999
     t_cpu = threshold.histogram_threshold(CPU, d2_cpu, 0.25, config.delta_dt_px)
@@ -604,8 +606,8 @@ def test_transform_superpixels_threshold_components_measure_match_the_cpu(gpu, d
     np.testing.assert_allclose(t_gpu, t_cpu, rtol=1e-6)
     selected = np.isfinite(d2_cpu) & (d2_cpu < t_cpu[1] - 2.0)
     sp = labels_cpu
-    found_cpu = components.pothole_components(CPU, selected, np.isfinite(d2_cpu), sp, n, 0.1, 2)
-    found_gpu = components.pothole_components(gpu, gpu.upload(selected),
+    found_cpu = components.components_found(CPU, selected, np.isfinite(d2_cpu), sp, n, 0.1, 2)
+    found_gpu = components.components_found(gpu, gpu.upload(selected),
                                               gpu.upload(np.isfinite(d2_cpu)), gpu.upload(sp),
                                               n, 0.1, 2)
     assert found_gpu[1] == found_cpu[1] > 0
@@ -673,9 +675,8 @@ def test_device_road_params_drive_transform_and_measure_like_the_model(gpu, demo
     np.testing.assert_allclose(to_host(by_params), to_host(by_model), atol=1e-5)
     labels = demo_sample.labels.astype(np.int32)
     count = int(labels.max())
-    sums, extremes = measure.measure_on_device(gpu, gpu.upload(labels), count,
-                                               gpu.upload(disparity), params,
-                                               demo_sample.calibration)
+    sums, extremes = measure.measure(gpu, gpu.upload(labels), count, gpu.upload(disparity), params,
+                                    demo_sample.calibration)
     found = measure.potholes_from_sums(to_host(sums)[1:], to_host(extremes)[1:])
     expected = measure.measure_potholes(CPU, labels, count, disparity, model,
                                         demo_sample.calibration)
@@ -685,7 +686,7 @@ def test_device_road_params_drive_transform_and_measure_like_the_model(gpu, demo
 
 
 @pytest.mark.parametrize("reference", ["split", "road_mean"])
-def test_select_on_device_matches_select_superpixels(gpu, reference):
+def test_select_on_the_gpu_matches_select_superpixels(gpu, reference):
     rng = np.random.default_rng(3)
     image = (32 + rng.normal(0, 0.4, (90, 170))).astype(np.float32)
     image[20:50, 30:90] -= 4
@@ -693,25 +694,25 @@ def test_select_on_device_matches_select_superpixels(gpu, reference):
     means = (32 + rng.normal(0, 2.0, n)).astype(np.float32)
     means[::17] = np.nan
     fraction = rng.random(n).astype(np.float32)
-    result = threshold.threshold_on_device(gpu, gpu.upload(image), 0.25, 32.0)
+    result = threshold.threshold_search(gpu, gpu.upload(image), 0.25, 32.0)
     t_r, road_mean = threshold.split_from_result(to_host(result), 0.25, 32.0)
     reference_px = road_mean if reference == "road_mean" else t_r
     drops = rng.uniform(0.5, 3.0, n)
     for drop, t_s in ((2.0, reference_px - 2.0), (drops, reference_px - drops)):
         expected = threshold.select_superpixels(np, means, fraction, t_s, 0.5)
-        found = threshold.select_on_device(
+        found = threshold.select(
             gpu, result, 0.25, 32.0, reference == "road_mean", gpu.upload(means),
             gpu.upload(fraction), drop if isinstance(drop, float) else gpu.upload(drop), 0.5)
         np.testing.assert_array_equal(to_host(found), expected)
         assert 0 < expected.sum() < n
-    none_found = threshold.threshold_on_device(
+    none_found = threshold.threshold_search(
         gpu, gpu.upload(np.full((30, 40), np.nan, np.float32)), 0.25, 32.0)
-    assert not to_host(threshold.select_on_device(
+    assert not to_host(threshold.select(
         gpu, none_found, 0.25, 32.0, False, gpu.upload(means), gpu.upload(fraction), 2.0,
         0.5)).any()
 
 
-def test_components_on_device_flags_overflow_and_matches_below_capacity(gpu):
+def test_components_on_the_gpu_flag_overflow_and_matches_below_capacity(gpu):
     rng = np.random.default_rng(4)
     height, width = 90, 161
     candidate = rng.random((height, width)) < 0.3
@@ -719,11 +720,11 @@ def test_components_on_device_flags_overflow_and_matches_below_capacity(gpu):
     sp = (np.arange(height)[:, None] // 10 * 17 + np.arange(width)[None, :] // 10)
     sp = sp.astype(np.int32)
     n = int(sp.max()) + 1
-    labels_cpu, kept_cpu = components.pothole_components(CPU, candidate, valid, sp, n, 0.1, 2)
+    labels_cpu, kept_cpu = components.components_found(CPU, candidate, valid, sp, n, 0.1, 2)
     found_count = components.label_components(CPU, candidate)[1]
     for capacity, overflow in ((found_count, 0), (found_count + 40, 0), (found_count - 1, 1)):
         counts = gpu.xp.full(3, -1, dtype=gpu.xp.int32)
-        labels = components.components_on_device(
+        labels = components.pothole_components(
             gpu, gpu.upload(candidate), gpu.upload(valid), gpu.upload(sp), n, 0.1, 2, 1,
             capacity, counts)
         assert list(to_host(counts))[0::2] == [found_count, overflow]
@@ -732,7 +733,7 @@ def test_components_on_device_flags_overflow_and_matches_below_capacity(gpu):
             np.testing.assert_array_equal(to_host(labels), labels_cpu)
 
 
-def test_area_filter_on_device_keeps_the_rows_keep_large_keeps(gpu, demo_sample):
+def test_area_filter_on_the_gpu_keeps_the_rows_keep_large_keeps(gpu, demo_sample):
     from pothole_detector.stages import road_model
     disparity = demo_sample.disparity.astype(np.float32)
     road = road_model.fit_road(np, disparity, stride=2)
@@ -743,11 +744,10 @@ def test_area_filter_on_device_keeps_the_rows_keep_large_keeps(gpu, demo_sample)
     areas = sorted(p.area_m2 for p in potholes)
     min_area = (areas[0] + areas[1]) / 2  # drops the smallest
     capacity = count + 5
-    sums, _ = measure.measure_on_device(gpu, gpu.upload(labels), capacity,
-                                        gpu.upload(disparity), road_model.device_params(gpu, road),
-                                        demo_sample.calibration)
+    sums, _ = measure.measure(gpu, gpu.upload(labels), capacity, gpu.upload(disparity),
+                              road_model.device_params(gpu, road), demo_sample.calibration)
     kept_after = gpu.xp.zeros(1, dtype=gpu.xp.int32)
-    filtered = measure.area_filter_on_device(
+    filtered = measure.area_filter(
         gpu, gpu.upload(labels), sums, gpu.xp.array([count], dtype=gpu.xp.int32), capacity,
         min_area, kept_after)
     kept, keep = measure.keep_large(potholes, min_area)
@@ -782,7 +782,7 @@ def test_gpu_pipeline_metric_mode_and_road_refusal(demo_sample):
                       demo_sample.calibration, get_backend("gpu"))
     with pytest.raises(NoRoadError, match="no road plane"):
         strict.run(left, right)
-    assert strict._road is None
+    assert strict.road is None
 
 
 @pytest.mark.parametrize("shape,factor", [((61, 203), 2), ((40, 41), 3), ((7, 9), 2)])
@@ -843,7 +843,7 @@ def outcomes(pipeline, pairs, stream=False):
 def varying_band(pipeline, extra_levels):
     """Make the pipeline's band alternate between its own level count and that plus
     ``extra_levels`` from one road model to the next, as a road moving in the image would."""
-    band, seen = pipeline._band, []
+    band, seen = pipeline.band, []
 
     def alternating(shape):
         shifts, levels = band(shape)  # one shift table per road model and size
@@ -851,7 +851,7 @@ def varying_band(pipeline, extra_levels):
             seen.append(shifts)
         return shifts, levels + extra_levels * (len(seen) % 2)
 
-    pipeline._band = alternating
+    pipeline.band = alternating
 
 
 @pytest.mark.parametrize("stream", [False, True])
@@ -870,7 +870,7 @@ def test_cuda_graph_frames_equal_frames_without_graphs(stream):
     got = outcomes(graphed, pairs, stream)
     # seed, first frame of the key, then replays; after the blank pair a seed again
     assert_same_results(got, want, graphed_at_least=3)
-    assert len(graphed._graphs.keys()) == 1
+    assert len(graphed.executor.graphs.keys()) == 1
     assert sum(isinstance(outcome, PotholeError) for outcome in got) == 1
 
 
@@ -889,9 +889,9 @@ def test_cuda_graphs_per_level_count_and_image_size():
     want = outcomes(plain, pairs)
     got = outcomes(graphed, pairs[:7])
     levels = {result.band[1] for result in got}
-    assert {key[2] for key in graphed._graphs.keys()} == levels and len(levels) == 2
+    assert {key[2] for key in graphed.executor.graphs.keys()} == levels and len(levels) == 2
     got += outcomes(graphed, pairs[7:])
-    assert {key[:2] for key in graphed._graphs.keys()} == {(176, 288)}  # the old size's went
+    assert {key[:2] for key in graphed.executor.graphs.keys()} == {(176, 288)}  # the old size's went
     assert_same_results(got, want, graphed_at_least=4)
 
 
@@ -929,14 +929,14 @@ def test_failed_capture_leaves_frames_running_without_graphs(demo_sample, monkey
                      gpu)
     expected = [plain.run(left, right) for _ in range(3)]
     pipeline = Pipeline(config, demo_sample.calibration, gpu)
-    device_frame = pipeline._device_frame
+    device_frame = pipeline.executor._frame
 
     def reading_back(*args):
-        disparity, work = device_frame(*args)
-        to_host(disparity)  # not allowed while capturing
-        return disparity, work
+        frame = device_frame(*args)
+        to_host(frame.arrays.disparity)  # not allowed while capturing
+        return frame
 
-    monkeypatch.setattr(pipeline, "_device_frame", reading_back)
+    monkeypatch.setattr(pipeline.executor, "_frame", reading_back)
     got = [pipeline.run(left, right) for _ in range(3)]
-    assert pipeline._graphs.failed and not pipeline._graphs.keys()
+    assert pipeline.executor.graphs.failed and not pipeline.executor.graphs.keys()
     assert_same_results(got, expected, graphed_at_least=0)

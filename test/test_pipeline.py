@@ -8,7 +8,9 @@ import pytest
 from pothole_detector.backend import CPU, Readback, get_backend, gpu_available, to_host
 from pothole_detector.errors import InputError, NoRoadError, NoTextureError, PotholeError
 from pothole_detector.params import Config
-from pothole_detector.pipeline import Pipeline, _FrameGraphs, metric_tolerance_px
+from pothole_detector.execution import FrameGraphs, FrameReport
+from pothole_detector.pipeline import Pipeline
+from pothole_detector.stages.threshold import metric_tolerance_px
 from pothole_detector.stages import perspective
 from pothole_detector.synthetic import demo_scene, drive_scenes, render
 
@@ -58,10 +60,10 @@ def test_band_is_worked_out_once_per_road_model_and_follows_it(demo_sample):
     pipeline = Pipeline(config, demo_sample.calibration)
     shape = demo_sample.left.shape[:2]
     pipeline.run(demo_sample.left, demo_sample.right)
-    road = pipeline._road
+    road = pipeline.road
     assert pipeline._band_memo[0] is road  # run worked out the next frame's band already
-    shifts, levels = pipeline._band(shape)
-    assert pipeline._band(shape)[0] is shifts
+    shifts, levels = pipeline.band(shape)
+    assert pipeline.band(shape)[0] is shifts
     expected = perspective.band(np, road, *shape, config.gpt_margin_below_px,
                                 config.gpt_margin_above_px, config.max_disparity_px,
                                 pipeline.shift_mode())
@@ -71,10 +73,10 @@ def test_band_is_worked_out_once_per_road_model_and_follows_it(demo_sample):
     lowest, highest = perspective.shift_range(shifts, shape[1])
     assert second.band == (lowest, levels)
     assert second.disparity_range == (lowest, highest + levels - 1)
-    assert pipeline._road is not road and pipeline._band(shape)[0] is not shifts
+    assert pipeline.road is not road and pipeline.band(shape)[0] is not shifts
     pipeline.reset()
-    assert not pipeline._band(shape)[0].any()
-    assert pipeline._band(shape)[1] == perspective.round_up_levels(config.max_disparity_px)
+    assert not pipeline.band(shape)[0].any()
+    assert pipeline.band(shape)[1] == perspective.round_up_levels(config.max_disparity_px)
 
 
 def test_gpt_shift_auto_follows_the_matcher(demo_sample):
@@ -198,9 +200,8 @@ def test_bad_inputs_raise_clear_errors(demo_sample):
         pipeline.run(noise, other)
 
 
-def test_device_report_views_share_one_buffer_and_read_back_whole():
-    from pothole_detector.pipeline import _DeviceReport
-    report = _DeviceReport(np, capacity=5)
+def test_frame_report_views_share_one_buffer_and_read_back_whole():
+    report = FrameReport(np, capacity=5)
     report.road[:] = np.arange(15)
     report.road_params[:] = -1.0
     report.threshold[:] = (1.0, 7.0, 32.5)
@@ -212,8 +213,8 @@ def test_device_report_views_share_one_buffer_and_read_back_whole():
     readback.send(report.buffer)
     report.buffer[:] = 0  # the readback holds the bytes sent
     host = report.parse(readback.receive())
-    assert list(_DeviceReport.road_of(host.header)) == list(range(15))
-    assert _DeviceReport.valid_count_of(host.header) == 1234
+    assert list(FrameReport.road_of(host.header)) == list(range(15))
+    assert FrameReport.valid_count_of(host.header) == 1234
     assert list(host.header[15:26]) == [-1.0] * 11
     report.road_params[:] = 2.0
     assert list(report.read_header()[15:26]) == [2.0] * 11
@@ -224,14 +225,14 @@ def test_device_report_views_share_one_buffer_and_read_back_whole():
 
 
 def test_frame_graphs_capture_a_key_on_its_second_frame_and_drop_stale_ones():
-    """_FrameGraphs' bookkeeping (the capture itself needs a GPU: test_gpu.py)."""
+    """FrameGraphs' bookkeeping (the capture itself needs a GPU: test_gpu.py)."""
     captured: list[tuple[int, int, int]] = []
 
     def capture(key):
         captured.append(key)
         return f"graph {key}"
 
-    graphs = _FrameGraphs()
+    graphs = FrameGraphs()
 
     def two_frames(key, generation):
         assert graphs.get(key, generation, capture) is None  # the key's first frame
@@ -258,7 +259,7 @@ def test_frame_graphs_run_without_graphs_after_a_failed_capture(caplog):
         calls.append(key)
         raise RuntimeError("operation not permitted when stream is capturing")
 
-    graphs = _FrameGraphs()
+    graphs = FrameGraphs()
     key = (192, 320, 48)
     graphs.ran(key, 1)
     with caplog.at_level("WARNING"):

@@ -38,15 +38,18 @@ def test_superpixels_are_compact_on_a_flat_map():
 def test_odd_sizes_and_nan(shape):
     image = np.random.default_rng(1).normal(30, 1, shape).astype(np.float32)
     image[0, 0] = np.nan
-    labels, n = superpixels(CPU, image, 8, 2.0, 3, downsample=1)
+    found = superpixels(CPU, image, 8, 2.0, 3, downsample=1)
+    labels, n = found.labels, found.count
     assert labels.shape == shape and labels.min() >= 0 and labels.max() < n
 
 
 def test_downsampled_labels_cover_the_full_image():
     image, disc = disc_image(97, 131)
-    labels, n = superpixels(CPU, image, 16, 2.0, 6, downsample=2)
+    found = superpixels(CPU, image, 16, 2.0, 6, downsample=2)
+    labels, n = found.labels, found.count
     assert labels.shape == image.shape
     means, valid = superpixel_means(CPU, image, labels, n)
+    np.testing.assert_array_equal(means, found.means)
     inside = means[np.unique(labels[40:60, 50:70])]
     assert np.all(inside < 26)
 

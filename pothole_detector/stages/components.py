@@ -37,34 +37,60 @@ def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
 
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                        n_superpixels: int, corner_fraction: float, min_superpixels: int,
-                       factor: int = 1) -> tuple[Any, int]:
-    """Label the 8-connected components of the bool ``candidate`` mask; drop components that
-    touch a corner region of the HxW bool ``valid`` area (see corner_mask) or hold fewer than
-    ``min_superpixels`` superpixels (HxW ``superpixel_labels``).
+                       factor: int = 1, capacity: int | None = None,
+                       counts: Any = None) -> Any:
+    """The components stage: label the 8-connected components of the bool ``candidate`` mask;
+    drop components that touch a corner region of the HxW bool ``valid`` area (see
+    corner_mask) or hold fewer than ``min_superpixels`` superpixels (HxW
+    ``superpixel_labels``). Returns int32 HxW labels numbered 1..k, 0 elsewhere.
 
     ``candidate`` is HxW, or the mask on the SLIC grid reduced by ``factor`` whose
     nearest-neighbour enlargement (superpixels.upsample_labels) is the HxW mask: enlarging by
     whole pixels keeps 8-connectivity and the raster order of components, so labelling the
     small mask and enlarging the labels gives the same labels with factor^2 fewer pixels.
 
-    Returns (int32 HxW labels numbered 1..k, 0 elsewhere; k).
+    Writes the backend int32 (3,) ``counts`` where given: components found, kept, and overflow
+    (1 when more than ``capacity`` were found: the GPU's tables then missed some, and a caller
+    that needs them all runs the stage again with the found count as capacity). On the GPU
+    union-find and filter kernels (kernels/components.cu) with nothing read back, unless
+    ``capacity`` is None (then the found count, read back).
     """
     xp = backend.xp
     if backend.is_gpu:
-        return _components_gpu(backend, candidate, valid, superpixel_labels, n_superpixels,
-                               corner_fraction, min_superpixels, factor)
+        small, found = label_on_device(backend, candidate)
+        if capacity is None:
+            capacity = max(int(to_host(found)[0]), 1)
+        counts = xp.empty(3, dtype=xp.int32) if counts is None else counts
+        return filter_on_device(backend, small, found, valid, superpixel_labels, n_superpixels,
+                                corner_fraction, min_superpixels, factor, capacity, counts)
     components, count = label_components(backend, candidate)
     components = upsample_labels(backend, components, factor, valid.shape)
     if count == 0:
-        return components.astype(xp.int32), 0
-    keep = xp.ones(count + 1, dtype=bool)
-    keep[components[corner_mask(xp, valid, corner_fraction)]] = False
-    keep[0] = False
-    pairs = components.ravel().astype(xp.int64) * n_superpixels + superpixel_labels.ravel()
-    present = xp.bincount(pairs[components.ravel() > 0], minlength=(count + 1) * n_superpixels)
-    superpixel_count = (present.reshape(count + 1, n_superpixels) > 0).sum(axis=1)
-    keep &= superpixel_count >= min_superpixels
-    return relabel(xp, components, keep)
+        labels, kept = components.astype(xp.int32), 0
+    else:
+        keep = xp.ones(count + 1, dtype=bool)
+        keep[components[corner_mask(xp, valid, corner_fraction)]] = False
+        keep[0] = False
+        pairs = components.ravel().astype(xp.int64) * n_superpixels + superpixel_labels.ravel()
+        present = xp.bincount(pairs[components.ravel() > 0],
+                              minlength=(count + 1) * n_superpixels)
+        superpixel_count = (present.reshape(count + 1, n_superpixels) > 0).sum(axis=1)
+        keep &= superpixel_count >= min_superpixels
+        labels, kept = relabel(xp, components, keep)
+    if counts is not None:
+        counts[...] = (count, kept, int(capacity is not None and count > capacity))
+    return labels
+
+
+def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
+                     n_superpixels: int, corner_fraction: float, min_superpixels: int,
+                     factor: int = 1) -> tuple[Any, int]:
+    """:func:`pothole_components` with every component and the kept count read back:
+    (int32 HxW labels, k)."""
+    counts = backend.xp.zeros(3, dtype=backend.xp.int32)
+    labels = pothole_components(backend, candidate, valid, superpixel_labels, n_superpixels,
+                                corner_fraction, min_superpixels, factor, counts=counts)
+    return labels, int(to_host(counts)[1])
 
 
 def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:
@@ -116,7 +142,7 @@ COMPONENT_TABLE_BYTES = 8 * 2**20
 
 
 def device_capacity(n_superpixels: int) -> int:
-    """How many components :func:`components_on_device` can filter without a readback for
+    """How many components :func:`pothole_components` can filter without a readback for
     ``n_superpixels`` superpixels (1023, fewer when their tables would pass 8 MiB)."""
     row_bytes = 4 * (2 + _words(n_superpixels))
     return max(15, min(COMPONENT_CAPACITY, COMPONENT_TABLE_BYTES // row_bytes - 1))
@@ -124,34 +150,6 @@ def device_capacity(n_superpixels: int) -> int:
 
 def _words(n_superpixels: int) -> int:
     return -(-max(n_superpixels, 1) // 32)
-
-
-def _components_gpu(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
-                    n_superpixels: int, corner_fraction: float, min_superpixels: int,
-                    factor: int) -> tuple[Any, int]:
-    """pothole_components on the GPU with the exact component count as capacity. Readbacks:
-    the component count and the kept count."""
-    xp = backend.xp
-    small, count = label_on_device(backend, candidate)
-    capacity = int(to_host(count)[0])
-    if capacity == 0:
-        return xp.zeros(valid.shape, dtype=xp.int32), 0
-    counts = xp.empty(3, dtype=xp.int32)
-    labels = filter_on_device(backend, small, count, valid, superpixel_labels, n_superpixels,
-                              corner_fraction, min_superpixels, factor, capacity, counts)
-    return labels, int(to_host(counts)[1])
-
-
-def components_on_device(backend: Backend, candidate: Any, valid: Any,
-                         superpixel_labels: Any, n_superpixels: int, corner_fraction: float,
-                         min_superpixels: int, factor: int, capacity: int, counts: Any) -> Any:
-    """:func:`pothole_components` on the GPU with tables for ``capacity`` components and
-    nothing read back: returns the int32 HxW labels and writes the device int32 (3,)
-    ``counts``: components found, components kept, overflow (1 when more than ``capacity``
-    were found: the labels are then incomplete and the caller runs pothole_components)."""
-    small, count = label_on_device(backend, candidate)
-    return filter_on_device(backend, small, count, valid, superpixel_labels, n_superpixels,
-                            corner_fraction, min_superpixels, factor, capacity, counts)
 
 
 def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,

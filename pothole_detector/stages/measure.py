@@ -10,6 +10,7 @@ import numpy as np
 
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
+from .components import relabel
 from .road_model import RoadModel, device_params
 
 
@@ -65,22 +66,30 @@ def depth_below_road(xp: Any, u: Any, v: Any, disparity: Any, model: RoadModel,
     return depth.astype(xp.float32), footprint.astype(xp.float32)
 
 
-def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, model: RoadModel,
-                     calibration: StereoCalibration) -> list[Pothole]:
-    """Measure potholes 1..count of the int32 HxW ``labels`` using the HxW float32 disparity D1
-    (px, NaN invalid). Works on the labelled pixels only; one host readback of a (count, 12)
-    table."""
-    if count == 0:
-        return []
+def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
+            road: RoadModel | Any, calibration: StereoCalibration, sums: Any = None,
+            extremes: Any = None) -> tuple[Any, Any]:
+    """The measure stage: per-label sums of labels 1..capacity of the int32 HxW ``labels``
+    with the HxW float32 disparity D1 (px, NaN invalid), nothing read back: backend float64
+    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, depth x area, x, y, z x area and
+    int32 (capacity + 1, MEASURE_EXTREMES) largest depth (order-preserving float32 bits), u min,
+    v min, u max, v max; row 0 unused; written into ``sums`` and ``extremes`` where given.
+    ``road``: a RoadModel, or on the GPU also road_model.device_params. On the GPU one pass of
+    kernels/measure.cu over the label image (per-warp sums, atomics per label)."""
     if backend.is_gpu:
-        sums, extremes = measure_on_device(backend, labels, count, disparity,
-                                           device_params(backend, model), calibration)
-        return potholes_from_sums(to_host(sums)[1:], to_host(extremes)[1:])
+        return _measure_on_device(backend, labels, capacity, disparity,
+                                  device_params(backend, road), calibration, sums, extremes)
     xp, ndimage = backend.xp, backend.ndimage
-    rows, cols = xp.nonzero(labels > 0)
+    sums = np.zeros((capacity + 1, MEASURE_SUMS)) if sums is None else sums
+    extremes = np.zeros((capacity + 1, MEASURE_EXTREMES), np.int32) if extremes is None \
+        else extremes
+    rows, cols = xp.nonzero((labels > 0) & (labels <= capacity))
+    if rows.size == 0:
+        return sums, extremes
     label = labels[rows, cols]
+    count = int(label.max())
     disparity = disparity[rows, cols]
-    depth, footprint = depth_below_road(xp, cols, rows, disparity, model, calibration)
+    depth, footprint = depth_below_road(xp, cols, rows, disparity, road, calibration)
     valid = xp.isfinite(depth)
     index = xp.arange(1, count + 1)
     x, y, z = calibration.back_project(cols, rows, disparity)
@@ -88,21 +97,34 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
     def total(weights: Any) -> Any:
         return xp.bincount(label, weights=weights.astype(xp.float64), minlength=count + 1)[1:]
 
-    valid_area = xp.where(valid, footprint, 0)
-
     def extreme(function: Any, values: Any) -> Any:
-        return xp.asarray(function(values, label, index), dtype=xp.float64).reshape(count)
+        return xp.asarray(function(values, label, index)).reshape(count)
 
-    table = xp.stack([
-        total(xp.ones_like(footprint)), total(footprint), total(valid_area),
-        total(xp.where(valid, depth * footprint, 0)),
-        extreme(ndimage.maximum, xp.where(valid, depth, -xp.inf)),
-        total(xp.where(valid, x * footprint, 0)), total(xp.where(valid, y * footprint, 0)),
-        total(xp.where(valid, z * footprint, 0)),
-        extreme(ndimage.minimum, cols), extreme(ndimage.minimum, rows),
-        extreme(ndimage.maximum, cols), extreme(ndimage.maximum, rows),
+    sums[1:count + 1] = xp.stack([
+        total(xp.ones_like(footprint)), total(footprint), total(xp.where(valid, footprint, 0)),
+        total(xp.where(valid, depth * footprint, 0)), total(xp.where(valid, x * footprint, 0)),
+        total(xp.where(valid, y * footprint, 0)), total(xp.where(valid, z * footprint, 0)),
     ], axis=1)
-    return _potholes_from_table(to_host(table))
+    largest = extreme(ndimage.maximum, xp.where(valid, depth, -xp.inf)).astype(xp.float32)
+    extremes[1:count + 1, 0] = _ordered_bits(largest.view(xp.int32))
+    extremes[1:count + 1, 1:] = xp.stack([
+        extreme(ndimage.minimum, cols), extreme(ndimage.minimum, rows),
+        extreme(ndimage.maximum, cols), extreme(ndimage.maximum, rows)], axis=1)
+    return sums, extremes
+
+
+def _ordered_bits(bits: Any) -> Any:
+    """float32 bit patterns (int32) to integers that order as the floats do, and back."""
+    return np.where(bits >= 0, bits, bits ^ np.int32(0x7FFFFFFF))
+
+
+def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, model: RoadModel,
+                     calibration: StereoCalibration) -> list[Pothole]:
+    """Potholes 1..count of :func:`measure`, read back."""
+    if count == 0:
+        return []
+    sums, extremes = measure(backend, labels, count, disparity, model, calibration)
+    return potholes_from_sums(to_host(sums)[1:], to_host(extremes)[1:])
 
 
 def _potholes_from_table(table: np.ndarray) -> list[Pothole]:
@@ -127,8 +149,7 @@ def _potholes_from_table(table: np.ndarray) -> list[Pothole]:
 def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
     """Potholes 1..k from host copies of rows 1..k of :func:`measure_on_device`'s sums
     (float64 (k, 7)) and extremes (int32 (k, 5))."""
-    bits = extremes[:, 0]
-    largest = np.where(bits >= 0, bits, bits ^ np.int32(0x7FFFFFFF)).view(np.float32)
+    largest = _ordered_bits(extremes[:, 0]).astype(np.int32).view(np.float32)
     return _potholes_from_table(np.column_stack(
         [sums[:, :4], largest.astype(np.float64), sums[:, 4:7],
          extremes[:, 1:].astype(np.float64)]))
@@ -138,26 +159,21 @@ MEASURE_SUMS = 7
 MEASURE_EXTREMES = 5
 
 
-def measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
-                      road_params: Any, calibration: StereoCalibration, sums: Any = None,
-                      extremes: Any = None) -> tuple[Any, Any]:
-    """Per-label sums of labels 1..capacity by one pass of kernels/measure.cu over the label
-    image (per-warp sums, atomics per label), nothing read back: float64
-    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, depth x area, x, y, z x area and
-    int32 (capacity + 1, MEASURE_EXTREMES) largest depth (order-preserving bits), u min,
-    v min, u max, v max; row 0 unused. ``road_params``: road_model.device_params. ``sums``
-    and ``extremes`` may be given as device arrays of those shapes to write into."""
+def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
+                       road_params: Any, calibration: StereoCalibration, sums: Any,
+                       extremes: Any) -> tuple[Any, Any]:
+    """measure on the GPU (road_params: road_model.device_params)."""
     xp = backend.xp
     height, width = labels.shape
     if sums is None:
         sums = xp.empty((capacity + 1, MEASURE_SUMS), dtype=xp.float64)
     if extremes is None:
         extremes = xp.empty((capacity + 1, MEASURE_EXTREMES), dtype=xp.int32)
-    backend.kernel("measure.cu", "measure_reset", {})(
+    _kernel(backend, "measure_reset")(
         ((capacity + 256) // 256,), (256,), (sums, extremes, np.int32(capacity)))
     pixels = height * width
     f64 = np.float64
-    backend.kernel("measure.cu", "measure_potholes", {})(
+    _kernel(backend, "measure_potholes")(
         ((pixels + 255) // 256,), (256,),
         (xp.ascontiguousarray(labels, dtype=xp.int32),
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
@@ -166,16 +182,22 @@ def measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: A
     return sums, extremes
 
 
-def area_filter_on_device(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: int,
-                          min_area_m2: float, kept_after: Any) -> Any:
-    """Labels 1..kept (device int32 (1,)) of the int32 HxW ``labels`` whose footprint area in
-    :func:`measure_on_device`'s ``sums`` reaches ``min_area_m2``, renumbered 1..m in order in
-    place (one-thread kernel and a gather, nothing read back); writes m to the device int32
-    (1,) ``kept_after``. Returns ``labels``. The host keeps the same rows with
-    :func:`keep_large`."""
+def area_filter(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: int,
+                min_area_m2: float, kept_after: Any) -> Any:
+    """Labels 1..kept (backend int32 (1,)) of the int32 HxW ``labels`` whose footprint area in
+    :func:`measure`'s ``sums`` reaches ``min_area_m2``, renumbered 1..m in order (in place on
+    the GPU: a one-thread kernel and a gather, nothing read back); writes m to the backend int32
+    (1,) ``kept_after``. Returns the labels. :func:`keep_large` keeps the same rows."""
     xp = backend.xp
+    if not backend.is_gpu:
+        count = int(kept[0])
+        keep = np.concatenate([[False], sums[1:count + 1, 1] >= min_area_m2])
+        kept_after[0] = int(keep.sum())
+        if kept_after[0] < count:
+            labels, _ = relabel(xp, labels, keep)
+        return labels
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
-    backend.kernel("measure.cu", "measure_keep", {})(
+    _kernel(backend, "measure_keep")(
         (1,), (32,), (sums, kept, np.int32(capacity), np.float64(min_area_m2), new_id,
                       kept_after))
     return xp.take(new_id, labels, out=labels)
@@ -188,3 +210,9 @@ def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothol
     kept = [replace(p, label=i)
             for i, p in enumerate((p for p, k in zip(potholes, keep[1:]) if k), 1)]
     return kept, keep
+
+
+def _kernel(backend: Backend, name: str) -> Any:
+    """Kernel ``name`` of kernels/measure.cu."""
+    return backend.kernel("measure.cu", name, {})
+

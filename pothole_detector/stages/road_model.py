@@ -132,14 +132,14 @@ def solve_roll(m: np.ndarray) -> tuple[float, float, float, float]:
     d^2, which is the same for both."""
     n, su, sv, sd, suu, svv, suv, sud, svd = (float(x) for x in m)
     if n < 3:
-        raise NoRoadError("fewer than 3 valid disparities: no road to fit")
+        raise RoadFitFailed(1)
     mu, mv, md = su / n, sv / n, sd / n
     cuu, cvv, cuv = suu - n * mu * mu, svv - n * mv * mv, suv - n * mu * mv
     cud, cvd = sud - n * mu * md, svd - n * mv * md
     a = np.array([[cvv, cuv], [cuv, cuu]])
     b = np.array([cvd, cud])
     if abs(np.linalg.det(a)) <= 1e-9 * max(cuu * cvv, 1e-300):
-        raise NoRoadError("valid disparities lie on a line: the road plane is undetermined")
+        raise RoadFitFailed(2)
     w_max = np.linalg.solve(a, b)
     w_orth = np.array([-b[1], b[0]]) if np.any(b) else np.array([1.0, 0.0])
     best = None
@@ -186,18 +186,33 @@ def _robust_sigma(xp: Any, residual: Any, mask: Any) -> Any:
     return xp.where(count > 0, 1.4826 * (low + high) / 2, 0.0)
 
 
-def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
-             outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
-             coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
-    """Fit the road model to an HxW disparity map (px, NaN = invalid).
+class RoadFitFailed(NoRoadError):
+    """A fit with too few or degenerate disparities; ``status`` as in the fit report."""
+
+    def __init__(self, status: int) -> None:
+        super().__init__(FIT_FAILURES[status])
+        self.status = status
+
+
+# fit report status -> why the fit failed (status 0: fitted)
+FIT_FAILURES = {
+    1: "fewer than 3 valid disparities: no road to fit",
+    2: "valid disparities lie on a line: the road plane is undetermined",
+}
+
+
+def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
+               outlier_k: float = 2.5, kind: str = "planar", coordinate_scale: float = 1.0,
+               coordinate_offset: float = 0.0) -> np.ndarray:
+    """Fit the road model to an HxW disparity map (px, NaN = invalid): the fit report, host
+    float64 (ROAD_REPORT,), laid out as :func:`model_from_report` reads it.
 
     The first fit uses every valid pixel of the ``stride`` grid; each of ``rounds`` refits drops
-    pixels whose residual exceeds ``outlier_k`` robust sigmas. ``kind`` is planar, quadratic or
-    auto (quadratic where it lowers the inlier sigma by the fraction ``quadratic_gain``).
-    Pixel (i, j) of the map sits at full-resolution coordinates
+    pixels whose residual exceeds ``outlier_k`` robust sigmas. The quadratic correction (kind
+    quadratic or auto) is fitted to the planar model's inliers by rounds of its own. Pixel
+    (i, j) of the map sits at full-resolution coordinates
     ``coordinate_scale * (j, i) + coordinate_offset`` and its disparity is scaled likewise, so
-    the model is always in full-resolution pixels. Raises NoRoadError when nothing valid
-    remains.
+    the model is always in full-resolution pixels.
     """
     sub = disparity[::stride, ::stride]
     height, width = sub.shape
@@ -207,26 +222,32 @@ def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
     d = sub.astype(xp.float64) * coordinate_scale
     valid = xp.isfinite(d)
     basis = _basis(xp, d, u, v)
+    report = np.full(ROAD_REPORT, np.nan)
 
-    def robust_rounds(model: RoadModel, refit: Any) -> RoadModel:
+    def robust_rounds(model: RoadModel, refit: Any) -> tuple[RoadModel, float, float]:
         mask = valid
         for round_index in range(rounds + 1):
             model = refit(model, mask)
             residual = d - model.at(xp, u, v)
             sigma = _robust_sigma(xp, residual, mask)
             mask = valid & (xp.abs(residual) <= outlier_k * xp.maximum(sigma, 1e-3))
-        inliers, sigma_px, n_valid = to_host(xp.stack(
+        inliers, sigma_px, report[1] = to_host(xp.stack(
             [mask.sum(), sigma, valid.sum()]).astype(xp.float64))
-        return replace(model, inlier_fraction=float(inliers / max(n_valid, 1)),
-                       sigma_px=float(sigma_px))
+        return model, inliers, sigma_px
 
     def refit_planar(model: RoadModel, mask: Any) -> RoadModel:
         a0, a1, phi, _ = solve_roll(_moments_of(xp, basis, mask))
         return RoadModel(a0, a1, phi)
 
-    planar = robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
+    try:
+        planar, report[5], report[6] = robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
+    except RoadFitFailed as failure:
+        report[0] = failure.status
+        return report
+    report[0] = 0
+    report[2:5] = planar.a0, planar.a1, planar.roll_rad
     if kind == "planar":
-        return planar
+        return report
     design = _curvature_design(xp, d.shape, u, v)
     planar_residual = d - planar.at(xp, u, v)
 
@@ -234,25 +255,50 @@ def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
         return replace(planar, curvature=_fit_curvature(xp, design, planar_residual, mask),
                        kind="quadratic")
 
-    quadratic = robust_rounds(planar, refit_quadratic)
-    if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
-        return planar
-    return quadratic
+    quadratic, report[13], report[14] = robust_rounds(planar, refit_quadratic)
+    report[7:13] = quadratic.curvature
+    return report
+
+
+def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
+             outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
+             coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
+    """The road model of :func:`fit_report` (kind auto: quadratic where it lowers the inlier
+    sigma by the fraction ``quadratic_gain``). Raises NoRoadError when the fit fails."""
+    return model_from_report(
+        fit_report(xp, disparity, stride=stride, rounds=rounds, outlier_k=outlier_k, kind=kind,
+                   coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset),
+        kind, quadratic_gain)
 
 
 def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
         outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
-        coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
-    """:func:`fit_road` on ``backend``: on the GPU :func:`fit_on_device` and one readback of
-    its report; on the CPU it is fit_road."""
-    if not backend.is_gpu:
-        return fit_road(backend.xp, disparity, stride=stride, rounds=rounds,
-                        outlier_k=outlier_k, kind=kind, quadratic_gain=quadratic_gain,
-                        coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset)
-    report, _ = fit_on_device(backend, disparity, stride=stride, rounds=rounds,
-                              outlier_k=outlier_k, kind=kind, quadratic_gain=quadratic_gain,
-                              coordinate_scale=coordinate_scale,
-                              coordinate_offset=coordinate_offset)
+        coordinate_scale: float = 1.0, coordinate_offset: float = 0.0, report: Any = None,
+        params: Any = None) -> tuple[Any, Any]:
+    """The road fit stage: the fit report (float64 (ROAD_REPORT,), see
+    :func:`model_from_report`) and the chosen model's kernel parameters (float64
+    (ROAD_PARAMS,), as RoadModel.kernel_params; NaN when the fit failed) as backend arrays,
+    written into ``report`` and ``params`` where given. On the GPU :func:`fit_on_device`, nothing
+    read back; on the CPU :func:`fit_report`."""
+    options = dict(stride=stride, rounds=rounds, outlier_k=outlier_k, kind=kind,
+                   coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset)
+    if backend.is_gpu:
+        return fit_on_device(backend, disparity, quadratic_gain=quadratic_gain, report=report,
+                             params=params, **options)
+    found = fit_report(backend.xp, disparity, **options)
+    report = np.empty(ROAD_REPORT) if report is None else report
+    params = np.empty(ROAD_PARAMS) if params is None else params
+    report[...] = found
+    params[...] = np.nan if found[0] else \
+        model_from_report(found, kind, quadratic_gain).kernel_params()
+    return report, params
+
+
+def fit_model(backend: Backend, disparity: Any, *, quadratic_gain: float = 0.1,
+              kind: str = "planar", **options: Any) -> RoadModel:
+    """:func:`fit` and its model on the host (one readback on the GPU). Raises NoRoadError
+    when the fit fails."""
+    report, _ = fit(backend, disparity, quadratic_gain=quadratic_gain, kind=kind, **options)
     return model_from_report(to_host(report), kind, quadratic_gain)
 
 
@@ -305,13 +351,14 @@ def model_from_report(report: np.ndarray, kind: str, quadratic_gain: float) -> R
     """The RoadModel of a host copy of :func:`fit_on_device`'s report: [0] status (0 ok, 1
     fewer than 3 valid, 2 degenerate), [1] valid count, [2..4] a0, a1, roll, [5] planar
     inliers, [6] planar sigma, [7..12] curvature, [13] quadratic inliers, [14] quadratic sigma.
-    The quadratic model is kept like fit_road keeps it. Raises NoRoadError for a failed fit."""
-    if report[0] == 1:
-        raise NoRoadError("fewer than 3 valid disparities: no road to fit")
-    if report[0] == 2:
-        raise NoRoadError("valid disparities lie on a line: the road plane is undetermined")
+    The quadratic model is kept where it lowers the inlier sigma by the fraction
+    ``quadratic_gain`` (kind auto). a0 and a1 stay NumPy float64 scalars, so that the model
+    evaluated on float32 coordinates gives float64 disparities. Raises NoRoadError for a failed
+    fit."""
+    if report[0] != 0:
+        raise NoRoadError(FIT_FAILURES.get(int(report[0]), "the road fit failed"))
     n_valid = max(report[1], 1.0)
-    planar = RoadModel(float(report[2]), float(report[3]), float(report[4]),
+    planar = RoadModel(report[2], report[3], float(report[4]),
                        inlier_fraction=float(report[5] / n_valid), sigma_px=float(report[6]))
     if kind == "planar":
         return planar

@@ -11,6 +11,7 @@ pixels (NaN) join the spatially nearest centre and do not move centre values.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -172,18 +173,30 @@ def _initial_centres(xp: Any, filled: Any, valid: Any, cells_y: int, cells_x: in
     return v.reshape(-1).astype(xp.float32), u.reshape(-1).astype(xp.float32)
 
 
-def superpixels(backend: Backend, transformed: Any, region_size_px: int, compactness: float,
-                iterations: int, downsample: int = 1) -> tuple[Any, int]:
-    """SLIC on the transformed map D2 (HxW float32, NaN invalid), optionally on a reduced copy.
+@dataclass
+class Superpixels:
+    """SLIC superpixels of D2: ``grid`` int32 labels on the SLIC grid (H // downsample,
+    W // downsample), ``count`` labels, ``labels`` int32 HxW (``grid`` enlarged), per label the
+    mean of the valid D2 values ``means`` (float32 (count,), NaN where none is valid) and the
+    fraction of valid pixels ``valid_fraction`` (float32 (count,))."""
 
-    ``region_size_px`` is the superpixel grid step in full-resolution pixels. Returns
-    (int32 HxW labels, label count).
-    """
-    labels, n_labels = superpixel_grid(backend, transformed, region_size_px, compactness,
-                                       iterations, downsample)
-    if downsample > 1:
-        labels = upsample_labels(backend, labels, downsample, transformed.shape)
-    return labels, n_labels
+    grid: Any
+    count: int
+    labels: Any
+    means: Any
+    valid_fraction: Any
+
+
+def superpixels(backend: Backend, transformed: Any, region_size_px: int, compactness: float,
+                iterations: int, downsample: int = 1) -> Superpixels:
+    """The SLIC stage on the transformed map D2 (HxW float32 px, NaN invalid), on a copy reduced
+    by ``downsample`` (valid-pixel block means). ``region_size_px`` is the superpixel grid step
+    in full-resolution pixels."""
+    grid, count = superpixel_grid(backend, transformed, region_size_px, compactness,
+                                  iterations, downsample)
+    labels = upsample_labels(backend, grid, downsample, transformed.shape)
+    means, valid_fraction = superpixel_means(backend, transformed, labels, count)
+    return Superpixels(grid, count, labels, means, valid_fraction)
 
 
 def superpixel_grid(backend: Backend, transformed: Any, region_size_px: int,

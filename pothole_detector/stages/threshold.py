@@ -8,6 +8,9 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend, to_host
+from ..calibration import StereoCalibration
+from .measure import road_normal
+from .road_model import RoadModel
 
 # D2 values farther than this from the road level (px) are left out of the histogram.
 HISTOGRAM_BELOW_PX = 128.0
@@ -39,24 +42,38 @@ def histogram_range(bin_px: float, road_level: float) -> tuple[float, int]:
     return lo, int(math.ceil((HISTOGRAM_BELOW_PX + HISTOGRAM_ABOVE_PX) / bin_px))
 
 
-def histogram_threshold(backend: Backend, transformed: Any, bin_px: float,
-                        road_level: float) -> tuple[float, float]:
-    """(t_r, road mean) in px: t_r is the diagonal threshold of the 2D histogram that minimises
-    the within-cluster scatter E2 of region 1 (both components below t_r, pothole) and region 2
-    (both above, road); the road mean is the mean D2 of region 2 at that t_r.
+def threshold_search(backend: Backend, transformed: Any, bin_px: float, road_level: float,
+                     result: Any = None) -> Any:
+    """The threshold stage's search: (found, best split index, road mean) as a backend float64
+    (3,), written into ``result`` where given, nothing read back.
 
-    A pixel with bins (i1, i2) is in region 1 for every split t >= max(i1, i2) and in region 2
-    for every t < min(i1, i2), so two 1D tables over max and min of the bin pair (count, sum
-    of g1, of g2, of g1^2 + g2^2), a prefix and a suffix sum give each candidate in O(1): the
-    same sums as cumulative sums over the 2D table. ``road_level`` (delta_DT) centres the
-    histogram range. Returns (NaN, NaN) when two clusters cannot be formed.
+    The split t_r is the diagonal threshold of the 2D histogram of (D2, mean of D2 over the 8
+    neighbours) that minimises the within-cluster scatter E2 of region 1 (both components below
+    t_r, pothole) and region 2 (both above, road); the road mean is the mean D2 of region 2 at
+    that t_r. A pixel with bins (i1, i2) is in region 1 for every split t >= max(i1, i2) and in
+    region 2 for every t < min(i1, i2), so two 1D tables over max and min of the bin pair
+    (count, sum of g1, of g2, of g1^2 + g2^2), a prefix and a suffix sum give each candidate in
+    O(1): the same sums as cumulative sums over the 2D table. ``road_level`` (delta_DT)
+    centres the histogram range. On the GPU the tables come from one kernel (shared-memory
+    histograms per block where they fit) and the search from a one-block kernel
+    (kernels/threshold.cu).
     """
     if backend.is_gpu:
-        result = to_host(threshold_on_device(backend, transformed, bin_px, road_level))
-    else:
-        lo, n_bins = histogram_range(bin_px, road_level)
-        result = np.array(_search(np, *_tables(np, transformed, lo, bin_px, n_bins)), float)
-    return split_from_result(result, bin_px, road_level)
+        return _search_on_device(backend, transformed, bin_px, road_level, result)
+    lo, n_bins = histogram_range(bin_px, road_level)
+    found = np.array(_search(np, *_tables(np, transformed, lo, bin_px, n_bins)), float)
+    if result is None:
+        return found
+    result[...] = found
+    return result
+
+
+def histogram_threshold(backend: Backend, transformed: Any, bin_px: float,
+                        road_level: float) -> tuple[float, float]:
+    """(t_r, road mean) in px of :func:`threshold_search`, read back; (NaN, NaN) when two
+    clusters cannot be formed."""
+    return split_from_result(to_host(threshold_search(backend, transformed, bin_px, road_level)),
+                             bin_px, road_level)
 
 
 def split_from_result(result: np.ndarray, bin_px: float, road_level: float
@@ -104,19 +121,15 @@ def _search(xp: Any, by_high: Any, by_low: Any) -> tuple[bool, int, float]:
     return bool(ok[best]), best, float(above[1][best] / n2[best])
 
 
-def threshold_on_device(backend: Backend, transformed: Any, bin_px: float, road_level: float,
-                        result: Any = None) -> Any:
-    """The search result (found, best split index, road mean) as a device float64 (3,), nothing
-    read back: the two tables by one kernel (shared-memory histograms per block where they
-    fit) and the split search by a one-block kernel (kernels/threshold.cu). ``result`` may be
-    given as a device array to write into."""
+def _search_on_device(backend: Backend, transformed: Any, bin_px: float, road_level: float,
+                      result: Any) -> Any:
     xp = backend.xp
     lo, n_bins = histogram_range(bin_px, road_level)
     height, width = transformed.shape
     tables = xp.zeros((2, 4, n_bins), dtype=xp.float64)
     result = xp.empty(3, dtype=xp.float64) if result is None else result
-    histogram = backend.kernel("threshold.cu", "threshold_tables", {})
-    search = backend.kernel("threshold.cu", "threshold_search", {})
+    histogram = _kernel(backend, "threshold_tables")
+    search = _kernel(backend, "threshold_search")
     shared = tables.nbytes
     in_shared = shared <= MAX_SHARED_TABLE_BYTES
     if in_shared and shared > 48 * 1024:
@@ -130,21 +143,30 @@ def threshold_on_device(backend: Backend, transformed: Any, bin_px: float, road_
     return result
 
 
-def select_on_device(backend: Backend, result: Any, bin_px: float, road_level: float,
-                     road_mean_reference: bool, means: Any, valid_fraction: Any,
-                     threshold_drop: float | Any, min_valid_fraction: float) -> Any:
-    """:func:`select_superpixels` with t_s = reference - ``threshold_drop`` straight from the
-    device search ``result`` of :func:`threshold_on_device` (kernels/threshold.cu), nothing
-    read back. The reference is the road mean or t_r; ``threshold_drop`` is delta_PD (px) or a
-    device float64 (n,) of per-superpixel drops (metric mode). Bool (n,) on the device."""
+def select(backend: Backend, result: Any, bin_px: float, road_level: float,
+           road_mean_reference: bool, means: Any, valid_fraction: Any,
+           threshold_drop: float | Any, min_valid_fraction: float) -> Any:
+    """The selection stage: bool (n,) of pothole superpixels, those whose mean D2 (``means``,
+    float32 (n,)) lies below t_s = reference - ``threshold_drop`` with more than
+    ``min_valid_fraction`` valid pixels. The reference is the road mean or t_r of the search
+    ``result`` of :func:`threshold_search`; ``threshold_drop`` is delta_PD (px) or a float64
+    (n,) of per-superpixel drops (metric mode). No superpixel is selected where the search found
+    no split. On the GPU one kernel (kernels/threshold.cu) reads ``result`` on the device."""
     xp = backend.xp
     lo, _ = histogram_range(bin_px, road_level)
     n = means.shape[0]
     per_superpixel = not isinstance(threshold_drop, (float, int))
+    if not backend.is_gpu:
+        t_r, road_mean = split_from_result(result, bin_px, road_level)
+        reference = road_mean if road_mean_reference else t_r
+        if not math.isfinite(reference):
+            return xp.zeros(n, dtype=bool)
+        return select_superpixels(xp, means, valid_fraction, reference - threshold_drop,
+                                  min_valid_fraction)
     drops = xp.ascontiguousarray(threshold_drop, dtype=xp.float64) if per_superpixel \
         else result
     selected = xp.empty(n, dtype=xp.bool_)
-    backend.kernel("threshold.cu", "threshold_select", {})(
+    _kernel(backend, "threshold_select")(
         ((n + 255) // 256,), (256,),
         (result, np.float64(lo), np.float64(bin_px), np.int32(road_mean_reference),
          np.float64(0.0 if per_superpixel else threshold_drop), drops,
@@ -159,3 +181,34 @@ def select_superpixels(xp: Any, means: Any, valid_fraction: Any, threshold_px: A
     """Bool (n,): superpixels whose mean D2 is below ``threshold_px`` (a scalar or (n,) array
     of t_s values) with more than ``min_valid_fraction`` valid pixels."""
     return xp.isfinite(means) & (means < threshold_px) & (valid_fraction > min_valid_fraction)
+
+
+def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
+                calibration: StereoCalibration, depth_m: float) -> Any:
+    """Per-superpixel disparity drop (px, float64 (count,)) of a point ``depth_m`` below the
+    road at the centroid of each of the ``count`` superpixels of the int32 HxW ``labels``."""
+    height, width = labels.shape
+    flat = labels.ravel()
+    pixels = xp.maximum(xp.bincount(flat, minlength=count), 1)
+    rows = xp.broadcast_to(xp.arange(height, dtype=xp.float64)[:, None], labels.shape)
+    cols = xp.broadcast_to(xp.arange(width, dtype=xp.float64)[None, :], labels.shape)
+    v = xp.bincount(flat, weights=rows.ravel(), minlength=count) / pixels
+    u = xp.bincount(flat, weights=cols.ravel(), minlength=count) / pixels
+    return metric_tolerance_px(xp, u, v, road, calibration, depth_m)
+
+
+def metric_tolerance_px(xp: Any, u: Any, v: Any, road: RoadModel,
+                        calibration: StereoCalibration, depth_m: float) -> Any:
+    """Disparity drop (px) of a point ``depth_m`` below the road at pixels (u, v)."""
+    normal = road_normal(road, calibration)
+    f = calibration.f
+    incidence = normal[0] * (u - calibration.cx) / f + normal[1] * (v - calibration.cy) / f \
+        + normal[2]
+    road_d = road.at(xp, u, v)
+    return road_d - calibration.fb / (calibration.fb / road_d + depth_m / incidence)
+
+
+def _kernel(backend: Backend, name: str) -> Any:
+    """Kernel ``name`` of kernels/threshold.cu."""
+    return backend.kernel("threshold.cu", name, {})
+

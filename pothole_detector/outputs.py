@@ -1,0 +1,80 @@
+"""A pipeline result as the output messages, for the live node and the bag tools alike. The
+output names and types import without ROS; building messages needs it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Collection
+
+import numpy as np
+
+from .calibration import StereoCalibration
+from .imageio import overlay
+from .pipeline import PipelineResult
+
+if TYPE_CHECKING:
+    from std_msgs.msg import Header
+
+# output topic (relative) -> ROS message type
+OUTPUT_TYPES = {
+    "disparity": "stereo_msgs/msg/DisparityImage",
+    "disparity_transformed": "sensor_msgs/msg/Image",
+    "pothole_labels": "sensor_msgs/msg/Image",
+    "pothole_points": "sensor_msgs/msg/PointCloud2",
+    "potholes": "pothole_detector_msgs/msg/PotholeArray",
+    "pothole_markers": "visualization_msgs/msg/MarkerArray",
+    "overlay": "sensor_msgs/msg/Image",
+}
+# outputs made only on request (the node: while somebody subscribes); potholes always
+ON_REQUEST = tuple(name for name in OUTPUT_TYPES if name != "potholes")
+
+
+@dataclass
+class Outputs:
+    """The messages made for one result, by output name, and the overlay picture (HxWx3 uint8
+    RGB) when it was drawn."""
+
+    messages: dict[str, Any] = field(default_factory=dict)
+    overlay: np.ndarray | None = None
+
+
+def output_messages(result: PipelineResult, left: np.ndarray, calibration: StereoCalibration,
+                    header: "Header", wanted: Collection[str] = ON_REQUEST) -> Outputs:
+    """``potholes`` and the outputs named in ``wanted`` for ``result`` of the pair whose left
+    image (host, HxW or HxWx3) is ``left``, each stamped with ``header``. Only the arrays these
+    messages need are copied to the host, each once."""
+    from . import conversions
+
+    unknown = set(wanted) - set(OUTPUT_TYPES)
+    if unknown:
+        raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUT_TYPES)}")
+    host: dict[str, np.ndarray] = {}
+
+    def array(name: str) -> np.ndarray:
+        if name not in host:
+            host[name] = result.host(name)
+        return host[name]
+
+    made = Outputs()
+    messages = made.messages
+    messages["potholes"] = conversions.potholes_message(result.potholes, result.road, header)
+    if "disparity" in wanted:
+        messages["disparity"] = conversions.disparity_message(
+            array("disparity"), calibration, result.disparity_range, header)
+    if "disparity_transformed" in wanted:
+        messages["disparity_transformed"] = conversions.array_to_image(
+            array("transformed"), "32FC1", header)
+    if "pothole_labels" in wanted:
+        messages["pothole_labels"] = conversions.array_to_image(
+            array("labels").astype(np.uint16), "mono16", header)
+    if "pothole_points" in wanted:
+        points = conversions.pothole_points(array("labels"), array("disparity"), result.road,
+                                            calibration)
+        messages["pothole_points"] = conversions.pointcloud_message(points, header)
+    if "pothole_markers" in wanted:
+        messages["pothole_markers"] = conversions.markers_message(
+            array("labels"), result.potholes, result.road, calibration, header)
+    if "overlay" in wanted:
+        made.overlay = overlay(left, array("labels"), result.potholes)
+        messages["overlay"] = conversions.array_to_image(made.overlay, "rgb8", header)
+    return made
