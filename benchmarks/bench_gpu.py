@@ -94,7 +94,7 @@ def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibrat
     config = Config({"gpt_shift": shift})
     pipeline = Pipeline(config, calibration, backend)
     pipeline.run(left, right)
-    shifts, levels = pipeline._band(left.shape)
+    shifts, levels = pipeline.band(left.shape)
     left_dev, right_dev, shifts_dev = backend.upload_many(left, right, shifts)
     matcher = census_sgm.GpuMatcher(backend)
     runs = []

@@ -136,10 +136,10 @@ def run_detect(args: argparse.Namespace) -> int:
     result = Pipeline(config, calibration, backend).run(left, right)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    labels = backend.to_host(result.labels)
-    np.save(out / "disparity.npy", backend.to_host(result.disparity).astype(np.float32))
+    labels = result.host("labels")
+    np.save(out / "disparity.npy", result.host("disparity").astype(np.float32))
     np.save(out / "disparity_transformed.npy",
-            backend.to_host(result.transformed).astype(np.float32))
+            result.host("transformed").astype(np.float32))
     write_labels(out / "labels.png", labels)
     (out / "potholes.json").write_text(json.dumps(detection_json(result), indent=2) + "\n")
     write_rgb(out / "overlay.png", overlay(left, labels, result.potholes))

@@ -287,7 +287,7 @@ def _evaluate_potholes(sample: Sample, config: Config, backend: Backend,
     start = time.perf_counter()
     result = Pipeline(config, calibration, backend).run(left, right)
     elapsed = (time.perf_counter() - start) * 1e3
-    labels = backend.to_host(result.labels)
+    labels = result.host("labels")
     pixels, objects = PixelCounts(), ObjectCounts()
     pixels.add(labels > 0, truth, roi)
     objects.add(labels, truth, roi)

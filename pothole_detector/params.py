@@ -74,7 +74,7 @@ PARAMETERS: tuple[Param, ...] = (
           "delta_PT, so the band need not hold the road's slope across a row that the roll "
           "makes: 64 levels instead of 80-96 on the real frames), row (each row by its lowest "
           "road disparity less delta_PT, the paper), or auto (pixel with the census matcher, "
-          "row with OpenCV SGBM: what measured best with each).",
+          "row with OpenCV SGBM).",
           choices=("auto", "pixel", "row")),
     Param("gpt_margin_below_px", float, 40.0,
           "delta_PT: band margin below the road (px); bounds the deepest pothole seen.", 0, 512),

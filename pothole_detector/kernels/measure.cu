@@ -3,9 +3,9 @@
 // area, valid area, depth x area, x, y, z x area (valid pixels); extremes: int32
 // [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
 // Warps whose labelled pixels share one label add once per warp.
+// Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS and the road
+// parameters' layout (ROAD_*).
 
-#define SUMS 7
-#define EXTREMES 5
 #define FULL_MASK 0xffffffffu
 
 __device__ __forceinline__ int ordered_bits(float value) {
@@ -31,7 +31,7 @@ extern "C" __global__ void measure_reset(double* sums, int* extremes, int count)
 // .kernel_params). Road disparity a0 + a1 (v cos - u sin) + c0 + x (c1 + c3 x + c4 y)
 // + y (c2 + c5 y) with x = u / 1000, y = v / 1000; the unit normal of its linear part as
 // measure.road_normal computes it.
-extern "C" __global__ void __launch_bounds__(256)
+extern "C" __global__ void __launch_bounds__(THREADS)
 measure_potholes(const int* labels, const float* disparity, int height, int width,
                  double f, double cx, double cy, double fb, const double* road,
                  double* sums, int* extremes) {
@@ -44,7 +44,8 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
     double values[SUMS] = {0, 0, 0, 0, 0, 0, 0};
     float depth_value = __int_as_float(0xff800000);
     if (label > 0) {
-        const double a0 = road[0], a1 = road[1], cos_phi = road[2], sin_phi = road[3];
+        const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
+                     sin_phi = road[ROAD_SIN];
         const double beta = -a1 * sin_phi, gamma = a1 * cos_phi;
         double normal_x = beta * f, normal_y = gamma * f, normal_z = a0 + beta * cx + gamma * cy;
         const double norm = sqrt(normal_x * normal_x + normal_y * normal_y + normal_z * normal_z);
@@ -53,9 +54,10 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         normal_z /= norm;
         const double uu = u, vv = v;
         const double x = uu / 1000.0, y = vv / 1000.0;
-        const double road_d = a0 + a1 * (vv * cos_phi - uu * sin_phi) + road[4]
-                              + x * (road[5] + road[7] * x + road[8] * y)
-                              + y * (road[6] + road[9] * y);
+        const double road_d = a0 + a1 * (vv * cos_phi - uu * sin_phi) + road[ROAD_C0]
+                              + x * (road[ROAD_C0 + 1] + road[ROAD_C0 + 3] * x
+                                     + road[ROAD_C0 + 4] * y)
+                              + y * (road[ROAD_C0 + 2] + road[ROAD_C0 + 5] * y);
         const double incidence = normal_x * (uu - cx) / f + normal_y * (vv - cy) / f + normal_z;
         const double road_z = fb / road_d;
         const float d = disparity[index];

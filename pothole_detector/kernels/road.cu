@@ -16,17 +16,15 @@
 // model: the chosen model as the other kernels read it (stages/road_model.RoadModel
 // .kernel_params): a0, a1, cos(phi), sin(phi), c0..c5 (zeros unless the quadratic model is
 // chosen), curved (0 or 1); NaN when the fit failed, so later stages find no road.
+// Defined by the launcher (stages/road_model.py, _kernel): THREADS, BINS, MAX_SUMS, the fit
+// report's layout (FIT_*) and the road parameters' (ROAD_*).
 
 #include "block_scan.cuh"
 
-#define THREADS 512
 #define WARPS (THREADS / 32)
-#define BINS 4096
 #define PER_THREAD_BINS (BINS / THREADS)
 static_assert(PER_THREAD_BINS == 8, "locate reads two 4-bin vectors per thread");
-#define MAX_SUMS 27
 #define NOT_MASKED 0xffffffffu
-#define ROAD_PARAMS 11
 
 __device__ __forceinline__ bool finite(float x) {
     return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
@@ -384,15 +382,16 @@ __device__ void write_model(const double* out, int status, int quadratic, int au
         for (int i = 0; i < ROAD_PARAMS; ++i) model[i] = nan;
         return;
     }
-    const bool curved = quadratic && !(auto_select && !(out[14] < (1.0 - gain) * out[6]));
+    const bool curved = quadratic
+        && !(auto_select && !(out[FIT_QUADRATIC_SIGMA] < (1.0 - gain) * out[FIT_PLANAR_SIGMA]));
     double sin_phi, cos_phi;
-    sincos(out[4], &sin_phi, &cos_phi);
-    model[0] = out[2];
-    model[1] = out[3];
-    model[2] = cos_phi;
-    model[3] = sin_phi;
-    for (int i = 0; i < 6; ++i) model[4 + i] = curved ? out[7 + i] : 0.0;
-    model[10] = curved ? 1.0 : 0.0;
+    sincos(out[FIT_ROLL], &sin_phi, &cos_phi);
+    model[ROAD_A0] = out[FIT_A0];
+    model[ROAD_A1] = out[FIT_A1];
+    model[ROAD_COS] = cos_phi;
+    model[ROAD_SIN] = sin_phi;
+    for (int i = 0; i < 6; ++i) model[ROAD_C0 + i] = curved ? out[FIT_CURVATURE + i] : 0.0;
+    model[ROAD_CURVED] = curved ? 1.0 : 0.0;
 }
 
 // workspace: the arrival counter, then float64 [2][gridDim.x][MAX_SUMS] block totals, then
@@ -477,7 +476,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             __syncthreads();
             if (state.status != 0) break;
             const unsigned count = (unsigned)state.sums[0];
-            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader) out[1] = state.sums[0];
+            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader) out[FIT_VALID] = state.sums[0];
             // residuals of this round's model, keys of this round's mask, first histogram
             for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
             __syncthreads();
@@ -508,7 +507,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             if (threadIdx.x == 0) {
                 state.threshold = outlier_k * fmax(sigma, 1e-3);
                 state.use_mask = 1;
-                if (leader) out[phase == 0 ? 6 : 14] = sigma;
+                if (leader) out[phase == 0 ? FIT_PLANAR_SIGMA : FIT_QUADRATIC_SIGMA] = sigma;
             }
             __syncthreads();
         }
@@ -524,13 +523,13 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
         grid_sums<1>(inliers, partial, state, grid);
         if (threadIdx.x == 0 && leader) {
             if (phase == 0) {
-                out[2] = state.a0;
-                out[3] = state.a1;
-                out[4] = state.phi;
-                out[5] = state.sums[0];
+                out[FIT_A0] = state.a0;
+                out[FIT_A1] = state.a1;
+                out[FIT_ROLL] = state.phi;
+                out[FIT_PLANAR_INLIERS] = state.sums[0];
             } else {
-                for (int i = 0; i < 6; ++i) out[7 + i] = state.curvature[i];
-                out[13] = state.sums[0];
+                for (int i = 0; i < 6; ++i) out[FIT_CURVATURE + i] = state.curvature[i];
+                out[FIT_QUADRATIC_INLIERS] = state.sums[0];
             }
         }
         if (threadIdx.x == 0) {
@@ -540,7 +539,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
         __syncthreads();
     }
     if (threadIdx.x == 0 && leader) {
-        out[0] = state.status;
+        out[FIT_STATUS] = state.status;
         write_model(out, state.status, quadratic, auto_select, quadratic_gain, model);
     }
 }

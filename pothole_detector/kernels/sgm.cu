@@ -13,12 +13,6 @@
 // WRITE_PATH_BLOCKS, PREFETCH_STEPS, WRITE_PREFETCH_STEPS, OLD_AHEAD, SUMS_RING, SUMS_L2_AHEAD,
 // INTERLEAVED_PAIRS (tuning).
 
-#ifndef PATH_LEVELS
-#define PATH_LEVELS LEVELS
-#endif
-#ifndef SHIFT_BITS
-#define SHIFT_BITS 16
-#endif
 #define PER_LANE (PATH_LEVELS / LANES)
 #define OUTSIDE_COST (1 << 20)
 
@@ -28,9 +22,6 @@ __constant__ int DIRECTION_DY[8] = {0, 0, 1, -1, 1, 1, -1, -1};
 // Directions of the first pass (written) and of the second (added to the same slot): slots 0
 // and 1 take the horizontal and the vertical walks, the horizontal ones first unless
 // HORIZONTALS_SECOND; slots 2 and 3 the diagonals.
-#ifndef HORIZONTALS_SECOND
-#define HORIZONTALS_SECOND 0
-#endif
 #if HORIZONTALS_SECOND
 __constant__ int FIRST_PASS[4] = {2, 3, 4, 5};
 __constant__ int SECOND_PASS[4] = {0, 1, 6, 7};
@@ -41,9 +32,6 @@ __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 
 // sgm_select's own lane count (the path kernels' LANES by default): SELECT_LANES threads take
 // one pixel, SELECT_PER_LANE levels each.
-#ifndef SELECT_LANES
-#define SELECT_LANES LANES
-#endif
 #define SELECT_PER_LANE (PATH_LEVELS / SELECT_LANES)
 
 // One lane's SELECT_PER_LANE consecutive path bytes of a pixel in each of the four slots
@@ -61,14 +49,8 @@ __constant__ int SECOND_PASS[4] = {2, 3, 6, 7};
 struct PathReads {
     unsigned slot[4][SELECT_READS];
 };
-// Whether each group reads its next pixel's path bytes while it searches the current one's
-// (measured on the H200 at 2079x1040: 96 / 80 / 64 levels 0.276 / 0.288 / 0.201 ms ->
-// 0.253 / 0.267 / 0.197 ms, 128 levels 0.462 -> 0.414 ms); not where a lane reads its bytes
-// one at a time (304 and 368 levels, 16 lanes of 19 and 23: 1.41 -> 1.88 and 1.82 -> 2.31 ms,
-// the registers the reads take).
-#ifndef SELECT_AHEAD
+// Whether each group reads its next pixel's path bytes while it searches the current one's.
 #define SELECT_AHEAD (SELECT_READS <= 4)
-#endif
 
 __device__ __forceinline__ void read_path_bytes(const unsigned char* cell, size_t plane,
                                                 PathReads& reads) {
@@ -92,9 +74,6 @@ __device__ __forceinline__ void read_path_bytes(const unsigned char* cell, size_
 // total of four slots is at most 4 x 254, so no half carries into the next). SLOT_PAIR_BYTES
 // (the launcher's, where a path cost is at most 63: INVALID_COST + P2 <= 63): two slots'
 // bytes are first added as bytes (at most 4 x 63 = 252 each), then the two sums spread.
-#ifndef SLOT_PAIR_BYTES
-#define SLOT_PAIR_BYTES 0
-#endif
 __device__ __forceinline__ void add_path_bytes(const PathReads& reads,
                                                unsigned (&totals)[(SELECT_PER_LANE + 1) / 2]) {
 #pragma unroll
@@ -147,15 +126,14 @@ __device__ __forceinline__ unsigned group_minimum(unsigned value) {
 
 __device__ __forceinline__ int clamp_index(int i, int n) { return min(max(i, 0), n - 1); }
 
-// blockIdx.z: 0 = left, 1 = right. Blocks of CENSUS_BLOCK_X x CENSUS_BLOCK_Y threads, each
-// thread four adjacent pixels of a row; each block first copies its pixels and the window's
-// margin (edge-replicated) into shared memory, then every thread reads the window rows of its
-// four pixels as CENSUS_WORDS aligned 32-bit words each and compares four byte pairs at once
-// (SIMD within a register): for bytes a and b, with t = (b | 0x80) - (a & 0x7f) per byte (no
-// borrow between bytes), a > b is bit 7 of a & ~b where the top bits differ, else of ~t. Eight
-// comparisons' bits gather in one word (byte i: pixel i) by shifting; four such words are
-// transposed into the pixels' census words. Measured on the H200 at 2079x1040 (both images):
-// one pixel a thread with byte reads 0.064 ms, four pixels a thread 0.040 ms.
+// blockIdx.z: 0 = left, 1 = right. Blocks of CENSUS_BLOCK_X x CENSUS_BLOCK_Y threads, each thread
+// four adjacent pixels of a row; each block first copies its pixels and the window's margin
+// (edge-replicated) into shared memory, then every thread reads the window rows of its four pixels
+// as CENSUS_WORDS aligned 32-bit words each and compares four byte pairs at once (SIMD within a
+// register): for bytes a and b, with t = (b | 0x80) - (a & 0x7f) per byte (no borrow between
+// bytes), a > b is bit 7 of a & ~b where the top bits differ, else of ~t. Eight comparisons' bits
+// gather in one word (byte i: pixel i) by shifting; four such words are transposed into the
+// pixels' census words.
 #define CENSUS_BLOCK_X 32
 #define CENSUS_BLOCK_Y 8
 #define CENSUS_WORDS ((2 * CENSUS_RX + 3) / 4 + 1)
@@ -258,29 +236,17 @@ extern "C" __global__ void gpt_census(const unsigned* census_right, const int* s
     transformed[(size_t)v * width + y] = census_right[(size_t)v * width + source];
 }
 
-// Threads of a path block (the launcher's census_sgm.path_threads: 128 where a lane holds at
-// most 8 packed levels, else 256) and the blocks of them the path kernels are built to fit on
-// one multiprocessor: 20 warps (at most 102 registers) with blocks of 128 threads; blocks of
-// 256 (the longer ranges) keep the registers they need. Measured on the H200 at 2079x1040
-// (both passes, 96 / 80 / 64 levels): blocks of 256 threads, 2 per multiprocessor (103-118
-// registers), 1.553 / 1.585 / 1.200 ms; of 128, 5 per multiprocessor, 1.498 / 1.528 / 1.143
-// ms; 6 per multiprocessor (80 registers) 1.533 / 1.548 ms, of 96 threads, 7 per
-// multiprocessor 1.663 / 1.683 ms.
-#ifndef PATH_THREADS
-#define PATH_THREADS 128
-#endif
-#ifndef PATH_BLOCKS
+// Threads of a path block (the launcher's census_sgm.path_threads: 128 where a lane holds at most
+// 8 packed levels, else 256) and the blocks of them the path kernels are built to fit on one
+// multiprocessor: 20 warps (at most 102 registers) with blocks of 128 threads; blocks of 256 (the
+// longer ranges) keep the registers they need.
 #define PATH_BLOCKS (PATH_THREADS <= 128 ? 640 / PATH_THREADS : 1)
-#endif
-#ifndef WRITE_PATH_BLOCKS
 #define WRITE_PATH_BLOCKS PATH_BLOCKS
-#endif
 
-// With an even number of levels per lane (PACKED) a lane holds consecutive levels
-// sub * PER_LANE + k, two per 32-bit word (16-bit halves; which two: SPLIT_PAIRS), and
-// aggregates them with the halfword min instructions (DPX on sm_90); otherwise it holds
-// levels sub + LANES k one per register, so the group's loads and stores of one k are
-// contiguous.
+// With an even number of levels per lane (PACKED) a lane holds consecutive levels sub * PER_LANE +
+// k, two per 32-bit word (16-bit halves; which two: see pair_level), and aggregates them with the
+// halfword min instructions (DPX on sm_90); otherwise it holds levels sub + LANES k one per
+// register, so the group's loads and stores of one k are contiguous.
 #define PACKED (PER_LANE % 2 == 0)
 #define PAIRS (PER_LANE / 2)
 // PADDED: the path lanes hold PATH_LEVELS > LEVELS levels, where only then each lane gets an
@@ -309,118 +275,61 @@ static_assert(!PADDED || (PACKED && LEVELS % 2 == 0), "padding needs packed even
 // The lane's highest level is at most `start` (u - kappa - the lane's first level) away:
 // every candidate column of the step lies inside the image.
 #define ALL_INSIDE(start) ((start) >= LEVEL_STEP * (PER_LANE - 1))
-// Steps whose loads are in flight ahead of the one aggregated (measured best at 96 levels,
-// 16 lanes: 6; fewer where unpacked or many levels per lane would crowd the registers).
-#ifndef PREFETCH_STEPS
+// Steps whose loads are in flight ahead of the one aggregated.
 #define PREFETCH_STEPS (PACKED && PER_LANE <= 8 ? 6 : 3)
-#endif
-// Steps ahead that the second pass loads the first pass's sums into registers (measured at
-// 96 levels: 6 ahead 1.03 ms, 2 ahead 1.17 ms, also with the L2 requests below).
-#ifndef OLD_AHEAD
+// Steps ahead that the second pass loads the first pass's sums into registers.
 #define OLD_AHEAD PREFETCH_STEPS
-#endif
 static_assert(OLD_AHEAD >= 1 && OLD_AHEAD <= PREFETCH_STEPS, "OLD_AHEAD: 1 to PREFETCH_STEPS");
-// The first pass's own (measured on the H200 at 2079x1040, blocks of 128 threads, first pass
-// at 96 / 80 / 64 levels: 6 ahead 0.606 / 0.627 / 0.493 ms, 5 ahead 0.584 / 0.615 / 0.494, 4
-// ahead 0.585 / 0.608 / 0.494, 7 ahead 0.605 / 0.599 / 0.502; 1920x1040 at 64 levels: 6 and
-// 5 ahead 0.500, 4 ahead 0.516).
-#ifndef WRITE_PREFETCH_STEPS
+// Steps whose loads are in flight ahead of the one aggregated, in the first pass.
 #define WRITE_PREFETCH_STEPS (PACKED && PER_LANE <= 8 ? 5 : 3)
-#endif
-// Steps ahead that the second pass asks L2 for the first pass's sums (0: never), so that
-// the loads OLD_AHEAD steps ahead find them there (measured at 96 levels: 24 ahead 1.03 ->
-// 0.95 ms).
-#ifndef SUMS_L2_AHEAD
+// Steps ahead that the second pass asks L2 for the first pass's sums (0: never), so that the loads
+// OLD_AHEAD steps ahead find them there.
 #define SUMS_L2_AHEAD 24
-#endif
-// SUMS_RING (a power of two, 0: off): the second pass copies the first pass's sums of each
-// line's pixel SUMS_COPY_AHEAD steps ahead (below) into a ring of SUMS_RING pixels per line in
-// shared memory, by asynchronous copies of 16 bytes a lane, instead of loading them into
-// registers OLD_AHEAD steps ahead (L2 still asked SUMS_L2_AHEAD steps ahead). Measured, with
-// copies SUMS_RING - 1 ahead and per step, on the H200 at
-// 2079x1040 with blocks of 128 threads, second pass at 96 / 80 / 64 levels (16 lanes): 0.889
-// / 0.896 / 0.654 ms in registers, 0.814 / 0.824 / 0.618 with a ring of 16 (8: 0.916 /
-// 0.918 / 0.669 without the L2 requests, 32: 0.870 / 0.863 / 0.617); but with 32 lanes
-// (1280x720 at 64 levels, 2079x1040 at 128) 0.316 -> 0.409 and 1.101 -> 1.250 ms: 16
-// lanes or fewer only, packed levels, and rings of at most 16 KB a block (up to 128 levels
-// with 16 lanes), which leaves the rest of the 48 KB a block has without asking to kappa.
-#ifndef SUMS_RING
+// SUMS_RING (a power of two, 0: off): the second pass copies the first pass's sums of each line's
+// pixel SUMS_COPY_AHEAD steps ahead (below) into a ring of SUMS_RING pixels per line in shared
+// memory, by asynchronous copies of 16 bytes a lane, instead of loading them into registers
+// OLD_AHEAD steps ahead (L2 still asked SUMS_L2_AHEAD steps ahead).
 #define SUMS_RING (LANES <= 16 && PACKED && PATH_LEVELS % 16 == 0 \
                    && PATH_THREADS / LANES * 16 * PATH_LEVELS <= 16 * 1024 ? 16 : 0)
-#endif
 static_assert(SUMS_RING == 0 || (SUMS_RING >= 2 && (SUMS_RING & (SUMS_RING - 1)) == 0),
               "SUMS_RING: 0 or a power of two");
 static_assert(SUMS_RING == 0 || (PACKED && PATH_LEVELS % 16 == 0),
               "SUMS_RING: packed levels, 16-byte pixels");
-// SUMS_RUN_COPIES: a checked run waits once, before its first step, for all of its entries
-// and copies the sums of the run's pixels SUMS_COPY_AHEAD steps on in one go, 16 bytes a
-// lane, and asks L2 for those SUMS_L2_AHEAD steps on (fewer copy instructions, address
-// computations and L2 requests than a wait and a copy per step; 0: per step everywhere).
-// Each step commits one copy group (empty within a run), so a step waits for at most
-// SUMS_COPY_AHEAD - 1 later groups and a run for SUMS_COPY_AHEAD - PREFETCH_STEPS; the
-// entries a run copies into are those the steps before it read. Measured on the H200 at
-// 2079x1040, second pass at 96 / 80 / 64 / 128 levels: per step (15 ahead) 0.820 / 0.822 /
-// 0.611 / 1.104 ms, per run 10 ahead 0.821 / 0.820 / 0.562 / 1.093 ms; with rings of 32,
-// 14 ahead 0.812 / 0.827 / 0.559 / 1.186, 18 ahead 0.810 / 0.830 / 0.561 / 1.186, 26
-// ahead 0.895 / 0.905 / 0.584 / 1.200; each step waiting, the runs copying per step 0.821 /
-// 0.821 / 0.617 / 1.259 (32 entries, 18 ahead).
-#ifndef SUMS_RUN_COPIES
-#define SUMS_RUN_COPIES 1
-#endif
-// A run's copies, lane by lane: part sub % COPY_PARTS (a pixel's 16-byte parts, rounded up to
-// a power of two; lanes past its parts copy nothing) of the run's pixels sub / COPY_PARTS,
-// that + COPY_STEP_LANES, ..., from one lane offset and one stride (bit operations only).
-// Measured on the H200 at 2079x1040 against chunk sub + LANES j of the run's chunks (by
-// divisions, which ptxas rebuilt in every run: 539 -> 508 instructions a 6-step run at 96
-// levels), second pass at 96 / 80 / 64 / 128 levels: 0.807 / 0.822 / 0.531 / 1.009 ->
-// 0.810 / 0.804 / 0.523 / 1.009 ms; 1280x720 at 64 levels equal (0.338).
+// A checked run waits once, before its first step, for all of its entries and copies the sums of
+// the run's pixels SUMS_COPY_AHEAD steps on in one go, 16 bytes a lane, and asks L2 for those
+// SUMS_L2_AHEAD steps on (fewer copy instructions, address computations and L2 requests than a
+// wait and a copy per step; 0: per step everywhere). Each step commits one copy group (empty
+// within a run), so a step waits for at most SUMS_COPY_AHEAD - 1 later groups and a run for
+// SUMS_COPY_AHEAD - PREFETCH_STEPS; the entries a run copies into are those the steps before it
+// read.
 #define COPY_PARTS                                                                          \
     (PATH_LEVELS <= 16 ? 1 : PATH_LEVELS <= 32 ? 2 : PATH_LEVELS <= 64 ? 4                  \
      : PATH_LEVELS <= 128 ? 8 : 16)
 #define COPY_STEP_LANES (LANES / COPY_PARTS)
-static_assert(!SUMS_RUN_COPIES || SUMS_RING == 0 || COPY_STEP_LANES >= 1,
-              "SUMS_RUN_COPIES: a pixel's parts, rounded up to a power of two, fit the lanes");
+static_assert(SUMS_RING == 0 || COPY_STEP_LANES >= 1,
+              "run copies: a pixel's parts, rounded up to a power of two, fit the lanes");
 // Steps ahead that a pixel's sums are copied.
-#ifndef SUMS_COPY_AHEAD
-#define SUMS_COPY_AHEAD (SUMS_RUN_COPIES ? SUMS_RING - PREFETCH_STEPS : SUMS_RING - 1)
-#endif
+#define SUMS_COPY_AHEAD (SUMS_RING - PREFETCH_STEPS)
 static_assert(SUMS_RING == 0 || (SUMS_COPY_AHEAD >= 1 && SUMS_COPY_AHEAD < SUMS_RING),
               "SUMS_COPY_AHEAD: 1 to SUMS_RING - 1");
-// INTERLEAVED_PAIRS: the first pass writes a pixel's path bytes pair by pair, pair p of lane
-// `sub` at byte 2 * LANES * p + 2 * sub (each of a group's pair stores 2 * LANES contiguous
-// bytes, whole 32-byte sectors, instead of 2 bytes every PER_LANE); the second pass reads
-// them from its ring in that layout (each pixel there whole before any lane writes it) and
-// writes its sums in the winner search's, lane by lane. Where the lanes hold two or more pairs
-// and the second pass has the ring. Measured on the H200 at 2079x1040, first pass at 96 / 80
-// / 64 / 128 levels: 0.587 / 0.618 / 0.493 / 0.967 -> 0.563 / 0.595 / 0.492 / 0.970 ms,
-// second pass unchanged; the second pass also writing it (and the winner search reading it,
-// a lane's 4 bytes of each pair) 0.834 / 0.842 / 0.563 -> 0.841 / 0.853 / 0.552 ms, winner
-// search 0.216 / 0.220 / 0.150 -> 0.222 / 0.226 / 0.152 ms.
-#ifndef INTERLEAVED_PAIRS
+// INTERLEAVED_PAIRS: the first pass writes a pixel's path bytes pair by pair, pair p of lane `sub`
+// at byte 2 * LANES * p + 2 * sub (each of a group's pair stores 2 * LANES contiguous bytes, whole
+// 32-byte sectors, instead of 2 bytes every PER_LANE); the second pass reads them from its ring in
+// that layout (each pixel there whole before any lane writes it) and writes its sums in the winner
+// search's, lane by lane. Where the lanes hold two or more pairs and the second pass has the ring.
 #define INTERLEAVED_PAIRS (SUMS_RING && PER_LANE >= 4)
-#endif
 static_assert(!INTERLEAVED_PAIRS || (SUMS_RING && PER_LANE >= 4),
               "INTERLEAVED_PAIRS: the second pass's ring and two or more pairs a lane");
-static_assert(!SUMS_RUN_COPIES || SUMS_RING == 0
+static_assert(SUMS_RING == 0
                   || (SUMS_COPY_AHEAD >= PREFETCH_STEPS
                       && SUMS_COPY_AHEAD + PREFETCH_STEPS <= SUMS_RING),
-              "SUMS_RUN_COPIES: a run's copies fit the ring beside the run's entries");
-// SPLIT_PAIRS: a lane's pair p holds levels first + p (low half) and first + PAIRS + p (high
-// half) instead of first + 2p and first + 2p + 1, so that the levels beside an inner pair's
-// are the pairs beside it (no funnel shift); the two edge pairs' neighbours are one byte
-// permute each. Stores put the levels back in order (halfword h: levels first + 2h and
-// first + 2h + 1, a permute of two pairs), so the path volume is the same. Two instructions a
-// step fewer at 3 pairs a lane. Measured on the H200 at 2079x1040, paths at 96 / 80 / 64 /
-// 128 levels: 1.403-1.406 / 1.444 / 1.061 / 2.064 -> 1.368-1.372 / 1.423-1.432 / 1.049 /
-// 2.061 ms; 1280x720 at 64 levels 0.667 -> 0.643 ms.
-#ifndef SPLIT_PAIRS
-#define SPLIT_PAIRS 1
-#endif
-#if SPLIT_PAIRS
+              "run copies: a run's copies fit the ring beside the run's entries");
+// A lane's pair p holds levels first + p (low half) and first + PAIRS + p (high half) instead of
+// first + 2p and first + 2p + 1, so that the levels beside an inner pair's are the pairs beside it
+// (no funnel shift); the two edge pairs' neighbours are one byte permute each. Stores put the
+// levels back in order (halfword h: levels first + 2h and first + 2h + 1, a permute of two pairs),
+// so the path volume is the same. Two instructions a step fewer at 3 pairs a lane.
 #define PAIR_LEVEL(p, half) ((p) + (half) * PAIRS)
-#else
-#define PAIR_LEVEL(p, half) (2 * (p) + (half))
-#endif
 // A right census word that costs INVALID_COST against `left` (the census bits are the low
 // INVALID_COST bits): stands in for the columns left of the image.
 static_assert(INVALID_COST >= 1 && INVALID_COST <= 31, "census words of 1 to 31 bits");
@@ -430,9 +339,8 @@ __device__ __forceinline__ unsigned invalid_word(unsigned left) {
 // Halfword stand-in for "outside the range": above any path cost plus P1, no carry out.
 #define FAR_HALF 0x7fffu
 
-// Two levels' matching costs (each below 2^16) as one halfword pair, `low` in the low half,
-// by a multiply-add (the FMA pipe) instead of a byte permute (the integer ALU pipe, the busier
-// one; measured on an 80-level frame: paths 1.587 -> 1.561 ms).
+// Two levels' matching costs (each below 2^16) as one halfword pair, `low` in the low half, by a
+// multiply-add (the FMA pipe) instead of a byte permute (the integer ALU pipe, the busier one).
 __device__ __forceinline__ unsigned pack_costs(unsigned low, unsigned high) {
     unsigned pair;
     asm("mad.lo.u32 %0, %1, 65536, %2;" : "=r"(pair) : "r"(high), "r"(low));
@@ -462,17 +370,10 @@ struct Cursor {
     const int* shift;
 };
 
-// The census words of the step at `at` into `data`; INSIDE: every column of the lane's levels
-// is known to lie inside the image (no test).
-// LANE_RIGHT_BASE: the right words are indexed from a per-lane base, census_right less the
-// lane's first level, opaque to the compiler (`lane_right`, `lane_first` 0), which saves the
-// step a multiply-add (SASS of the first pass's checked run: 305 -> 300 instructions, 5
-// steps); else from census_right less `lane_first` (the lane's first level) every step.
-// Measured on the H200 at 2079x1040, paths at 96 / 80 / 64 levels: 1.370-1.380 / 1.428 /
-// 1.050 -> 1.358 / 1.426 / 1.045 ms; 1280x720 at 64 levels 0.642 -> 0.635 ms.
-#ifndef LANE_RIGHT_BASE
-#define LANE_RIGHT_BASE 1
-#endif
+// The census words of the step at `at` into `data`; INSIDE: every column of the lane's levels is
+// known to lie inside the image (no test). The right words are indexed from a per-lane base,
+// census_right less the lane's first level, opaque to the compiler (`lane_right`, `lane_first` 0),
+// which saves the step a multiply-add.
 template <bool INSIDE>
 __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_left,
                                             const unsigned* __restrict__ lane_right,
@@ -496,19 +397,14 @@ __device__ __forceinline__ void load_census(const unsigned* __restrict__ census_
     }
 }
 
-// HORIZONTAL_REUSE (packed lanes): a horizontal walk's checked steps take their right census
-// words from the set of the step before (one column on, the same columns one level over):
-// rightward (SIGN 1) level first + k's word is the step before's level first + k - 1, the
-// lowest level's the lower lane's highest (a shuffle), lane 0's a new load; leftward (SIGN
-// -1) mirrored, the highest lane loading. One load and one shuffle a step instead of
-// PER_LANE loads (the words still move between the register sets). Every column a checked
-// step reads lies inside the image, and so did it the step before: those words are real
-// census words, not stand-ins. Measured on the H200 at 2079x1040, the pass with the
-// horizontal walks at 96 / 80 / 64 levels: 0.547 / 0.597 / 0.562 -> 0.537 / 0.562 / 0.531
-// ms (paths 1.360 / 1.418 / 1.043 -> 1.350 / 1.384 / 1.013 ms); 1280x720 equal.
-#ifndef HORIZONTAL_REUSE
+// HORIZONTAL_REUSE (packed lanes): a horizontal walk's checked steps take their right census words
+// from the set of the step before (one column on, the same columns one level over): rightward
+// (SIGN 1) level first + k's word is the step before's level first + k - 1, the lowest level's the
+// lower lane's highest (a shuffle), lane 0's a new load; leftward (SIGN -1) mirrored, the highest
+// lane loading. One load and one shuffle a step instead of PER_LANE loads (the words still move
+// between the register sets). Every column a checked step reads lies inside the image, and so did
+// it the step before: those words are real census words, not stand-ins.
 #define HORIZONTAL_REUSE PACKED
-#endif
 static_assert(!HORIZONTAL_REUSE || PACKED, "HORIZONTAL_REUSE: packed lanes (consecutive levels)");
 template <int SIGN>
 __device__ __forceinline__ void derive_census(const unsigned* __restrict__ census_left,
@@ -568,13 +464,9 @@ __device__ __forceinline__ void load_sums(const unsigned char* cells, unsigned p
 // Halfword h of a lane's path costs in `current` (pairs, each value below 256) with its levels
 // in order: first + 2h in the low byte, first + 2h + 1 in the high.
 __device__ __forceinline__ unsigned ordered_bytes(const unsigned (&current)[PAIRS], int h) {
-#if SPLIT_PAIRS
     const int low = 2 * h, high = 2 * h + 1;
     return __byte_perm(current[low % PAIRS], current[high % PAIRS],
                        2 * (low / PAIRS) | (4 + 2 * (high / PAIRS)) << 4);
-#else
-    return __byte_perm(current[h], 0u, 0x3320);
-#endif
 }
 
 // A step's stores: the lane's PER_LANE bytes of the pixel at `cell` as PAIRS halfwords,
@@ -661,13 +553,8 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
     constexpr int AHEAD = ADD ? PREFETCH_STEPS : WRITE_PREFETCH_STEPS;
     unsigned pixel = (unsigned)(v * width + u);
     Cursor ahead = {pixel, u - first, row_shift + v};
-#if LANE_RIGHT_BASE
     const unsigned* const lane_right = opaque(census_right - first);
     constexpr int lane_first = 0;
-#else
-    const unsigned* const lane_right = census_right;
-    const int lane_first = first;
-#endif
     StepData sets[AHEAD];
 #if SUMS_RING
     // the group's ring: the sums of the pixels of steps step to step + SUMS_RING - 1
@@ -679,7 +566,6 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             copy_sums(ring + s * PATH_LEVELS,
                       pixel_cells + (size_t)(pixel + s * delta) * PATH_LEVELS, sub, s < steps);
     }
-#if SUMS_RUN_COPIES
     // this lane's share of a run's copies: part sub % COPY_PARTS (if a pixel has it) of the
     // run's pixels sub / COPY_PARTS, that + COPY_STEP_LANES, ...; the lane's first source
     // byte less the run's first pixel's and its ring bytes' offset in an entry
@@ -688,7 +574,6 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
     const int copy_source = copy_first * delta * PATH_LEVELS + 16 * copy_part;
     const int copy_stride = COPY_STEP_LANES * delta * PATH_LEVELS;
     const unsigned copy_ring = ring + 16 * copy_part;
-#endif
 #endif
     if (ADD && SUMS_L2_AHEAD > 0) {
 #pragma unroll 1
@@ -740,9 +625,9 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
 #if SUMS_RING
         if (ADD) {
             // this step's copies are done once at most SUMS_COPY_AHEAD - 1 later groups are
-            // pending; the warp's barrier then shows each lane what the others copied (a
-            // checked run waits before its first step: SUMS_RUN_COPIES)
-            if (!(FAST && SUMS_RUN_COPIES)) {
+            // pending; the warp's barrier then shows each lane what the others copied (a checked
+            // run waits before its first step)
+            if (!FAST) {
                 asm volatile("cp.async.wait_group %0;" : : "n"(SUMS_COPY_AHEAD - 1));
                 __syncwarp();
             }
@@ -752,7 +637,7 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             for (int w = 0; w < OLD_WORDS; ++w)
                 asm volatile("ld.shared.u16 %0, [%1];"
                              : "=r"(old[w]) : "r"(at + 2 * PAIR_STRIDE(INTERLEAVED_PAIRS) * w));
-            if (FAST && SUMS_RUN_COPIES) {
+            if (FAST) {
                 asm volatile("cp.async.commit_group;");
             } else {
                 // into an entry read before the barrier
@@ -793,7 +678,7 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             load_census<false>(census_left, lane_right, lane_first, ahead, data);
         if (ADD && !SUMS_RING && (FAST || step + OLD_AHEAD < steps))
             load_sums(cells, pixel + sums_delta, later);
-        if (ADD && SUMS_L2_AHEAD > 0 && !(FAST && SUMS_RUN_COPIES)
+        if (ADD && SUMS_L2_AHEAD > 0 && !FAST
             && step + SUMS_L2_AHEAD < steps)
             prefetch_sums(cells, pixel + l2_delta);
         ahead.pixel += delta;
@@ -812,7 +697,6 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             if (sub == 0) below = FAR_HALF << 16;
             if (sub == LANES - 1) above = FAR_HALF;
             unsigned lower[PAIRS], upper[PAIRS];
-#if SPLIT_PAIRS
             // pair p's neighbours are pairs p - 1 and p + 1; pair 0's lower levels: the lower
             // lane's last and this lane's first + PAIRS - 1 (pair PAIRS - 1's low half); pair
             // PAIRS - 1's upper: this lane's first + PAIRS (pair 0's high half) and the upper
@@ -824,13 +708,6 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
                 lower[p] = previous[p - 1];
                 upper[p - 1] = previous[p];
             }
-#else
-            lower[0] = __funnelshift_l(below, previous[0], 16);
-#pragma unroll
-            for (int p = 1; p < PAIRS; ++p)
-                lower[p] = upper[p - 1] = __funnelshift_l(previous[p - 1], previous[p], 16);
-            upper[PAIRS - 1] = __funnelshift_l(previous[PAIRS - 1], above, 16);
-#endif
             const unsigned jump_less_p1 = minimum + p2_pair - p1_pair;
 #pragma unroll
             for (int p = 0; p < PAIRS; ++p) {
@@ -901,7 +778,7 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             inside = inside && ALL_INSIDE(ahead.column + j * dx - ahead.shift[j * dy]);
         return __all_sync(0xffffffffu, inside);
     };
-#if SUMS_RING && SUMS_RUN_COPIES
+#if SUMS_RING
     // before a checked run: wait for the run's AHEAD entries (in once at most
     // SUMS_COPY_AHEAD - AHEAD later groups are pending), then copy the sums of the run's
     // steps SUMS_COPY_AHEAD on into entries read before the barrier (committed by the run's
@@ -943,7 +820,7 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
     const Flag<false> checked;
     while (true) {
         if (run_ahead()) {
-#if SUMS_RING && SUMS_RUN_COPIES
+#if SUMS_RING
             if (ADD) start_run();
 #endif
             advance(SET(0), fast);
@@ -995,9 +872,7 @@ __device__ __forceinline__ void walk_paths(const unsigned* __restrict__ census_l
 #else
     const unsigned rings = 0u;
 #endif
-    // only in the pass that walks the horizontal lines: the other pass's kernel stays one
-    // walk (measured: with the horizontal walks' copies also in the other kernel, unused, that
-    // pass took 2-5 % longer at 96 and 80 levels)
+    // only in the pass that walks the horizontal lines: the other pass's kernel stays one walk.
     if constexpr (HORIZONTAL_REUSE && ADD == (HORIZONTALS_SECOND != 0)) {
         if (DIRECTION_DY[direction] == 0) {
             if (DIRECTION_DX[direction] > 0)
@@ -1026,25 +901,14 @@ sgm_paths_add(const unsigned* census_left, const unsigned* census_right, const i
 }
 
 // One block per row. Sum of the four slots, winner, uniqueness, the right view's winners
-// (shared-memory atomicMin of cost << 16 | d per right column); then, once the row is
-// searched, subpixel and the left-right check, a thread per pixel. A group of SELECT_LANES
-// threads takes one pixel at a time; the groups of a warp go through the row together (a
-// group past the row's end reads the last pixel and writes nothing), so the group minima are
-// whole-warp operations. A lane holds its levels' totals as halfword pairs (pair h: its
-// levels 2h, low half, and 2h + 1) and searches them two at a time: the winner as the least
-// total << 5 | the level's index in the lane, the runner-up beyond the winner's neighbours
-// with those three raised by a multiple of 2048 (DPX halfword arithmetic). raw: D0, -1
-// invalid. Measured on the H200 at 2079x1040, 96 / 80 / 64 levels: one level at a time with
-// the subpixel step in the loop 0.254 / 0.267 / 0.197 ms; two at a time, subpixel and
-// left-right check a pixel a thread after the row 0.226 / 0.246 / 0.168 ms; with the
-// atomics unconditional and slot pairs added as bytes (SLOT_PAIR_BYTES) 0.216 / 0.220 /
-// 0.150 ms.
-// Threads of a winner search block (the launcher's census_sgm.select_threads): measured on
-// the H200 at 2079x1040, 96 / 80 / 64 levels: 256 threads 0.281 / 0.296 / 0.217 ms, 512
-// threads 0.276 / 0.288 / 0.201, 128 threads 0.315 / 0.319 / 0.234.
-#ifndef SELECT_THREADS
-#define SELECT_THREADS 512
-#endif
+// (shared-memory atomicMin of cost << 16 | d per right column); then, once the row is searched,
+// subpixel and the left-right check, a thread per pixel. A group of SELECT_LANES threads takes one
+// pixel at a time; the groups of a warp go through the row together (a group past the row's end
+// reads the last pixel and writes nothing), so the group minima are whole-warp operations. A lane
+// holds its levels' totals as halfword pairs (pair h: its levels 2h, low half, and 2h + 1) and
+// searches them two at a time: the winner as the least total << 5 | the level's index in the lane,
+// the runner-up beyond the winner's neighbours with those three raised by a multiple of 2048 (DPX
+// halfword arithmetic). raw: D0, -1 invalid.
 #define SELECT_PAIRS ((SELECT_PER_LANE + 1) / 2)
 static_assert(SELECT_PER_LANE <= 32, "at most 32 levels per winner search lane");
 // A padded level's total (and that of an odd lane's missing last half): above any real one
@@ -1153,8 +1017,6 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
                 (unsigned short)(halves[k / 2] >> (16 * (k % 2)));
 #endif
         // candidates (total << 16 | d) for the right view's columns u - d, each by an atomic
-        // (a plain read first, and the atomic only where it showed that the candidate can
-        // win, took a branch per level: 0.230 against 0.222 ms at 96 levels)
         unsigned* column = right_best + (u - first_level);
 #pragma unroll
         for (int h = 0; h < SELECT_PAIRS; ++h) {

@@ -1,6 +1,7 @@
 // SLIC on the device: the assignment and the centre update of stages/superpixels.slic, whose
 // NumPy loop is the reference. Distances use the reference's float32 operation order with
 // rounded intrinsics (no fused multiply-add), so labels agree with the CPU.
+// Defined by the launcher (stages/superpixels.py, _kernel): UPDATE_THREADS.
 
 #define FAR_CENTRE 1e9f
 
@@ -38,11 +39,11 @@ extern "C" __global__ void slic_assign(const float* filled, const unsigned char*
 
 // One block per centre: sums over the pixels of the 3x3 cells around it that chose it, then
 // the new centre (position: mean of its pixels; value: mean of its valid pixels).
-extern "C" __global__ void __launch_bounds__(256)
+extern "C" __global__ void __launch_bounds__(UPDATE_THREADS)
 slic_update(const float* filled, const unsigned char* valid, const int* labels,
             float* centre_v, float* centre_u, float* centre_d, int height, int width, int step,
             int cells_x) {
-    __shared__ double partial[5][256];
+    __shared__ double partial[5][UPDATE_THREADS];
     const int label = blockIdx.x;
     const int ci = label / cells_x, cj = label % cells_x;
     const int r0 = max((ci - 1) * step, 0), r1 = min((ci + 2) * step, height);

@@ -1,6 +1,7 @@
 // 2D-histogram threshold on the device. Algorithm and reference: stages/threshold.py
 // (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
 // max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
+// Defined by the launcher (stages/threshold.py, _kernel): TILE, TABLE_THREADS, SEARCH_THREADS.
 
 #include "block_scan.cuh"
 
@@ -40,13 +41,13 @@ struct BinRun {
     }
 };
 
-#define TILE 64
 #define RUN 16
+static_assert(TILE * TILE / RUN == TABLE_THREADS, "a thread per run of a tile");
 
-// One block per TILE x TILE tile, 256 threads, each a run of RUN pixels of one row. g2 = mean
+// One block per TILE x TILE tile, TABLE_THREADS threads, each a run of RUN pixels of one row. g2 = mean
 // of the valid 8-neighbours, added in the order of threshold.neighbour_mean (float32, no FMA),
 // so the bins equal the reference's.
-extern "C" __global__ void __launch_bounds__(256)
+extern "C" __global__ void __launch_bounds__(TABLE_THREADS)
 threshold_tables(const float* image, double* tables, int height, int width, float lo,
                  float bin, int n_bins, int in_shared) {
     extern __shared__ double shared_tables[];
@@ -99,10 +100,10 @@ threshold_tables(const float* image, double* tables, int height, int width, floa
     }
 }
 
-// One block of 1024 threads. Table 0 becomes its prefix sums (region 1 of split t = index
+// One block of SEARCH_THREADS threads. Table 0 becomes its prefix sums (region 1 of split t = index
 // t), table 1 its suffix sums (region 2 of split t = index t + 1), in place; then the split
 // with the least E2 (first on ties, like argmin). result: found, split index, road mean.
-extern "C" __global__ void __launch_bounds__(1024)
+extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_search(double* tables, double* result, int n_bins) {
     __shared__ double warp_sums[32];
     __shared__ double best_value[32];

@@ -210,8 +210,7 @@ def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> Non
 
 
 # Lines of a path pass times lanes below this share of the device's resident threads leave
-# it underfilled: the lanes are doubled (see lanes_for). Measured on the H200 only (1280x720
-# below it, 1920x1080 and 2079x1040 above); another device may want another share.
+# it underfilled: the lanes are doubled (see lanes_for).
 FILL_SHARE = 0.4
 
 
@@ -222,10 +221,7 @@ def lanes_for(levels: int, lines: int = 0, resident_threads: int = 0) -> int:
     32-bit word); else the fewest that leave at most 8 (a multiple of 4 where possible), and
     32 (or 16) for longer ranges. Then, while ``lines`` (the path lines of one pass) times the
     lanes fill less than FILL_SHARE of ``resident_threads`` (the device's), twice the lanes
-    as long as each keeps an even number of levels. Measured on the H200, both path passes:
-    64 levels at 1280x720: 8 lanes 1.15 ms, 16 lanes 0.78, 32 lanes 0.68; at 1920x1080: 1.84,
-    1.32, 1.35; 96 levels at 2079x1040: 16 lanes 1.63, 32 lanes 2.00; 128 levels at
-    2079x1040: 16 lanes 2.32, 32 lanes 2.14."""
+    as long as each keeps an even number of levels."""
     lanes = next((candidate for candidate in (32, 16, 8, 4)
                   if levels % candidate == 0 and levels // candidate in (4, 6, 8)), 0)
     if not lanes:
@@ -241,10 +237,7 @@ def path_levels(levels: int) -> int:
     lane count leaves each lane an even 4 to 8 of them (two per 32-bit word), else ``levels``
     + 16 where that does (80 -> 96, 112 -> 128, 176 -> 192, 240 -> 256), else ``levels``.
     The padded levels cost more than any real one (sgm.cu, PADDED), so the path costs and
-    disparities are those of ``levels``, at the speed of the packed kernels. Measured on the
-    H200 at 2079x1040 (model1_03): 80 levels as 16 lanes of 5, paths 1.83 ms and winner
-    search 0.40 ms; held as 96, 1.59 and 0.29 ms (SGM 2.32 -> 1.96 ms); 112 levels as 16
-    lanes of 7, 2.30 and 0.55 ms; held as 128 (32 lanes of 4), 2.26 and 0.47 ms."""
+    disparities are those of ``levels``, at the speed of the packed kernels."""
     for held in (levels, levels + 16):
         if any(held % lanes == 0 and held // lanes in (4, 6, 8) for lanes in (4, 8, 16, 32)):
             return held
@@ -254,9 +247,7 @@ def path_levels(levels: int) -> int:
 def select_lanes_for(levels: int) -> int:
     """Threads per pixel of the GPU winner search (levels: a multiple of 16): the fewest of 4,
     8, 16, 32 that leave each a multiple of 4 levels, at most 12 (32-bit path reads); else the
-    fewest that leave at most 8; 32 (or 16) for longer ranges. Measured on the H200 at
-    2079x1040: 96 levels, 8 lanes 0.27 ms, 16 lanes 0.36 ms, 32 lanes 0.57 ms; 64 levels, 8
-    lanes 0.22 ms, 16 lanes 0.28 ms; 128 levels, 8 lanes 0.48 ms, 16 lanes 0.47 ms."""
+    fewest that leave at most 8; 32 (or 16) for longer ranges."""
     return _fewest_lanes(levels, lambda per_lane: per_lane <= 12 and per_lane % 4 == 0)
 
 
@@ -272,29 +263,21 @@ def _fewest_lanes(levels: int, preferred: Callable[[int], bool]) -> int:
 
 def horizontals_second(levels: int, lanes: int) -> bool:
     """Whether the GPU path kernels walk the horizontal lines in the second pass (with the
-    first pass's sums to read) rather than the first: where a lane holds at most 4 levels.
-    Measured on the H200, both passes: 64 levels, 16 lanes, 2079x1040: 1.35 ms first, 1.21
-    ms second; 1920x1040: 1.30, 1.15; 1280x720, 32 lanes: 0.68, 0.66; 128 levels, 32 lanes:
-    2.11, 2.10; but 96 levels, 16 lanes: 1.63 first, 1.68 second. Measured on the H200 only."""
+    first pass's sums to read) rather than the first: where a lane holds at most 4 levels."""
     return levels // lanes <= 4
 
 
 def path_threads(levels: int, lanes: int) -> int:
     """Threads of a GPU path block for the levels the lanes hold: 128 where each lane holds an
     even count up to 8 (the GPT bands; sgm.cu fits five such blocks on a multiprocessor), else
-    256. Measured on the H200 at 2079x1040, both passes at 96 / 80 / 64 levels: blocks of
-    256, 1.553 / 1.585 / 1.200 ms; of 128, 1.498 / 1.528 / 1.143 ms; 1280x720 at 64 levels
-    (32 lanes of 2) 0.615 and 0.606 ms. Longer ranges were mixed in blocks of 128: paths at
-    304 levels (1920x1040) 6.03 -> 5.73 ms, at 368 levels equal (7.7 ms), the whole frame at
-    384 levels 8.35 -> 8.57 ms; they keep 256."""
+    256."""
     per_lane = levels // lanes
     return 128 if per_lane % 2 == 0 and per_lane <= 8 else 256
 
 
 def select_threads(levels: int, lanes: int) -> int:
     """Threads of a GPU winner search block (one image row): 512 with path_threads' 128, else
-    256. Measured on the H200 at 2079x1040, 96 / 80 / 64 levels: 256 threads 0.281 / 0.296 /
-    0.217 ms, 512 threads 0.276 / 0.288 / 0.201 ms, 128 threads 0.315 / 0.319 / 0.234 ms."""
+    256."""
     return 512 if path_threads(levels, lanes) == 128 else 256
 
 

@@ -123,14 +123,13 @@ def label_on_device(backend: Backend, mask: Any) -> tuple[Any, Any]:
     is_root = xp.empty(size, dtype=xp.int32)
     labels = xp.empty((height, width), dtype=xp.int32)
     grid, block = ((size + 255) // 256,), (256,)
-    kernel = backend.kernel
-    kernel("components.cu", "label_init", {})(
+    _kernel(backend, "label_init")(
         grid, block, (xp.ascontiguousarray(mask, dtype=xp.bool_), parent, np.int32(size)))
-    kernel("components.cu", "label_merge", {})(
+    _kernel(backend, "label_merge")(
         grid, block, (parent, np.int32(height), np.int32(width)))
-    kernel("components.cu", "label_flatten", {})(grid, block, (parent, is_root, np.int32(size)))
+    _kernel(backend, "label_flatten")(grid, block, (parent, is_root, np.int32(size)))
     root_count = xp.cumsum(is_root, dtype=xp.int32)
-    kernel("components.cu", "label_number", {})(
+    _kernel(backend, "label_number")(
         grid, block, (parent, root_count, labels, np.int32(size)))
     return labels, root_count[-1:]
 
@@ -164,10 +163,9 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
     height, width = valid.shape
     small_height, small_width = small.shape
     i32 = np.int32
-    kernel = backend.kernel
     first = xp.empty(height, dtype=xp.int32)
     last = xp.empty(height, dtype=xp.int32)
-    kernel("components.cu", "row_extents", {})(
+    _kernel(backend, "row_extents")(
         ((height + 7) // 8,), (256,),
         (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
     words = _words(n_superpixels)
@@ -177,19 +175,25 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
     side = int(round(corner_fraction * min(height, width)))
     size = height * width
     grid = ((size + 255) // 256,)
-    kernel("components.cu", "component_marks", {})(
+    _kernel(backend, "component_marks")(
         grid, (256,),
         (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last,
          i32(height), i32(width), i32(factor), i32(small_height), i32(small_width), i32(side),
          i32(words), i32(capacity), touched, held, present))
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
-    kernel("components.cu", "component_keep", {})(
+    _kernel(backend, "component_keep")(
         (1,), (1024,), (touched, held, count, i32(capacity), i32(min_superpixels), new_id,
                         counts[1:2]))
     counts[0:1] = count
     counts[2:3] = touched[0:1]
     labels = xp.empty((height, width), dtype=xp.int32)
-    kernel("components.cu", "component_relabel", {})(
+    _kernel(backend, "component_relabel")(
         grid, (256,), (small, new_id, labels, i32(height), i32(width), i32(factor),
                        i32(small_height), i32(small_width), i32(capacity)))
     return labels
+
+
+def _kernel(backend: Backend, name: str) -> Any:
+    """Kernel ``name`` of kernels/components.cu."""
+    return backend.kernel("components.cu", name, {})
+

@@ -4,8 +4,8 @@ Two matchers (``matcher`` parameter): ``census`` is our census SGM (stages/censu
 the GPU in CUDA kernels, on the CPU as its slow NumPy reference; ``opencv`` runs OpenCV's
 StereoSGBM (Birchfield-Tomasi cost on Sobel-prefiltered images, path aggregation with P1/P2,
 parabola subpixel, uniqueness, speckle filter) on the pair and on the mirrored pair for our own
-left-right check (OpenCV 5's internal check, disp12MaxDiff, was measured to drop nothing); a
-3x3 median follows. Disparities are float32 pixels with NaN where invalid."""
+left-right check (OpenCV's own, disp12MaxDiff, is left off); a 3x3 median follows.
+Disparities are float32 pixels with NaN where invalid."""
 
 from __future__ import annotations
 

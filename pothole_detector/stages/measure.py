@@ -11,7 +11,7 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
 from .components import relabel
-from .road_model import RoadModel, device_params
+from .road_model import PARAM_LAYOUT, RoadModel, device_params
 
 
 @dataclass(frozen=True)
@@ -155,8 +155,10 @@ def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
          extremes[:, 1:].astype(np.float64)]))
 
 
+# per-label float64 sums and int32 extremes of measure (kernels/measure.cu), its block size
 MEASURE_SUMS = 7
 MEASURE_EXTREMES = 5
+MEASURE_THREADS = 256
 
 
 def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
@@ -174,7 +176,7 @@ def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: 
     pixels = height * width
     f64 = np.float64
     _kernel(backend, "measure_potholes")(
-        ((pixels + 255) // 256,), (256,),
+        (-(-pixels // MEASURE_THREADS),), (MEASURE_THREADS,),
         (xp.ascontiguousarray(labels, dtype=xp.int32),
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
          f64(calibration.f), f64(calibration.cx), f64(calibration.cy), f64(calibration.fb),
@@ -213,6 +215,7 @@ def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothol
 
 
 def _kernel(backend: Backend, name: str) -> Any:
-    """Kernel ``name`` of kernels/measure.cu."""
-    return backend.kernel("measure.cu", name, {})
+    """Kernel ``name`` of kernels/measure.cu with the numbers it shares with this module."""
+    return backend.kernel("measure.cu", name, {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
+                                               "THREADS": MEASURE_THREADS, **PARAM_LAYOUT})
 

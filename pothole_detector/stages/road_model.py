@@ -21,6 +21,20 @@ from ..errors import NoRoadError
 # Coordinates of the quadratic correction are divided by this (px), for conditioning.
 CURVATURE_SCALE_PX = 1000.0
 
+# The road fit report (float64 (ROAD_REPORT,)): status (0 fitted, else a key of FIT_FAILURES),
+# valid count, planar a0, a1, roll (rad), planar inliers and sigma (px), curvature c0..c5,
+# quadratic inliers and sigma (px). Read and written by name here and in kernels/road.cu.
+FIT_LAYOUT = {"FIT_STATUS": 0, "FIT_VALID": 1, "FIT_A0": 2, "FIT_A1": 3, "FIT_ROLL": 4,
+              "FIT_PLANAR_INLIERS": 5, "FIT_PLANAR_SIGMA": 6, "FIT_CURVATURE": 7,
+              "FIT_QUADRATIC_INLIERS": 13, "FIT_QUADRATIC_SIGMA": 14, "ROAD_REPORT": 15}
+ROAD_REPORT = FIT_LAYOUT["ROAD_REPORT"]
+# A road model as the kernels read it (RoadModel.kernel_params, float64 (ROAD_PARAMS,)): a0, a1,
+# cos(roll), sin(roll), c0..c5 (zeros for a planar model), curved (1.0 for a quadratic model).
+PARAM_LAYOUT = {"ROAD_A0": 0, "ROAD_A1": 1, "ROAD_COS": 2, "ROAD_SIN": 3, "ROAD_C0": 4,
+                "ROAD_CURVED": 10, "ROAD_PARAMS": 11}
+ROAD_PARAMS = PARAM_LAYOUT["ROAD_PARAMS"]
+_F = FIT_LAYOUT
+
 
 @dataclass(frozen=True)
 class RoadModel:
@@ -88,9 +102,14 @@ class RoadModel:
         """The model as the GPU kernels read it (float64 (ROAD_PARAMS,)): a0, a1, cos(roll),
         sin(roll), c0..c5 (zeros for a planar model), curved (1.0 for a quadratic model)."""
         curved = self.kind != "planar"
-        curvature = self.curvature if curved else (0.0,) * 6
-        return np.array([self.a0, self.a1, math.cos(self.roll_rad), math.sin(self.roll_rad),
-                         *curvature, float(curved)], dtype=np.float64)
+        layout = PARAM_LAYOUT
+        params = np.zeros(ROAD_PARAMS)
+        params[[layout["ROAD_A0"], layout["ROAD_A1"], layout["ROAD_COS"], layout["ROAD_SIN"],
+                layout["ROAD_CURVED"]]] = (self.a0, self.a1, math.cos(self.roll_rad),
+                                           math.sin(self.roll_rad), float(curved))
+        if curved:
+            params[layout["ROAD_C0"]:layout["ROAD_C0"] + 6] = self.curvature
+        return params
 
     def as_dict(self) -> dict:
         return {"a0": self.a0, "a1": self.a1, "roll_deg": self.roll_deg,
@@ -231,7 +250,7 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
             residual = d - model.at(xp, u, v)
             sigma = _robust_sigma(xp, residual, mask)
             mask = valid & (xp.abs(residual) <= outlier_k * xp.maximum(sigma, 1e-3))
-        inliers, sigma_px, report[1] = to_host(xp.stack(
+        inliers, sigma_px, report[_F["FIT_VALID"]] = to_host(xp.stack(
             [mask.sum(), sigma, valid.sum()]).astype(xp.float64))
         return model, inliers, sigma_px
 
@@ -240,12 +259,13 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
         return RoadModel(a0, a1, phi)
 
     try:
-        planar, report[5], report[6] = robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
+        planar, report[_F["FIT_PLANAR_INLIERS"]], report[_F["FIT_PLANAR_SIGMA"]] = \
+            robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
     except RoadFitFailed as failure:
-        report[0] = failure.status
+        report[_F["FIT_STATUS"]] = failure.status
         return report
-    report[0] = 0
-    report[2:5] = planar.a0, planar.a1, planar.roll_rad
+    report[_F["FIT_STATUS"]] = 0
+    report[[_F["FIT_A0"], _F["FIT_A1"], _F["FIT_ROLL"]]] = planar.a0, planar.a1, planar.roll_rad
     if kind == "planar":
         return report
     design = _curvature_design(xp, d.shape, u, v)
@@ -255,8 +275,9 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
         return replace(planar, curvature=_fit_curvature(xp, design, planar_residual, mask),
                        kind="quadratic")
 
-    quadratic, report[13], report[14] = robust_rounds(planar, refit_quadratic)
-    report[7:13] = quadratic.curvature
+    quadratic, report[_F["FIT_QUADRATIC_INLIERS"]], report[_F["FIT_QUADRATIC_SIGMA"]] = \
+        robust_rounds(planar, refit_quadratic)
+    report[_F["FIT_CURVATURE"]:_F["FIT_CURVATURE"] + 6] = quadratic.curvature
     return report
 
 
@@ -289,7 +310,7 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
     report = np.empty(ROAD_REPORT) if report is None else report
     params = np.empty(ROAD_PARAMS) if params is None else params
     report[...] = found
-    params[...] = np.nan if found[0] else \
+    params[...] = np.nan if found[_F["FIT_STATUS"]] else \
         model_from_report(found, kind, quadratic_gain).kernel_params()
     return report, params
 
@@ -333,7 +354,7 @@ def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: 
     workspace = xp.zeros(16 + totals_bytes + histogram_count * ROAD_BINS * 4, dtype=xp.uint8)
     report = xp.empty(ROAD_REPORT, dtype=xp.float64) if report is None else report
     params = xp.empty(ROAD_PARAMS, dtype=xp.float64) if params is None else params
-    kernel = backend.kernel("road.cu", "road_fit", {}, cooperative=True)
+    kernel = _kernel(backend, "road_fit", cooperative=True)
     if local_keys and key_bytes > 48 * 1024 - ROAD_STATIC_SHARED_BYTES:
         kernel.max_dynamic_shared_size_bytes = MAX_SHARED_KEY_BYTES
     kernel((blocks,), (ROAD_WARPS * 32,),
@@ -348,23 +369,24 @@ def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: 
 
 
 def model_from_report(report: np.ndarray, kind: str, quadratic_gain: float) -> RoadModel:
-    """The RoadModel of a host copy of :func:`fit_on_device`'s report: [0] status (0 ok, 1
-    fewer than 3 valid, 2 degenerate), [1] valid count, [2..4] a0, a1, roll, [5] planar
-    inliers, [6] planar sigma, [7..12] curvature, [13] quadratic inliers, [14] quadratic sigma.
-    The quadratic model is kept where it lowers the inlier sigma by the fraction
-    ``quadratic_gain`` (kind auto). a0 and a1 stay NumPy float64 scalars, so that the model
-    evaluated on float32 coordinates gives float64 disparities. Raises NoRoadError for a failed
-    fit."""
-    if report[0] != 0:
-        raise NoRoadError(FIT_FAILURES.get(int(report[0]), "the road fit failed"))
-    n_valid = max(report[1], 1.0)
-    planar = RoadModel(report[2], report[3], float(report[4]),
-                       inlier_fraction=float(report[5] / n_valid), sigma_px=float(report[6]))
+    """The RoadModel of a host copy of a fit report (FIT_LAYOUT). The quadratic model is kept
+    where it lowers the inlier sigma by the fraction ``quadratic_gain`` (kind auto). a0 and a1
+    stay NumPy float64 scalars, so that the model evaluated on float32 coordinates gives
+    float64 disparities. Raises NoRoadError for a failed fit."""
+    status = int(report[_F["FIT_STATUS"]])
+    if status != 0:
+        raise NoRoadError(FIT_FAILURES.get(status, "the road fit failed"))
+    n_valid = max(report[_F["FIT_VALID"]], 1.0)
+    planar = RoadModel(report[_F["FIT_A0"]], report[_F["FIT_A1"]],
+                       float(report[_F["FIT_ROLL"]]),
+                       inlier_fraction=float(report[_F["FIT_PLANAR_INLIERS"]] / n_valid),
+                       sigma_px=float(report[_F["FIT_PLANAR_SIGMA"]]))
     if kind == "planar":
         return planar
-    quadratic = replace(planar, curvature=tuple(float(c) for c in report[7:13]),
-                        kind="quadratic", inlier_fraction=float(report[13] / n_valid),
-                        sigma_px=float(report[14]))
+    curvature = report[_F["FIT_CURVATURE"]:_F["FIT_CURVATURE"] + 6]
+    quadratic = replace(planar, curvature=tuple(float(c) for c in curvature), kind="quadratic",
+                        inlier_fraction=float(report[_F["FIT_QUADRATIC_INLIERS"]] / n_valid),
+                        sigma_px=float(report[_F["FIT_QUADRATIC_SIGMA"]]))
     if kind == "auto" and not quadratic.sigma_px < (1.0 - quadratic_gain) * planar.sigma_px:
         return planar
     return quadratic
@@ -378,18 +400,16 @@ def device_params(backend: Backend, model: RoadModel | Any) -> Any:
     return model
 
 
-# kernels/road.cu: warps per block (WARPS), sums (MAX_SUMS), histogram bins (BINS), global
-# histograms one round can use (one per radix pass and median rank), the kernel's own shared
-# memory, and the shared memory left for the keys beside it.
+# kernels/road.cu: warps per block, sums (MAX_SUMS), histogram bins (BINS), global histograms
+# one round can use (one per radix pass and median rank), the kernel's own shared memory, and
+# the shared memory left for the keys beside it.
 ROAD_WARPS = 16
 ROAD_MAX_SUMS = 27
 ROAD_BINS = 4096
 ROAD_HISTOGRAMS_PER_ROUND = 5
 ROAD_STATIC_SHARED_BYTES = 36 * 1024
 MAX_SHARED_KEY_BYTES = 160 * 1024
-# lengths of the road kernel's report and of the kernel parameters of a model
-ROAD_REPORT = 15
-ROAD_PARAMS = 11
+_ROAD_KERNEL = {"THREADS": 32 * ROAD_WARPS, "BINS": ROAD_BINS, "MAX_SUMS": ROAD_MAX_SUMS}
 
 
 @lru_cache(maxsize=4)
@@ -400,3 +420,10 @@ def _coordinate_tables(backend: Backend, height: int, width: int, step: float,
     u = np.arange(width, dtype=np.float64) * step + offset
     v = np.arange(height, dtype=np.float64) * step + offset
     return backend.upload(np.concatenate([u, v, u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX]))
+
+
+def _kernel(backend: Backend, name: str, cooperative: bool = False) -> Any:
+    """Kernel ``name`` of kernels/road.cu with the numbers it shares with this module."""
+    return backend.kernel("road.cu", name, {**_ROAD_KERNEL, **FIT_LAYOUT, **PARAM_LAYOUT},
+                          cooperative=cooperative)
+

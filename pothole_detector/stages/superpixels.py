@@ -19,6 +19,9 @@ import numpy as np
 from ..backend import Backend
 
 
+# block size of the SLIC centre update (kernels/slic.cu, slic_update)
+UPDATE_THREADS = 256
+
 def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
     """Valid-pixel mean of ``factor`` x ``factor`` blocks, and blocks at least half valid."""
     height, width = image.shape[0] // factor, image.shape[1] // factor
@@ -133,10 +136,10 @@ def _slic_gpu_filled(backend: Backend, filled: Any, valid_bytes: Any, region_siz
     centres = xp.empty((3, n_labels), dtype=xp.float32)
     centre_v, centre_u, centre_d = centres
     labels = xp.empty((height, width), dtype=xp.int32)
-    assign = backend.kernel("slic.cu", "slic_assign", {})
-    update = backend.kernel("slic.cu", "slic_update", {})
+    assign = _kernel(backend, "slic_assign")
+    update = _kernel(backend, "slic_update")
     i32 = np.int32
-    backend.kernel("slic.cu", "slic_start", {})(
+    _kernel(backend, "slic_start")(
         ((n_labels + 127) // 128,), (128,),
         (filled, valid_bytes, centre_v, centre_u, centre_d, i32(height), i32(width), i32(step),
          i32(cells_y), i32(cells_x)))
@@ -149,7 +152,7 @@ def _slic_gpu_filled(backend: Backend, filled: Any, valid_bytes: Any, region_siz
     for iteration in range(iterations):
         assign(grid, (32, 8), assign_args)
         if iteration < iterations - 1:
-            update((n_labels,), (256,), update_args)
+            update((n_labels,), (UPDATE_THREADS,), update_args)
     return labels, n_labels
 
 
@@ -225,7 +228,7 @@ def _block_mean_gpu(backend: Backend, image: Any, factor: int) -> tuple[Any, Any
     height, width = image.shape[0] // factor, image.shape[1] // factor
     filled = xp.empty((height, width), dtype=xp.float32)
     valid = xp.empty((height, width), dtype=xp.uint8)
-    backend.kernel("slic.cu", "slic_block_mean", {})(
+    _kernel(backend, "slic_block_mean")(
         ((width + 31) // 32, (height + 7) // 8), (32, 8),
         (xp.ascontiguousarray(image, dtype=xp.float32), np.int32(image.shape[1]),
          np.int32(factor), np.int32(height), np.int32(width), filled, valid))
@@ -253,7 +256,7 @@ def upsample_labels(backend: Backend, labels: Any, factor: int, shape: tuple[int
     height, width = shape
     if backend.is_gpu and labels.dtype == np.int32:
         result = xp.empty((height, width), dtype=xp.int32)
-        backend.kernel("slic.cu", "upsample_labels", {})(
+        _kernel(backend, "upsample_labels")(
             ((width + 31) // 32, (height + 7) // 8), (32, 8),
             (xp.ascontiguousarray(labels), np.int32(labels.shape[0]),
              np.int32(labels.shape[1]), np.int32(factor), np.int32(height), np.int32(width),
@@ -273,13 +276,13 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
     if backend.is_gpu:
         sums = xp.zeros((n_labels, 3), dtype=xp.float64)
         size = transformed.size
-        backend.kernel("slic.cu", "superpixel_sums", {})(
+        _kernel(backend, "superpixel_sums")(
             ((size + 255) // 256,), (256,),
             (xp.ascontiguousarray(transformed, dtype=xp.float32),
              xp.ascontiguousarray(labels, dtype=xp.int32), np.int64(size), sums))
         mean = xp.empty(n_labels, dtype=xp.float32)
         fraction = xp.empty(n_labels, dtype=xp.float32)
-        backend.kernel("slic.cu", "superpixel_finish", {})(
+        _kernel(backend, "superpixel_finish")(
             ((n_labels + 255) // 256,), (256,), (sums, mean, fraction, np.int32(n_labels)))
         return mean, fraction
     valid = xp.isfinite(transformed).ravel()
@@ -291,3 +294,9 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
     mean = xp.where(count_valid > 0, total / xp.maximum(count_valid, 1), xp.nan)
     fraction = count_valid / xp.maximum(count, 1)
     return mean.astype(xp.float32), fraction.astype(xp.float32)
+
+
+def _kernel(backend: Backend, name: str) -> Any:
+    """Kernel ``name`` of kernels/slic.cu with the numbers it shares with this module."""
+    return backend.kernel("slic.cu", name, {"UPDATE_THREADS": UPDATE_THREADS})
+

@@ -17,6 +17,8 @@ HISTOGRAM_BELOW_PX = 128.0
 HISTOGRAM_ABOVE_PX = 64.0
 # Per-block histograms of the GPU kernel stay in shared memory up to this size (bytes).
 MAX_SHARED_TABLE_BYTES = 200 * 1024
+# kernels/threshold.cu: the table kernel's tile side (px) and block size, the search's block size
+_THRESHOLD_KERNEL = {"TILE": 64, "TABLE_THREADS": 256, "SEARCH_THREADS": 1024}
 
 
 def neighbour_mean(xp: Any, image: Any) -> Any:
@@ -123,6 +125,7 @@ def _search(xp: Any, by_high: Any, by_low: Any) -> tuple[bool, int, float]:
 
 def _search_on_device(backend: Backend, transformed: Any, bin_px: float, road_level: float,
                       result: Any) -> Any:
+    """threshold_search on the GPU: the two tables by one kernel, the search by another."""
     xp = backend.xp
     lo, n_bins = histogram_range(bin_px, road_level)
     height, width = transformed.shape
@@ -134,12 +137,12 @@ def _search_on_device(backend: Backend, transformed: Any, bin_px: float, road_le
     in_shared = shared <= MAX_SHARED_TABLE_BYTES
     if in_shared and shared > 48 * 1024:
         histogram.max_dynamic_shared_size_bytes = shared
-    tile = 64
-    histogram(((width + tile - 1) // tile, (height + tile - 1) // tile), (256,),
+    tile = _THRESHOLD_KERNEL["TILE"]
+    histogram((-(-width // tile), -(-height // tile)), (_THRESHOLD_KERNEL["TABLE_THREADS"],),
               (transformed, tables, np.int32(height), np.int32(width), np.float32(lo),
                np.float32(bin_px), np.int32(n_bins), np.int32(in_shared)),
               shared_mem=shared if in_shared else 0)
-    search((1,), (1024,), (tables, result, np.int32(n_bins)))
+    search((1,), (_THRESHOLD_KERNEL["SEARCH_THREADS"],), (tables, result, np.int32(n_bins)))
     return result
 
 
@@ -209,6 +212,6 @@ def metric_tolerance_px(xp: Any, u: Any, v: Any, road: RoadModel,
 
 
 def _kernel(backend: Backend, name: str) -> Any:
-    """Kernel ``name`` of kernels/threshold.cu."""
-    return backend.kernel("threshold.cu", name, {})
+    """Kernel ``name`` of kernels/threshold.cu with the numbers it shares with this module."""
+    return backend.kernel("threshold.cu", name, _THRESHOLD_KERNEL)
 

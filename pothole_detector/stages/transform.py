@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend
-from .road_model import RoadModel, device_params
+from .road_model import PARAM_LAYOUT, RoadModel, device_params
 
 
 def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any,
@@ -22,10 +22,16 @@ def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any
     height, width = disparity.shape
     if backend.is_gpu:
         transformed = xp.empty((height, width), dtype=xp.float32)
-        backend.kernel("transform.cu", "transform_disparity", {})(
+        _kernel(backend, "transform_disparity")(
             ((width + 31) // 32, (height + 7) // 8), (32, 8),
             (xp.ascontiguousarray(disparity, dtype=xp.float32), transformed, np.int32(height),
              np.int32(width), device_params(backend, model), np.float32(delta_dt_px)))
         return transformed
     road = model.disparity(xp, height, width, xp.float32)
     return (disparity - road + xp.float32(delta_dt_px)).astype(xp.float32)
+
+
+def _kernel(backend: Backend, name: str) -> Any:
+    """Kernel ``name`` of kernels/transform.cu with the road parameters' layout."""
+    return backend.kernel("transform.cu", name, PARAM_LAYOUT)
+
