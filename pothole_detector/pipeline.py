@@ -9,7 +9,6 @@ graphs, two frames in flight) lives in execution.py, behind these calls.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator, Protocol
 
@@ -210,8 +209,9 @@ class Pipeline:
             join_threshold()
             drop: float | Any = config.delta_pd_px
             if config.threshold_mode != "pixels":
-                drop = thresholding.metric_drop(xp, found.labels, found.count, checkpoint.host_road(report),
-                                   self.calibration, config.delta_pd_m)
+                drop = thresholding.metric_drop(xp, found.labels, found.count,
+                                                checkpoint.host_road(report), self.calibration,
+                                                config.delta_pd_m)
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 config.threshold_reference == "road_mean", found.means, found.valid_fraction,

@@ -891,7 +891,8 @@ def test_cuda_graphs_per_level_count_and_image_size():
     levels = {result.band[1] for result in got}
     assert {key[2] for key in graphed.executor.graphs.keys()} == levels and len(levels) == 2
     got += outcomes(graphed, pairs[7:])
-    assert {key[:2] for key in graphed.executor.graphs.keys()} == {(176, 288)}  # the old size's went
+    # the old size's graphs went
+    assert {key[:2] for key in graphed.executor.graphs.keys()} == {(176, 288)}
     assert_same_results(got, want, graphed_at_least=4)
 
 

@@ -476,7 +476,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             __syncthreads();
             if (state.status != 0) break;
             const unsigned count = (unsigned)state.sums[0];
-            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader) out[FIT_VALID] = state.sums[0];
+            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader)
+                out[FIT_VALID] = state.sums[0];
             // residuals of this round's model, keys of this round's mask, first histogram
             for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
             __syncthreads();

@@ -44,9 +44,9 @@ struct BinRun {
 #define RUN 16
 static_assert(TILE * TILE / RUN == TABLE_THREADS, "a thread per run of a tile");
 
-// One block per TILE x TILE tile, TABLE_THREADS threads, each a run of RUN pixels of one row. g2 = mean
-// of the valid 8-neighbours, added in the order of threshold.neighbour_mean (float32, no FMA),
-// so the bins equal the reference's.
+// One block per TILE x TILE tile, TABLE_THREADS threads, each a run of RUN pixels of one row. g2 =
+// mean of the valid 8-neighbours, added in the order of threshold.neighbour_mean (float32, no
+// FMA), so the bins equal the reference's.
 extern "C" __global__ void __launch_bounds__(TABLE_THREADS)
 threshold_tables(const float* image, double* tables, int height, int width, float lo,
                  float bin, int n_bins, int in_shared) {
@@ -100,8 +100,8 @@ threshold_tables(const float* image, double* tables, int height, int width, floa
     }
 }
 
-// One block of SEARCH_THREADS threads. Table 0 becomes its prefix sums (region 1 of split t = index
-// t), table 1 its suffix sums (region 2 of split t = index t + 1), in place; then the split
+// One block of SEARCH_THREADS threads. Table 0 becomes its prefix sums (region 1 of split t =
+// index t), table 1 its suffix sums (region 2 of split t = index t + 1), in place; then the split
 // with the least E2 (first on ties, like argmin). result: found, split index, road mean.
 extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_search(double* tables, double* result, int n_bins) {
