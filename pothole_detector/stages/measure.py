@@ -159,6 +159,8 @@ def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
 MEASURE_SUMS = 7
 MEASURE_EXTREMES = 5
 MEASURE_THREADS = 256
+_MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
+                    "THREADS": MEASURE_THREADS, **PARAM_LAYOUT}
 
 
 def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
@@ -216,6 +218,5 @@ def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothol
 
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/measure.cu with the numbers it shares with this module."""
-    return backend.kernel("measure.cu", name, {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
-                                               "THREADS": MEASURE_THREADS, **PARAM_LAYOUT})
+    return backend.kernel("measure.cu", name, _MEASURE_DEFINES)
 

@@ -409,8 +409,9 @@ ROAD_BINS = 4096
 ROAD_HISTOGRAMS_PER_ROUND = 5
 ROAD_STATIC_SHARED_BYTES = 36 * 1024
 MAX_SHARED_KEY_BYTES = 160 * 1024
-_ROAD_KERNEL = {"THREADS": 32 * ROAD_WARPS, "BINS": ROAD_BINS, "MAX_SUMS": ROAD_MAX_SUMS}
 
+_ROAD_DEFINES = {"THREADS": 32 * ROAD_WARPS, "BINS": ROAD_BINS, "MAX_SUMS": ROAD_MAX_SUMS,
+                 **FIT_LAYOUT, **PARAM_LAYOUT}
 
 @lru_cache(maxsize=4)
 def _coordinate_tables(backend: Backend, height: int, width: int, step: float,
@@ -424,6 +425,5 @@ def _coordinate_tables(backend: Backend, height: int, width: int, step: float,
 
 def _kernel(backend: Backend, name: str, cooperative: bool = False) -> Any:
     """Kernel ``name`` of kernels/road.cu with the numbers it shares with this module."""
-    return backend.kernel("road.cu", name, {**_ROAD_KERNEL, **FIT_LAYOUT, **PARAM_LAYOUT},
-                          cooperative=cooperative)
+    return backend.kernel("road.cu", name, _ROAD_DEFINES, cooperative=cooperative)
 

@@ -21,6 +21,7 @@ from ..backend import Backend
 
 # block size of the SLIC centre update (kernels/slic.cu, slic_update)
 UPDATE_THREADS = 256
+_SLIC_DEFINES = {"UPDATE_THREADS": UPDATE_THREADS}
 
 def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
     """Valid-pixel mean of ``factor`` x ``factor`` blocks, and blocks at least half valid."""
@@ -298,5 +299,5 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
 
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/slic.cu with the numbers it shares with this module."""
-    return backend.kernel("slic.cu", name, {"UPDATE_THREADS": UPDATE_THREADS})
+    return backend.kernel("slic.cu", name, _SLIC_DEFINES)
 
