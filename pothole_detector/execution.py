@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterable, Iterator
 
@@ -210,7 +211,9 @@ class FrameExecutor:
     (:meth:`run_stream`) on its backend."""
 
     def __init__(self, pipeline: Pipeline) -> None:
-        self.pipeline = pipeline
+        # the pipeline owns its executor: a weak reference lets a dropped pipeline, and the
+        # device memory of its buffers and graphs, go at once rather than at the next collection
+        self.pipeline = weakref.proxy(pipeline)
         self.backend: Backend = pipeline.backend
         self.graphs = FrameGraphs()
         self._uploads: dict[tuple[int, int], list[UploadBuffer]] = {}

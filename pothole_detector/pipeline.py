@@ -139,7 +139,7 @@ class Pipeline:
         error it raised (the stream goes on after an error), the same results as :meth:`run`
         pair after pair; on the GPU the next pair is uploaded and queued while the device
         works on this one (execution.FrameExecutor.run_stream)."""
-        return self.executor.run_stream(pairs)
+        yield from self.executor.run_stream(pairs)
 
     def match_pair(self, left: np.ndarray, right: np.ndarray) -> tuple[Any, int]:
         """D1 of a host pair (float32 HxW px, NaN invalid, on the backend) and the number of

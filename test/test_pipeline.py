@@ -266,3 +266,24 @@ def test_frame_graphs_run_without_graphs_after_a_failed_capture(caplog):
         assert graphs.get(key, 1, failing) is None
     assert "running without graphs" in caplog.text and "not permitted" in caplog.text
     assert graphs.get(key, 1, failing) is None and calls == [key] and graphs.failed
+
+
+def test_a_dropped_pipeline_is_freed_at_once_and_a_stream_keeps_its_own(demo_sample):
+    """No reference cycle holds a pipeline (and the device memory of its buffers and graphs)
+    until the next garbage collection; a stream of a pipeline nobody else holds still runs."""
+    import gc
+    import weakref
+    pairs = [(demo_sample.left, demo_sample.right)] * 2
+    gc.disable()
+    try:
+        pipeline = Pipeline(Config(), demo_sample.calibration)
+        pipeline.run(*pairs[0])
+        list(pipeline.run_stream(pairs))
+        alive = weakref.ref(pipeline)
+        del pipeline
+        assert alive() is None
+    finally:
+        gc.enable()
+    stream = Pipeline(Config(), demo_sample.calibration).run_stream(pairs)
+    gc.collect()
+    assert [len(result.potholes) for result in stream] == [3, 3]
