@@ -65,7 +65,8 @@ PARAMETERS: tuple[Param, ...] = (
           "Largest disparity (px, full resolution) searched by the coarse seed pass and by "
           "matching when GPT is off.", 16, 2048),
     Param("coarse_scale", int, 4,
-          "Downscale factor of the coarse full-range pass that seeds the road model.", 1, 8),
+          "Downscale factor of the coarse full-range pass that seeds the road model; 0: from "
+          "the image width (the seed then works on about 512 columns).", 0, 8),
     Param("gpt_enabled", bool, True,
           "Match the perspective-transformed pair in a narrow band (true) or the raw pair over "
           "the full range (false)."),

@@ -120,6 +120,7 @@ class Pipeline:
         # the seed pass's matcher: buffers of its own size, path costs in the frame matcher's
         self._seed_matcher = matching.Matcher(backend, lender=self.matcher)
         self.road: road_model.RoadModel | None = None
+        self._refused = 0  # frames refused in a row
         self._band_memo: tuple[Any, Config, tuple[int, ...], tuple[np.ndarray, int]] | None \
             = None
         self.executor = FrameExecutor(self)
@@ -127,6 +128,7 @@ class Pipeline:
     def reset(self) -> None:
         """Forget the previous frame's road model; the next frame runs the seed pass."""
         self.road = None
+        self._refused = 0
 
     def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:
         """Detect potholes in a rectified pair of host images (HxW mono or HxWx3 RGB, uint8 or
@@ -243,8 +245,9 @@ class Pipeline:
                      pixels: int) -> road_model.RoadModel:
         """The road model of a host copy of a frame's road fit report once the frame passes the
         checks (enough valid disparities, a fit, enough inliers); kept for the next frame's
-        band. A frame that fails them resets the pipeline and raises NoTextureError or
-        NoRoadError."""
+        band. A frame that fails them raises NoTextureError or NoRoadError; the road model it
+        came with carries on to the next frame, unless the frame before was refused too, when
+        the pipeline resets (the next frame is seeded)."""
         config = self.config
         try:
             if valid_count / pixels < config.min_valid_fraction:
@@ -260,8 +263,11 @@ class Pipeline:
                     f"fit one (need {config.min_road_inlier_fraction:.0%}); is the camera "
                     "looking at the road?")
         except PotholeError:
-            self.reset()
+            self._refused += 1
+            if self._refused > 1 or self.road is None:
+                self.reset()
             raise
+        self._refused = 0
         self.road = road
         return road
 
@@ -302,22 +308,54 @@ class Pipeline:
             coordinate_offset=(scale - 1.0) / 2.0)
 
     def _seed(self, left: Any, right: Any) -> road_model.RoadModel:
-        """Road model from a full-range match of the (backend) pair reduced by coarse_scale."""
+        """Road model from a full-range match of the (backend) pair reduced by the seed scale
+        (``coarse_scale``, or from the image width where it is 0). Where that finds too few
+        disparities or no road, it tries again without the left-right check (over a range near
+        half the image width the check leaves few pixels whose partner was matched; the robust
+        road fit rejects the outliers it would), then on the pair reduced half as much."""
+        scale = seed_scale(left.shape[1], self.config.coarse_scale)
+        tries = dict.fromkeys(((scale, True), (scale, False), (max(1, scale // 2), False)))
+        failure: PotholeError | None = None
+        for factor, checked in tries:
+            try:
+                return self._seed_at(left, right, factor, checked)
+            except (NoTextureError, NoRoadError) as exc:
+                failure = exc
+        assert failure is not None
+        raise failure
+
+    def _seed_at(self, left: Any, right: Any, scale: int,
+                 checked: bool) -> road_model.RoadModel:
+        """The seed's road model from the pair reduced by ``scale``, matched over up to half the
+        reduced width, with the left-right check where ``checked``. Enough valid disparities
+        are asked of the columns that the range lets match."""
         config, xp = self.config, self.backend.xp
-        scale = config.coarse_scale
         small_left = matching.downsample(xp, left, scale)
         small_right = matching.downsample(xp, right, scale)
         half_width = small_left.shape[1] // 2
         levels = perspective.round_up_levels(min(config.max_disparity_px / scale, half_width))
         shifts = xp.asarray(perspective.no_shifts(small_left.shape[0]))
-        coarse = self._seed_matcher(small_left, small_right, shifts, levels, config,
+        coarse = self._seed_matcher(small_left, small_right, shifts, levels,
+                                    config if checked else config.replace(lr_max_diff_px=-1),
                                     block_size=min(config.sgm_block_size, 5))
-        if float(xp.isfinite(coarse).mean()) < config.min_valid_fraction:
+        matchable = coarse[:, min(levels, coarse.shape[1] - 1):]
+        if float(xp.isfinite(matchable).mean()) < config.min_valid_fraction:
             raise NoTextureError(
                 "the coarse seed pass found almost no disparities: the images lack texture, "
                 "are not a rectified pair, or the road is beyond max_disparity_px"
             )
         return self._fit(coarse, stride=1, scale=float(scale))
+
+def seed_scale(width: int, coarse_scale: int) -> int:
+    """The seed pass's reduction of an image ``width`` px wide: ``coarse_scale``, or where that
+    is 0, the factor that leaves the seed about SEED_COLUMNS columns."""
+    if coarse_scale > 0:
+        return coarse_scale
+    return max(1, round(width / SEED_COLUMNS))
+
+
+# columns the seed pass works on where coarse_scale is 0 (auto)
+SEED_COLUMNS = 512
 
 
 def check_pair(left: np.ndarray, right: np.ndarray) -> None:

@@ -269,3 +269,19 @@ def drive_scenes(frames: int = 16, width: int = 640, height: int = 360,
     return [Scene(**{**base.__dict__, "camera_y_m": index * speed_mps / rate_hz,
                      "potholes": DRIVE_POTHOLES})
             for index in range(frames)]
+
+
+def vehicle_scene(width: int = 640, height: int = 480, pitch_deg: float = 15.0,
+                  camera_y_m: float = 0.0, roll_deg: float = 0.0, seed: int = 3) -> Scene:
+    """A vehicle rig (1 m above the road, 0.12 m baseline, focal length 1000 px at 1280 px
+    wide) over three potholes 6-10 cm deep, 3 to 8 m ahead of the start."""
+    return Scene(
+        width=width, height=height, focal_px=1000.0 * width / 1280.0, baseline_m=0.12,
+        camera_height_m=1.0, pitch_deg=pitch_deg, roll_deg=roll_deg, camera_y_m=camera_y_m,
+        texture_seed=seed,
+        potholes=(
+            PotholeShape(-0.4, 3.0, 0.35, 0.25, 0.06, 10.0),
+            PotholeShape(0.8, 5.0, 0.45, 0.3, 0.08, -20.0),
+            PotholeShape(-0.3, 8.0, 0.5, 0.4, 0.1, 0.0),
+        ),
+    )

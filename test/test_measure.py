@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pothole_detector.backend import CPU
 from pothole_detector.stages.measure import (depth_below_road, keep_large, measure_potholes,
@@ -63,3 +64,59 @@ def test_potholes_from_sums_decode_the_device_table():
     negative = np.array([-0.5], np.float32).view(np.int32) ^ np.int32(0x7FFFFFFF)
     (flat,) = potholes_from_sums(sums, np.array([[negative[0], 0, 0, 1, 1]], np.int32))
     assert np.isclose(flat.max_depth_m, -0.5)
+
+
+def _grazing(pitch_deg: float, ahead_m: float):
+    from pothole_detector.synthetic import PotholeShape, Scene, render
+    hole = PotholeShape(0.1, ahead_m, 0.4, 0.3, 0.08, 15.0)
+    sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
+                          camera_height_m=1.0, pitch_deg=pitch_deg, potholes=(hole,)))
+    disparity = sample.disparity.astype(np.float32)
+    labels = sample.labels.astype(np.int32)
+    road = fit_road(np, np.where(labels > 0, np.nan, disparity), rounds=2)
+    return hole, sample, disparity, labels, road
+
+
+def test_a_pothole_seen_at_a_grazing_angle_measures_like_its_shape():
+    """A vehicle rig (1 m high, pitched 15 deg) and a bowl 3 m ahead, seen at about 18 deg:
+    area, depth and volume from the exact disparities within the targets of the truth."""
+    hole, sample, disparity, labels, road = _grazing(15.0, 3.0)
+    (pothole,) = measure_potholes(CPU, labels, 1, disparity, road, sample.calibration)
+    assert pothole.area_m2 == pytest.approx(hole.area_m2, rel=0.05)
+    assert pothole.max_depth_m == pytest.approx(hole.depth_m, rel=0.05)
+    assert pothole.volume_m3 == pytest.approx(hole.volume_m3, rel=0.15)
+    np.testing.assert_allclose(pothole.centroid_cam_m, sample.centroid_cam_m(0), atol=0.12)
+
+
+def test_a_far_pothole_whose_bottom_is_hidden_still_makes_a_sane_report():
+    """9 m ahead at 12 deg the near rim hides the bowl's bottom: the area on the road still
+    comes out (every ray into the bowl crosses the road plane inside it), the depth is what
+    can be seen, positive and finite; rows above the horizon in its label change nothing."""
+    hole, sample, disparity, labels, road = _grazing(12.0, 9.0)
+    (pothole,) = measure_potholes(CPU, labels, 1, disparity, road, sample.calibration)
+    assert pothole.area_m2 == pytest.approx(hole.area_m2, rel=0.15)
+    assert 0 < pothole.max_depth_m <= hole.depth_m * 1.05
+    assert 0 < pothole.volume_m3 <= hole.volume_m3 * 1.2
+    with_sky = labels.copy()
+    with_sky[:5] = 1  # rays that never meet the road plane in front of the camera
+    assert road.at(np, 320.0, 2.0) < 0
+    (widened,) = measure_potholes(CPU, with_sky, 1, disparity, road, sample.calibration)
+    assert widened.area_m2 == pytest.approx(pothole.area_m2)
+    assert np.isfinite([widened.mean_depth_m, widened.volume_m3, *widened.centroid_cam_m]).all()
+
+
+def test_depths_above_the_road_count_as_zero_and_reports_need_finite_positive_numbers():
+    from pothole_detector.stages.measure import MEASURE_SUMS, reportable
+    hole, sample, disparity, labels, road = _grazing(15.0, 3.0)
+    raised = np.where(labels > 0, disparity + 3.0, disparity).astype(np.float32)
+    depth, footprint = depth_below_road(np, *np.nonzero(labels.T > 0), raised.T[labels.T > 0],
+                                        road, sample.calibration)
+    assert depth.min() == 0.0 and (footprint > 0).all()
+    assert measure_potholes(CPU, labels, 1, raised, road, sample.calibration)[0].volume_m3 == 0
+    assert keep_large(measure_potholes(CPU, labels, 1, raised, road, sample.calibration),
+                      0.0)[0] == []
+    sums = np.ones((4, MEASURE_SUMS))
+    sums[1, 3] = 0.0          # no depth below the road
+    sums[2, 4] = np.inf       # a non-finite sum
+    sums[3, 1] = 1e-5         # smaller than the area asked for
+    assert list(reportable(sums, 1e-4)) == [True, False, False, False]

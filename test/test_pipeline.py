@@ -140,9 +140,10 @@ def test_run_stream_yields_each_result_or_error_in_order_and_goes_on(demo_sample
 
 @pytest.mark.parametrize("backend_name", BACKENDS)
 def test_run_stream_gives_what_run_gives_frame_by_frame(backend_name):
-    """Distinct frames of a drive, a blank pair (refused: the next frame seeds again) and a
-    bad pair: every outcome of the stream equals run()'s, the results read only after the whole
-    stream ran (on the GPU the next frame is queued before a frame's result is built)."""
+    """Distinct frames of a drive, a blank pair (refused: the road model carries on to the next
+    frame) and a bad pair: every outcome of the stream equals run()'s, the results read only
+    after the whole stream ran (on the GPU the next frame is queued before a frame's result is
+    built)."""
     samples = [render(scene) for scene in drive_scenes(3, 640, 360, speed_mps=1.5)]
     blank = np.full_like(samples[0].left, 128)
     pairs = [(sample.left, sample.right) for sample in samples]
@@ -160,7 +161,7 @@ def test_run_stream_gives_what_run_gives_frame_by_frame(backend_name):
     assert [type(outcome) for outcome in streamed] == [type(outcome) for outcome in expected]
     assert isinstance(expected[2], NoTextureError) and isinstance(expected[-1], InputError)
     results = [outcome for outcome in streamed if not isinstance(outcome, PotholeError)]
-    assert [result.seeded for result in results] == [True, False, True]
+    assert [result.seeded for result in results] == [True, False, False]
     assert not np.array_equal(to_host(expected[0].labels), to_host(expected[1].labels))
     for got, want in zip(streamed, expected):
         if isinstance(want, PotholeError):
@@ -287,3 +288,49 @@ def test_a_dropped_pipeline_is_freed_at_once_and_a_stream_keeps_its_own(demo_sam
     stream = Pipeline(Config(), demo_sample.calibration).run_stream(pairs)
     gc.collect()
     assert [len(result.potholes) for result in stream] == [3, 3]
+
+
+def test_a_640x480_vehicle_rig_drive_is_processed_frame_by_frame():
+    """A vehicle rig 1 m above the road looking 15 deg down at 640x480: its small disparities
+    (up to 45 px) leave the seed's full-range left-right check almost nothing to keep, so the
+    seed tries again without it; every frame of the drive gets a road with the true roll."""
+    from pothole_detector.synthetic import vehicle_scene
+    samples = [render(vehicle_scene(camera_y_m=0.5 * index)) for index in range(3)]
+    pipeline = Pipeline(Config(), samples[0].calibration)
+    outcomes = list(pipeline.run_stream((s.left, s.right) for s in samples))
+    assert all(not isinstance(outcome, PotholeError) for outcome in outcomes), outcomes
+    assert [outcome.seeded for outcome in outcomes] == [True, False, False]
+    assert all(abs(outcome.road.roll_deg) < 0.5 for outcome in outcomes)
+    for outcome in outcomes:
+        assert all(np.isfinite([p.area_m2, p.max_depth_m, p.volume_m3]).all()
+                   and p.area_m2 > 0 and p.max_depth_m > 0 for p in outcome.potholes)
+
+
+def test_a_failed_seed_tries_again_without_the_check_then_at_half_the_scale(demo_sample,
+                                                                            monkeypatch):
+    pipeline = Pipeline(Config({"coarse_scale": 4}), demo_sample.calibration)
+    tries: list = []
+    seed_at = pipeline._seed_at
+
+    def failing(left, right, scale, checked):
+        tries.append((scale, checked))
+        if len(tries) < 3:
+            raise NoTextureError("no disparities")
+        return seed_at(left, right, scale, checked)
+
+    monkeypatch.setattr(pipeline, "_seed_at", failing)
+    assert pipeline.run(demo_sample.left, demo_sample.right).seeded
+    assert tries == [(4, True), (4, False), (2, False)]
+    tries.clear()
+    monkeypatch.setattr(pipeline, "_seed_at", lambda *args: tries.append(args[2:]) or
+                        (_ for _ in ()).throw(NoRoadError("no road")))
+    pipeline.reset()
+    with pytest.raises(NoRoadError):
+        pipeline.run(demo_sample.left, demo_sample.right)
+    assert tries == [(4, True), (4, False), (2, False)]
+
+
+def test_seed_scale_follows_the_image_width_when_asked():
+    from pothole_detector.pipeline import seed_scale
+    assert seed_scale(2079, 4) == 4 and seed_scale(640, 3) == 3
+    assert [seed_scale(width, 0) for width in (320, 640, 1280, 2079)] == [1, 1, 2, 4]

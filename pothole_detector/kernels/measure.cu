@@ -59,14 +59,17 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
                                      + road[ROAD_C0 + 4] * y)
                               + y * (road[ROAD_C0 + 2] + road[ROAD_C0 + 5] * y);
         const double incidence = normal_x * (uu - cx) / f + normal_y * (vv - cy) / f + normal_z;
+        // measured only where the pixel's ray meets the road plane in front of the camera
+        const bool on_road = road_d > 0.0 && incidence > 0.0;
         const double road_z = fb / road_d;
         const float d = disparity[index];
         const double z = fb / (double)d;
-        const float depth = (float)((z - road_z) * incidence);
-        const double footprint = (double)(float)(road_z * road_z / (f * f * incidence));
+        const float depth = fmaxf((float)((z - road_z) * incidence), 0.0f);
+        const double footprint =
+            on_road ? (double)(float)(road_z * road_z / (f * f * incidence)) : 0.0;
         values[0] = 1.0;
         values[1] = footprint;
-        if (finite(depth)) {
+        if (on_road && d > 0.0f && finite(depth)) {
             values[2] = footprint;
             values[3] = (double)depth * footprint;
             values[4] = (uu - cx) * z / f * footprint;
@@ -113,9 +116,15 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
 }
 
 // One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
-// min_area; new_id numbers the ones that stay 1..m in order (0 for the others and for
-// label 0); kept_after[0] = m. The pipeline's area filter; the host repeats the comparison
-// on the same sums when it reads them back.
+// min_area and its sums make a report (measure.reportable); new_id numbers the ones that stay
+// 1..m in order (0 for the others and for label 0); kept_after[0] = m. The pipeline's area
+// filter; the host repeats the test on the same sums when it reads them back.
+__device__ bool reportable(const double* row, double min_area) {
+    for (int k = 0; k < SUMS; ++k)
+        if (!isfinite(row[k])) return false;
+    return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && row[3] > 0.0;
+}
+
 extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,
                                         double min_area, int* new_id, int* kept_after) {
     if (threadIdx.x != 0 || blockIdx.x != 0) return;
@@ -123,6 +132,6 @@ extern "C" __global__ void measure_keep(const double* sums, const int* kept, int
     int next = 0;
     new_id[0] = 0;
     for (int label = 1; label <= count; ++label)
-        new_id[label] = sums[label * SUMS + 1] >= min_area ? ++next : 0;
+        new_id[label] = reportable(sums + label * SUMS, min_area) ? ++next : 0;
     kept_after[0] = next;
 }

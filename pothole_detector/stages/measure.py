@@ -51,19 +51,25 @@ def road_normal(model: RoadModel, calibration: StereoCalibration) -> np.ndarray:
 
 def depth_below_road(xp: Any, u: Any, v: Any, disparity: Any, model: RoadModel,
                      calibration: StereoCalibration) -> tuple[Any, Any]:
-    """Depth below the road (m, positive into the ground, NaN where the disparity is invalid)
-    and footprint area on the road (m^2) of pixels at columns ``u``, rows ``v`` (px) with
-    ``disparity`` (px); arrays of one shape, float32 results."""
+    """Depth below the road (m, >= 0 into the ground; NaN where the disparity is invalid) and
+    footprint area on the road (m^2) of pixels at columns ``u``, rows ``v`` (px) with
+    ``disparity`` (px); arrays of one shape, float32 results. Only a pixel whose ray meets the
+    road plane in front of the camera has a footprint (else 0) and a depth (else NaN)."""
     normal = road_normal(model, calibration)
     f = calibration.f
     u = u.astype(xp.float32)
     v = v.astype(xp.float32)
     incidence = normal[0] * (u - calibration.cx) / f + normal[1] * (v - calibration.cy) / f \
         + normal[2]
-    road_z = calibration.fb / model.at(xp, u, v)
-    depth = (calibration.fb / disparity - road_z) * incidence
-    footprint = road_z * road_z / (f * f * incidence)
-    return depth.astype(xp.float32), footprint.astype(xp.float32)
+    road_d = model.at(xp, u, v)
+    on_road = (road_d > 0) & (incidence > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        road_z = calibration.fb / road_d
+        depth = xp.maximum(((calibration.fb / disparity - road_z) * incidence)
+                           .astype(xp.float32), 0)
+        footprint = (road_z * road_z / (f * f * incidence)).astype(xp.float32)
+    depth = xp.where(on_road & (disparity > 0), depth, xp.float32(xp.nan))
+    return depth, xp.where(on_road, footprint, xp.float32(0))
 
 
 def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
@@ -92,7 +98,8 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     depth, footprint = depth_below_road(xp, cols, rows, disparity, road, calibration)
     valid = xp.isfinite(depth)
     index = xp.arange(1, count + 1)
-    x, y, z = calibration.back_project(cols, rows, disparity)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y, z = calibration.back_project(cols, rows, disparity)
 
     def total(weights: Any) -> Any:
         return xp.bincount(label, weights=weights.astype(xp.float64), minlength=count + 1)[1:]
@@ -189,13 +196,14 @@ def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: 
 def area_filter(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: int,
                 min_area_m2: float, kept_after: Any) -> Any:
     """Labels 1..kept (backend int32 (1,)) of the int32 HxW ``labels`` whose footprint area in
-    :func:`measure`'s ``sums`` reaches ``min_area_m2``, renumbered 1..m in order (in place on
-    the GPU: a one-thread kernel and a gather, nothing read back); writes m to the backend int32
-    (1,) ``kept_after``. Returns the labels. :func:`keep_large` keeps the same rows."""
+    :func:`measure`'s ``sums`` reaches ``min_area_m2`` and makes a report (:func:`reportable`),
+    renumbered 1..m in order (in place on the GPU: a one-thread kernel and a gather, nothing
+    read back); writes m to the backend int32 (1,) ``kept_after``. Returns the labels.
+    :func:`keep_large` keeps the same rows."""
     xp = backend.xp
     if not backend.is_gpu:
         count = int(kept[0])
-        keep = np.concatenate([[False], sums[1:count + 1, 1] >= min_area_m2])
+        keep = np.concatenate([[False], reportable(sums[1:count + 1], min_area_m2)])
         kept_after[0] = int(keep.sum())
         if kept_after[0] < count:
             labels, _ = relabel(xp, labels, keep)
@@ -207,13 +215,30 @@ def area_filter(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: i
     return xp.take(new_id, labels, out=labels)
 
 
+def reportable(sums: np.ndarray, min_area_m2: float) -> np.ndarray:
+    """Bool (k,) over rows of measure sums (float64 (k, MEASURE_SUMS)): the pothole's sums are
+    finite, its area reaches ``min_area_m2`` and is positive, and it has a measured depth
+    (valid area and depth x area positive): a report with finite, positive numbers."""
+    sums = np.asarray(sums)
+    return np.isfinite(sums).all(axis=1) & (sums[:, 1] >= min_area_m2) & (sums[:, 1] > 0) \
+        & (sums[:, 2] > 0) & (sums[:, 3] > 0)
+
+
 def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothole], np.ndarray]:
-    """The potholes whose area reaches ``min_area_m2``, renumbered 1..m, and the bool (k+1,)
-    keep table over labels 0..k (label 0 never kept)."""
-    keep = np.array([False] + [p.area_m2 >= min_area_m2 for p in potholes])
+    """The potholes that make a report (:func:`reportable`: finite, positive area reaching
+    ``min_area_m2``, positive depth), renumbered 1..m, and the bool (k+1,) keep table over
+    labels 0..k (label 0 never kept)."""
+    keep = np.array([False] + [_reported(p, min_area_m2) for p in potholes])
     kept = [replace(p, label=i)
             for i, p in enumerate((p for p, k in zip(potholes, keep[1:]) if k), 1)]
     return kept, keep
+
+
+def _reported(pothole: Pothole, min_area_m2: float) -> bool:
+    """keep_large's test on a measured pothole: reportable's on the numbers it was made of."""
+    numbers = (pothole.area_m2, pothole.mean_depth_m, pothole.volume_m3, *pothole.centroid_cam_m)
+    return all(math.isfinite(n) for n in numbers) and pothole.area_m2 >= min_area_m2 \
+        and pothole.area_m2 > 0 and pothole.mean_depth_m > 0
 
 
 def _kernel(backend: Backend, name: str) -> Any:
