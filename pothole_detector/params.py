@@ -261,8 +261,9 @@ def default_yaml() -> str:
     """The text of config/pothole_detector.yaml, generated from the table."""
     lines = [
         "# Generated from pothole_detector/params.py (python -m pothole_detector.params).",
-        "# Every parameter with its default; ranges and meaning in the comments.",
-        f"{NODE_NAME}:",
+        "# Every parameter with its default; ranges and meaning in the comments. The key /**",
+        "# applies them to the node under any namespace and name.",
+        "/**:",
         "  ros__parameters:",
     ]
     for param in PARAMETERS:

@@ -57,12 +57,17 @@ def sample_frames(count: int) -> list[dict[str, Any]]:
 
 
 class NodeProcess:
-    """``python -m pothole_detector.node`` in namespace ``namespace`` with ``params``."""
+    """``python -m pothole_detector.node`` in namespace ``namespace`` with ``params``, the
+    parameter file ``params_file`` (the shipped one by default) and, where given, the node
+    renamed ``node_name``."""
 
-    def __init__(self, log: Path, namespace: str = "/stereo", **params: Any) -> None:
+    def __init__(self, log: Path, namespace: str = "/stereo", params_file: Path | None = None,
+                 node_name: str | None = None, **params: Any) -> None:
         args = [sys.executable, "-m", "pothole_detector.node", "--ros-args",
                 "-r", f"__ns:={namespace}",
-                "--params-file", str(REPO / "config" / "pothole_detector.yaml")]
+                "--params-file", str(params_file or REPO / "config" / "pothole_detector.yaml")]
+        if node_name:
+            args += ["-r", f"__node:={node_name}"]
         for name, value in params.items():
             text = str(value).lower() if isinstance(value, bool) else str(value)
             args += ["-p", f"{name}:={text}"]

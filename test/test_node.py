@@ -295,3 +295,27 @@ def test_record_writes_live_topics_as_raw_cdr(tmp_path, probe, frames):
     assert [stamp_ns(m.header) for m in recorded] == [T0, T0 + 1, T0 + 2]
     np.testing.assert_array_equal(conversions.image_to_array(recorded[1]),
                                   conversions.image_to_array(frames[1]["left"]))
+
+
+@pytest.mark.parametrize("params_file", ["shipped", "written"])
+def test_the_parameter_file_applies_under_any_namespace_and_node_name(tmp_path, node_factory,
+                                                                     params_file):
+    """The README's command (`-r __ns:=... --params-file config/pothole_detector.yaml`): the
+    file's `/**` key reaches a node in another namespace under another name."""
+    from rcl_interfaces.srv import GetParameters
+
+    from pothole_detector.params import default_yaml
+    text = default_yaml().replace("delta_dt_px: 32.0", "delta_dt_px: 41.5")
+    path = tmp_path / "params.yaml"
+    path.write_text(text if params_file == "written" else default_yaml())
+    node_factory(namespace="/robot/front", node_name="holes", params_file=path)
+    client_node = rclpy.create_node("parameter_probe")
+    try:
+        client = client_node.create_client(GetParameters, "/robot/front/holes/get_parameters")
+        assert client.wait_for_service(timeout_sec=20.0), "the renamed node did not come up"
+        future = client.call_async(GetParameters.Request(names=["delta_dt_px", "queue_size"]))
+        rclpy.spin_until_future_complete(client_node, future, timeout_sec=10.0)
+        values = [value.double_value or value.integer_value for value in future.result().values]
+    finally:
+        client_node.destroy_node()
+    assert values == [41.5 if params_file == "written" else 32.0, 10]
