@@ -122,6 +122,8 @@ def detection_json(result: PipelineResult) -> dict:
         "backend": result.backend,
         "threshold_px": clean(result.threshold_px),
         "band_px": {"min_shift": result.band[0], "levels": result.band[1]},
+        "observed_range_m": {"near": clean(result.observed_range_m[0]),
+                             "far": clean(result.observed_range_m[1])},
         "timings_ms": {k: round(v, 3) for k, v in result.timings_ms.items()},
         "potholes": [{k: (clean(v) if isinstance(v, float) else v)
                       for k, v in p.as_dict().items()} for p in result.potholes],
@@ -142,7 +144,8 @@ def run_detect(args: argparse.Namespace) -> int:
             result.host("transformed").astype(np.float32))
     write_labels(out / "labels.png", labels)
     (out / "potholes.json").write_text(json.dumps(detection_json(result), indent=2) + "\n")
-    write_rgb(out / "overlay.png", overlay(left, labels, result.potholes))
+    write_rgb(out / "overlay.png", overlay(left, labels, result.potholes,
+                                           result.host("observed")))
     print(f"{len(result.potholes)} pothole(s); road roll {result.road.roll_deg:.2f} deg, "
           f"inliers {result.road.inlier_fraction:.0%}; {result.timings_ms['total']:.0f} ms on "
           f"{result.backend}; wrote {out}")

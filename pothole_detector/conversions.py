@@ -173,10 +173,13 @@ def pointcloud_to_array(msg: PointCloud2) -> np.ndarray:
     return np.frombuffer(bytes(msg.data), dtype=POINT_DTYPE).copy()
 
 
-def potholes_message(potholes: Sequence[Pothole], road: RoadModel | None,
-                     header: Header) -> PotholeArray:
-    """pothole_detector_msgs/PotholeArray of measured potholes and the frame's road model."""
-    msg = PotholeArray(header=header)
+def potholes_message(potholes: Sequence[Pothole], road: RoadModel | None, header: Header,
+                     observed_range_m: tuple[float, float] = (math.nan, math.nan)
+                     ) -> PotholeArray:
+    """pothole_detector_msgs/PotholeArray of measured potholes, the frame's road model and the
+    observed range of the road (near, far: m along the road; NaN where none was observed)."""
+    msg = PotholeArray(header=header, observed_near_m=float(observed_range_m[0]),
+                       observed_far_m=float(observed_range_m[1]))
     if road is not None:
         msg.a0, msg.a1 = float(road.a0), float(road.a1)
         msg.roll_deg = math.degrees(road.roll_rad)

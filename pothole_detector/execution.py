@@ -35,12 +35,14 @@ _log = logging.getLogger(__name__)
 
 @dataclass
 class HostReport:
-    """A frame report read back: its header (float64), threshold search result, components
+    """A frame report read back: its header (float64), threshold search result, observed range
+    (near, far: m along the road), components
     found and kept by the component filters, whether they overflowed the report's tables, and
     the measure sums and extremes."""
 
     header: np.ndarray
     threshold: np.ndarray
+    observed_range: np.ndarray
     components_found: int
     components_kept: int
     overflow: bool
@@ -50,7 +52,8 @@ class HostReport:
 
 class FrameReport:
     """One backend buffer that a frame's stages write their small results into: float64 road
-    fit report (ROAD) and kernel parameters, threshold search result, valid pixel count; int32
+    fit report (ROAD) and kernel parameters, threshold search result, valid pixel count, the
+    observed range (near, far, m); int32
     counts (components found, kept, overflow, kept after the area filter); the measure sums and
     extremes of ``capacity`` labels. Read back in two parts: the header (what the checks need)
     and the whole buffer."""
@@ -59,7 +62,8 @@ class FrameReport:
     _PARAMS = (ROAD[1], ROAD[1] + road_model.ROAD_PARAMS)
     _THRESHOLD = (_PARAMS[1], _PARAMS[1] + 3)
     _VALID = _THRESHOLD[1]
-    HEADER_BYTES = 8 * (_VALID + 1)
+    _OBSERVED = (_VALID + 1, _VALID + 3)
+    HEADER_BYTES = 8 * _OBSERVED[1]
 
     def __init__(self, xp: Any, capacity: int) -> None:
         self.capacity = capacity
@@ -73,6 +77,7 @@ class FrameReport:
         self.road_params = header[slice(*self._PARAMS)]
         self.threshold = header[slice(*self._THRESHOLD)]
         self.valid_count = header[self._VALID:self._VALID + 1]
+        self.observed_range = header[slice(*self._OBSERVED)]
         self.counts = self.buffer[self._counts_at:self._sums_at].view(xp.int32)
         self.sums = self.buffer[self._sums_at:self._extremes_at].view(xp.float64).reshape(
             capacity + 1, measure.MEASURE_SUMS)
@@ -102,6 +107,7 @@ class FrameReport:
         counts = host[self._counts_at:self._sums_at].view(np.int32)
         return HostReport(
             header=header, threshold=header[slice(*self._THRESHOLD)],
+            observed_range=header[slice(*self._OBSERVED)],
             components_found=int(counts[0]), components_kept=int(counts[1]),
             overflow=bool(counts[2]),
             sums=host[self._sums_at:self._extremes_at].view(np.float64).reshape(
@@ -406,7 +412,7 @@ class FrameExecutor:
             frame.arrays = FrameArrays(
                 arrays.disparity.copy(), arrays.transformed.copy(), None,
                 superpixels.Superpixels(None, found.count, found.labels.copy(), None, None),
-                arrays.candidate.copy(), arrays.labels.copy())
+                arrays.candidate.copy(), arrays.labels.copy(), arrays.observed.copy())
 
     def _wait(self, frame: _Frame, readback: Readback) -> np.ndarray:
         """A readback's bytes; the wait counts into the frame's host_wait on the GPU."""
@@ -461,7 +467,9 @@ class FrameExecutor:
         lowest, highest = perspective.shift_range(frame.shifts, arrays.disparity.shape[1])
         return PipelineResult(
             disparity=arrays.disparity, transformed=arrays.transformed, labels=arrays.labels,
-            superpixels=arrays.superpixels.labels, road=frame.road,
+            superpixels=arrays.superpixels.labels, observed=arrays.observed,
+            observed_range_m=(float(host.observed_range[0]), float(host.observed_range[1])),
+            road=frame.road,
             threshold_px=road_mean if config.threshold_reference == "road_mean" else t_r,
             band=(lowest, int(frame.levels)),
             disparity_range=(float(lowest), float(highest + frame.levels - 1)),

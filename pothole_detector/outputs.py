@@ -57,7 +57,8 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
 
     made = Outputs()
     messages = made.messages
-    messages["potholes"] = conversions.potholes_message(result.potholes, result.road, header)
+    messages["potholes"] = conversions.potholes_message(result.potholes, result.road, header,
+                                                        result.observed_range_m)
     if "disparity" in wanted:
         messages["disparity"] = conversions.disparity_message(
             array("disparity"), calibration, result.disparity_range, header)
@@ -75,6 +76,6 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
         messages["pothole_markers"] = conversions.markers_message(
             array("labels"), result.potholes, result.road, calibration, header)
     if "overlay" in wanted:
-        made.overlay = overlay(left, array("labels"), result.potholes)
+        made.overlay = overlay(left, array("labels"), result.potholes, array("observed"))
         messages["overlay"] = conversions.array_to_image(made.overlay, "rgb8", header)
     return made

@@ -23,7 +23,7 @@ from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
 
 _log = logging.getLogger(__name__)
-ARRAY_FIELDS = ("disparity", "transformed", "labels", "superpixels")
+ARRAY_FIELDS = ("disparity", "transformed", "labels", "superpixels", "observed")
 
 
 @dataclass
@@ -32,7 +32,11 @@ class PipelineResult:
     hands NumPy copies.
 
     ``disparity`` (D1) and ``transformed`` (D2) are float32 HxW px, NaN where invalid;
-    ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW;
+    ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW; ``observed``
+    bool (superpixel count,): where the road is observed, i.e. a pothole ``delta_pd_m`` deep
+    would stand out of the disparity noise (``host("observed")`` gives it as a bool HxW mask);
+    ``observed_range_m`` (near, far): the distance along the road (m, from the point below the
+    camera) that the observed superpixels span, NaN where none is;
     ``band`` (lowest GPT shift, levels) and ``disparity_range`` (lowest, highest disparity the
     matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU, where the
     threshold search runs beside SLIC on a second stream and ``threshold`` times what is left
@@ -47,6 +51,8 @@ class PipelineResult:
     transformed: Any
     labels: Any
     superpixels: Any
+    observed: Any
+    observed_range_m: tuple[float, float]
     road: road_model.RoadModel
     threshold_px: float
     band: tuple[int, int]
@@ -61,13 +67,16 @@ class PipelineResult:
         GPU, the array itself on the CPU."""
         if name not in ARRAY_FIELDS:
             raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
+        if name == "observed":
+            return to_host(self.observed)[to_host(self.superpixels)]
         return to_host(getattr(self, name))
 
 
 @dataclass
 class FrameArrays:
     """What :meth:`Pipeline.stages` leaves on the backend: D1, D2, the valid mask, the
-    superpixels, the candidate mask on the SLIC grid and the pothole labels."""
+    superpixels, the candidate mask on the SLIC grid, the pothole labels and the bool
+    per-superpixel mask of where the road is observed."""
 
     disparity: Any
     transformed: Any
@@ -75,6 +84,7 @@ class FrameArrays:
     superpixels: superpixels.Superpixels
     candidate: Any
     labels: Any
+    observed: Any = None
 
 
 class FrameReport(Protocol):
@@ -85,6 +95,7 @@ class FrameReport(Protocol):
     road_params: Any
     threshold: Any
     valid_count: Any
+    observed_range: Any
     counts: Any
     sums: Any
     extremes: Any
@@ -209,6 +220,10 @@ class Pipeline:
                                             config.slic_downsample)
         with clock.stage("threshold"):
             join_threshold()
+            observed = thresholding.observation(
+                backend, transformed.shape, config.slic_region_size_px, config.slic_downsample,
+                report.road_params, report.road, self.calibration, config.delta_pd_m,
+                report.observed_range)
             drop: float | Any = config.delta_pd_px
             if config.threshold_mode != "pixels":
                 drop = thresholding.metric_drop(xp, found.labels, found.count,
@@ -216,10 +231,11 @@ class Pipeline:
                                                 config.delta_pd_m)
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
-                config.threshold_reference == "road_mean", found.means, found.valid_fraction,
-                drop, config.superpixel_min_valid_fraction)
+                config.threshold_reference == "road_mean", found.means,
+                xp.where(observed, found.valid_fraction, xp.float32(-1)), drop,
+                config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
-        frame = FrameArrays(disparity, transformed, valid, found, candidate, labels=None)
+        frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 

@@ -41,7 +41,8 @@ def drive_bag(tmp_path_factory, drive_frames):
 def test_typestore_knows_our_messages():
     store = bagtools.typestore()
     names = [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/PotholeArray"][1]]
-    assert names == ["header", "a0", "a1", "roll_deg", "inlier_fraction", "potholes"]
+    assert names == ["header", "a0", "a1", "roll_deg", "inlier_fraction", "observed_near_m",
+                     "observed_far_m", "potholes"]
     assert "bbox_px" in [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/Pothole"][1]]
 
 

@@ -38,7 +38,9 @@ def test_detect_writes_the_contract(pair_dir, tmp_path, demo_sample):
     labels = cv2.imread(str(out / "labels.png"), cv2.IMREAD_UNCHANGED)
     assert labels.dtype == np.uint16 and labels.shape == demo_sample.left.shape
     report = json.loads((out / "potholes.json").read_text())
-    assert set(report) >= {"road", "backend", "timings_ms", "potholes"}
+    assert set(report) >= {"road", "backend", "timings_ms", "potholes", "observed_range_m"}
+    near, far = report["observed_range_m"]["near"], report["observed_range_m"]["far"]
+    assert 0 <= near < far < 3  # the demo rig sees about 0.1 to 1.2 m of road
     assert set(report["road"]) >= {"a0", "a1", "roll_deg", "inlier_fraction"}
     assert report["backend"] == "cpu" and len(report["potholes"]) == 3
     for pothole in report["potholes"]:

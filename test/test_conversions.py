@@ -111,7 +111,10 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
     assert outline.type == Marker.LINE_STRIP and outline.points[0] == outline.points[-1]
     road = demo_sample.calibration.fb / result.road.at(np, np.array([0.0]), np.array([0.0]))
     assert all(0.2 < p.z < 3 * road[0] for p in outline.points)
-    array = conversions.potholes_message(result.potholes, result.road, HEADER)
+    array = conversions.potholes_message(result.potholes, result.road, HEADER,
+                                         result.observed_range_m)
+    assert (array.observed_near_m, array.observed_far_m) == result.observed_range_m
+    assert math.isnan(conversions.potholes_message([], None, HEADER).observed_far_m)
     assert array.header.frame_id == "cam"
     assert [p.label for p in array.potholes] == [p.label for p in result.potholes]
     assert array.potholes[0].area_m2 == pytest.approx(result.potholes[0].area_m2)

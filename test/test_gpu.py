@@ -6,6 +6,7 @@ Run on a machine with CUDA and CuPy: ``pytest test/test_gpu.py``.
 from __future__ import annotations
 
 import gc
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -941,3 +942,25 @@ def test_failed_capture_leaves_frames_running_without_graphs(demo_sample, monkey
     got = [pipeline.run(left, right) for _ in range(3)]
     assert pipeline.executor.graphs.failed and not pipeline.executor.graphs.keys()
     assert_same_results(got, expected, graphed_at_least=0)
+
+
+@pytest.mark.parametrize("pitch_deg", [15.0, 55.0])
+def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
+    """The single-block observation kernel against the NumPy reference: the same observed
+    superpixels (up to rounding at the resolvable depth's edge) and the same range."""
+    from pothole_detector.stages import road_model
+    from pothole_detector.synthetic import vehicle_scene
+    sample = render(replace(vehicle_scene(pitch_deg=pitch_deg), potholes=()))
+    report, params = road_model.fit(CPU, sample.disparity.astype(np.float32), stride=2,
+                                    kind="auto")
+    report[road_model.FIT_LAYOUT["FIT_PLANAR_SIGMA"]] = 0.2
+    report[road_model.FIT_LAYOUT["FIT_QUADRATIC_SIGMA"]] = 0.2
+    for depth in (0.004, 0.008, 0.03):
+        want_range = np.empty(2)
+        want = threshold.observation(CPU, sample.left.shape, 32, 2, params, report,
+                                     sample.calibration, depth, want_range)
+        got_range = gpu.xp.empty(2, dtype=gpu.xp.float64)
+        got = threshold.observation(gpu, sample.left.shape, 32, 2, gpu.upload(params),
+                                    gpu.upload(report), sample.calibration, depth, got_range)
+        assert (to_host(got) != want).sum() <= max(1, want.size // 200)
+        np.testing.assert_allclose(to_host(got_range), want_range, rtol=1e-6)

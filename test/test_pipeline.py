@@ -334,3 +334,31 @@ def test_seed_scale_follows_the_image_width_when_asked():
     from pothole_detector.pipeline import seed_scale
     assert seed_scale(2079, 4) == 4 and seed_scale(640, 3) == 3
     assert [seed_scale(width, 0) for width in (320, 640, 1280, 2079)] == [1, 1, 2, 4]
+
+
+def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_never_a_pothole(demo_sample):
+    """A vehicle rig (disparity noise about 0.2 px) resolves a pothole delta_pd_m = 8 mm deep
+    only near the camera: the far road is not observed, no pothole is reported there, and the
+    observed range matches the geometry; the demo rig sees all of its road."""
+    from pothole_detector.synthetic import vehicle_scene
+    sample = render(vehicle_scene(pitch_deg=15.0))
+    config = Config({"threshold_mode": "metres"})
+    result = Pipeline(config, sample.calibration).run(sample.left, sample.right)
+    observed = result.host("observed")
+    assert observed.shape == sample.left.shape and 0.1 < observed.mean() < 0.9
+    assert not (result.host("labels")[~observed] > 0).any()
+    near, far = result.observed_range_m
+    assert 0 < near < far < 6
+    # the resolvable depth at the far end of the observed road, from the geometry alone
+    rows = np.nonzero(observed.any(axis=1))[0]
+    top = rows.min()
+    height = sample.calibration.fb / np.linalg.norm(
+        [-result.road.a1 * np.sin(result.road.roll_rad) * sample.calibration.f,
+         result.road.a1 * np.cos(result.road.roll_rad) * sample.calibration.f,
+         result.road.at(np, sample.calibration.cx, sample.calibration.cy)])
+    assert height == pytest.approx(1.0, rel=0.05)
+    z_top = sample.calibration.fb / result.road.at(np, sample.calibration.cx, float(top))
+    assert far == pytest.approx(np.sqrt(max(z_top ** 2 - height ** 2, 0)), rel=0.25)
+    everywhere = Pipeline(config, demo_sample.calibration).run(demo_sample.left,
+                                                                demo_sample.right)
+    assert everywhere.host("observed").all() and np.isfinite(everywhere.observed_range_m).all()

@@ -1,7 +1,8 @@
 // 2D-histogram threshold on the device. Algorithm and reference: stages/threshold.py
 // (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
 // max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
-// Defined by the launcher (stages/threshold.py, _kernel): TILE, TABLE_THREADS, SEARCH_THREADS.
+// Defined by the launcher (stages/threshold.py, _kernel): TILE, TABLE_THREADS, SEARCH_THREADS,
+// the road fit report's layout (FIT_*) and the road parameters' (ROAD_*).
 
 #include "block_scan.cuh"
 
@@ -186,4 +187,72 @@ extern "C" __global__ void threshold_select(const double* result, double lo, dou
         : mean < (float)__dsub_rn(reference, delta_pd);
     selected[i] = result[0] != 0.0 && finite(mean) && below
                   && valid_fraction[i] > min_valid_fraction;
+}
+
+// Which superpixels can show a pothole depth_m deep (stages/threshold.observation, the
+// reference): one block, a thread per superpixel in turn. Superpixel k sits at the centre of
+// its grid cell (k / cells_x, k % cells_x) of `step` px on the map reduced by `downsample`. It
+// is observed where the ray there meets the road plane in front of the camera and the depth
+// whose disparity drop equals the fit's robust sigma, fB (1 / (d - sigma) - 1 / d) incidence,
+// is at most depth_m. range: nearest and farthest distance (m) along the road plane from the
+// point below the camera of an observed superpixel, NaN where none is. road: the kernel
+// parameters (ROAD_*); fit: the fit report (FIT_*).
+__device__ __forceinline__ double block_reduce(double value, bool minimum, double* shared) {
+    for (int offset = 16; offset > 0; offset >>= 1) {
+        const double other = __shfl_down_sync(0xffffffffu, value, offset);
+        value = minimum ? fmin(value, other) : fmax(value, other);
+    }
+    const int warp = threadIdx.x >> 5, warps = blockDim.x >> 5;
+    __syncthreads();
+    if ((threadIdx.x & 31) == 0) shared[warp] = value;
+    __syncthreads();
+    value = shared[0];
+    for (int w = 1; w < warps; ++w)
+        value = minimum ? fmin(value, shared[w]) : fmax(value, shared[w]);
+    return value;
+}
+
+extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
+threshold_observation(const double* road, const double* fit, int count, int cells_x, int step,
+                      int width, int height, int downsample, double f, double cx, double cy,
+                      double fb, double depth_m, bool* observed, double* range) {
+    __shared__ double partial[SEARCH_THREADS / 32];
+    const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
+                 sin_phi = road[ROAD_SIN], curved = road[ROAD_CURVED];
+    const double* c = road + ROAD_C0;
+    const double sigma = curved != 0.0 ? fit[FIT_QUADRATIC_SIGMA] : fit[FIT_PLANAR_SIGMA];
+    const double beta = -a1 * sin_phi, gamma = a1 * cos_phi;
+    const double raw_x = beta * f, raw_y = gamma * f, raw_z = a0 + beta * cx + gamma * cy;
+    const double norm = sqrt(raw_x * raw_x + raw_y * raw_y + raw_z * raw_z);
+    const double height_m = fb / norm;
+    double nearest = POSITIVE_INFINITY, farthest = -POSITIVE_INFINITY;
+    for (int k = threadIdx.x; k < count; k += blockDim.x) {
+        const double u = fmin((k % cells_x + 0.5) * step, width - 0.5) * downsample;
+        const double v = fmin((k / cells_x + 0.5) * step, height - 0.5) * downsample;
+        const double x = u / 1000.0, y = v / 1000.0;
+        const double d = a0 + a1 * (v * cos_phi - u * sin_phi)
+                         + curved * (c[0] + x * (c[1] + c[3] * x + c[4] * y)
+                                     + y * (c[2] + c[5] * y));
+        const double incidence = raw_x / norm * (u - cx) / f + raw_y / norm * (v - cy) / f
+                                 + raw_z / norm;
+        const bool near_road = d > sigma && incidence > 0.0;
+        const double safe = near_road ? d : 2.0 * sigma + 1.0;
+        const bool seen = near_road
+                          && fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence <= depth_m;
+        observed[k] = seen;
+        if (seen) {
+            const double z = fb / safe, ray_u = (u - cx) / f, ray_v = (v - cy) / f;
+            const double ray2 = z * z * (ray_u * ray_u + ray_v * ray_v + 1.0);
+            const double along = sqrt(fmax(ray2 - height_m * height_m, 0.0));
+            nearest = fmin(nearest, along);
+            farthest = fmax(farthest, along);
+        }
+    }
+    nearest = block_reduce(nearest, true, partial);
+    farthest = block_reduce(farthest, false, partial);
+    if (threadIdx.x == 0) {
+        const double nan = __longlong_as_double(0x7ff8000000000000ll);
+        range[0] = nearest < POSITIVE_INFINITY ? nearest : nan;
+        range[1] = farthest > -POSITIVE_INFINITY ? farthest : nan;
+    }
 }

@@ -392,6 +392,50 @@ def model_from_report(report: np.ndarray, kind: str, quadratic_gain: float) -> R
     return quadratic
 
 
+def params_at(xp: Any, params: Any, u: Any, v: Any) -> Any:
+    """Road disparity (px) at pixels (u, v) of the road model given by its kernel parameters
+    (backend float64 (ROAD_PARAMS,), PARAM_LAYOUT), on the backend with nothing read back."""
+    layout = PARAM_LAYOUT
+    c = [params[layout["ROAD_C0"] + k] for k in range(6)]
+    planar = params[layout["ROAD_A0"]] + params[layout["ROAD_A1"]] * (
+        v * params[layout["ROAD_COS"]] - u * params[layout["ROAD_SIN"]])
+    return planar + params[layout["ROAD_CURVED"]] * _poly(
+        tuple(c), u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX)
+
+
+def _plane(xp: Any, params: Any, calibration: Any) -> tuple[tuple[Any, Any, Any], Any]:
+    """The plane n . P = f B of the linear part of the road model given by its kernel
+    parameters: n = (beta f, gamma f, a0 + beta cx + gamma cy) and |n| (backend scalars)."""
+    layout = PARAM_LAYOUT
+    a0, a1 = params[layout["ROAD_A0"]], params[layout["ROAD_A1"]]
+    beta, gamma = -a1 * params[layout["ROAD_SIN"]], a1 * params[layout["ROAD_COS"]]
+    normal = (beta * calibration.f, gamma * calibration.f,
+              a0 + beta * calibration.cx + gamma * calibration.cy)
+    return normal, xp.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+
+
+def params_normal(xp: Any, params: Any, calibration: Any) -> tuple[Any, Any, Any]:
+    """Unit normal (three backend scalars) of the plane of the linear part of the road model
+    given by its kernel parameters, as measure.road_normal computes it from a RoadModel."""
+    normal, norm = _plane(xp, params, calibration)
+    return normal[0] / norm, normal[1] / norm, normal[2] / norm
+
+
+def params_height(xp: Any, params: Any, calibration: Any) -> Any:
+    """The camera's height (m, a backend scalar) above the plane of the linear part of the
+    road model given by its kernel parameters: f B / |n|."""
+    _, norm = _plane(xp, params, calibration)
+    return calibration.fb / norm
+
+
+def fit_sigma(xp: Any, report: Any, params: Any) -> Any:
+    """The robust disparity sigma (px, a backend scalar) of the chosen model of a fit report
+    and its kernel parameters: the quadratic rounds' where the model is curved."""
+    return xp.where(params[PARAM_LAYOUT["ROAD_CURVED"]] != 0,
+                    report[FIT_LAYOUT["FIT_QUADRATIC_SIGMA"]],
+                    report[FIT_LAYOUT["FIT_PLANAR_SIGMA"]])
+
+
 def device_params(backend: Backend, model: RoadModel | Any) -> Any:
     """Kernel parameters (device float64 (ROAD_PARAMS,)) of a RoadModel (one small upload) or
     of a device parameter array from :func:`fit_on_device` (returned as it is)."""

@@ -210,7 +210,7 @@ def superpixel_grid(backend: Backend, transformed: Any, region_size_px: int,
     (H // downsample, W // downsample) labels and the label count. :func:`upsample_labels`
     gives the full-resolution labels."""
     xp = backend.xp
-    step = _grid_step(region_size_px, downsample)
+    step = grid_step(region_size_px, downsample)
     if backend.is_gpu and downsample > 1:
         return _slic_gpu_filled(backend, *_block_mean_gpu(backend, transformed, downsample),
                                 step, compactness, iterations)
@@ -239,11 +239,27 @@ def _block_mean_gpu(backend: Backend, image: Any, factor: int) -> tuple[Any, Any
 def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
     """The label count :func:`superpixel_grid` returns for an HxW map, from its size alone."""
     height, width = shape[0] // downsample, shape[1] // downsample
-    step = _grid_step(region_size_px, downsample)
+    step = grid_step(region_size_px, downsample)
     return -(-height // step) * -(-width // step)
 
 
-def _grid_step(region_size_px: int, downsample: int) -> int:
+def cell_centres(xp: Any, shape: tuple[int, int], region_size_px: int,
+                 downsample: int = 1) -> tuple[Any, Any]:
+    """Column and row (px of the full-resolution HxW map, float64 (count,)) of the centre of
+    each superpixel's grid cell, in label order: where SLIC starts it, and within a cell of
+    where it ends. Computed on the backend from the size alone."""
+    height, width = shape[0] // downsample, shape[1] // downsample
+    step = grid_step(region_size_px, downsample)
+    cells_x = -(-width // step)
+    label = xp.arange(grid_count(shape, region_size_px, downsample), dtype=xp.float64)
+    row, col = xp.floor(label / cells_x), label % cells_x
+    u = xp.minimum((col + 0.5) * step, width - 0.5) * downsample
+    v = xp.minimum((row + 0.5) * step, height - 0.5) * downsample
+    return u, v
+
+
+def grid_step(region_size_px: int, downsample: int) -> int:
+    """The SLIC grid step (px of the map reduced by ``downsample``)."""
     return max(2, int(round(region_size_px / downsample)))
 
 

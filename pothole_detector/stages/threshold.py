@@ -10,6 +10,7 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
 from .measure import road_normal
+from . import road_model, superpixels
 from .road_model import RoadModel
 
 # D2 values farther than this from the road level (px) are left out of the histogram.
@@ -186,10 +187,9 @@ def select_superpixels(xp: Any, means: Any, valid_fraction: Any, threshold_px: A
     return xp.isfinite(means) & (means < threshold_px) & (valid_fraction > min_valid_fraction)
 
 
-def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
-                calibration: StereoCalibration, depth_m: float) -> Any:
-    """Per-superpixel disparity drop (px, float64 (count,)) of a point ``depth_m`` below the
-    road at the centroid of each of the ``count`` superpixels of the int32 HxW ``labels``."""
+def superpixel_centroids(xp: Any, labels: Any, count: int) -> tuple[Any, Any]:
+    """Column and row (px, float64 (count,)) of the centroid of each of the ``count``
+    superpixels of the int32 HxW ``labels``."""
     height, width = labels.shape
     flat = labels.ravel()
     pixels = xp.maximum(xp.bincount(flat, minlength=count), 1)
@@ -197,7 +197,69 @@ def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
     cols = xp.broadcast_to(xp.arange(width, dtype=xp.float64)[None, :], labels.shape)
     v = xp.bincount(flat, weights=rows.ravel(), minlength=count) / pixels
     u = xp.bincount(flat, weights=cols.ravel(), minlength=count) / pixels
+    return u, v
+
+
+def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
+                calibration: StereoCalibration, depth_m: float) -> Any:
+    """Per-superpixel disparity drop (px, float64 (count,)) of a point ``depth_m`` below the
+    road at the centroid of each of the ``count`` superpixels of the int32 HxW ``labels``."""
+    u, v = superpixel_centroids(xp, labels, count)
     return metric_tolerance_px(xp, u, v, road, calibration, depth_m)
+
+
+def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
+                downsample: int, road_params: Any, road_report: Any,
+                calibration: StereoCalibration, depth_m: float,
+                observed_range: Any = None) -> Any:
+    """Which superpixels can show a pothole ``depth_m`` deep, and how far along the road they
+    reach, on the backend with nothing read back.
+
+    Superpixel k sits at the centre of its grid cell (superpixels.cell_centres; the SLIC of an
+    HxW ``shape`` map with ``region_size_px`` and ``downsample``). It is observed where the ray
+    there meets the road plane in front of the camera and a point ``depth_m`` below the road
+    there lies farther off in disparity than the road fit's robust sigma
+    (road_model.fit_sigma): the depth the matcher can resolve, fB (1 / (d - sigma) - 1 / d)
+    cos(incidence) at road disparity d, is at most ``depth_m``. Returns bool (count,) and
+    writes into ``observed_range`` (float64 (2,), where given) the nearest and farthest
+    distance (m) along the road plane, from the point below the camera, of an observed
+    superpixel, NaN where none is. On the GPU one single-block kernel (kernels/threshold.cu).
+    """
+    xp = backend.xp
+    count = superpixels.grid_count(shape, region_size_px, downsample)
+    observed_range = xp.empty(2, dtype=xp.float64) if observed_range is None \
+        else observed_range
+    if backend.is_gpu:
+        observed = xp.empty(count, dtype=xp.bool_)
+        height, width = shape[0] // downsample, shape[1] // downsample
+        step = superpixels.grid_step(region_size_px, downsample)
+        f64, i32 = np.float64, np.int32
+        _kernel(backend, "threshold_observation")(
+            (1,), (_THRESHOLD_KERNEL["SEARCH_THREADS"],),
+            (road_params, road_report, i32(count), i32(-(-width // step)), i32(step),
+             i32(width), i32(height), i32(downsample), f64(calibration.f),
+             f64(calibration.cx), f64(calibration.cy), f64(calibration.fb), f64(depth_m),
+             observed, observed_range))
+        return observed
+    u, v = superpixels.cell_centres(xp, shape, region_size_px, downsample)
+    road = road_model.params_at(xp, road_params, u, v)
+    sigma = road_model.fit_sigma(xp, road_report, road_params)
+    nx, ny, nz = road_model.params_normal(xp, road_params, calibration)
+    f, fb = calibration.f, calibration.fb
+    incidence = nx * (u - calibration.cx) / f + ny * (v - calibration.cy) / f + nz
+    near_road = (road > sigma) & (incidence > 0)
+    safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        resolvable = fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
+    observed = near_road & (resolvable <= depth_m)
+    z = fb / safe
+    ray_m2 = z * z * (((u - calibration.cx) / f) ** 2 + ((v - calibration.cy) / f) ** 2 + 1.0)
+    height_m = road_model.params_height(xp, road_params, calibration)
+    along = xp.sqrt(xp.maximum(ray_m2 - height_m * height_m, 0.0))
+    span = xp.stack([xp.where(observed, along, xp.inf).min(),
+                     xp.where(observed, along, -xp.inf).max()])
+    observed_range[...] = xp.where(xp.isfinite(span), span, xp.nan)
+    return observed
 
 
 def metric_tolerance_px(xp: Any, u: Any, v: Any, road: RoadModel,
@@ -211,7 +273,11 @@ def metric_tolerance_px(xp: Any, u: Any, v: Any, road: RoadModel,
     return road_d - calibration.fb / (calibration.fb / road_d + depth_m / incidence)
 
 
+
+_THRESHOLD_DEFINES = {**_THRESHOLD_KERNEL, **road_model.FIT_LAYOUT,
+                      **road_model.PARAM_LAYOUT}
+
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/threshold.cu with the numbers it shares with this module."""
-    return backend.kernel("threshold.cu", name, _THRESHOLD_KERNEL)
+    return backend.kernel("threshold.cu", name, _THRESHOLD_DEFINES)
 
