@@ -131,6 +131,7 @@ class Pipeline:
         # the seed pass's matcher: buffers of its own size, path costs in the frame matcher's
         self._seed_matcher = matching.Matcher(backend, lender=self.matcher)
         self.road: road_model.RoadModel | None = None
+        self._accepted: road_model.RoadModel | None = None  # the last road a frame passed
         self._refused = 0  # frames refused in a row
         self._band_memo: tuple[Any, Config, tuple[int, ...], tuple[np.ndarray, int]] | None \
             = None
@@ -139,6 +140,7 @@ class Pipeline:
     def reset(self) -> None:
         """Forget the previous frame's road model; the next frame runs the seed pass."""
         self.road = None
+        self._accepted: road_model.RoadModel | None = None  # the last road a frame passed
         self._refused = 0
 
     def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:
@@ -223,6 +225,7 @@ class Pipeline:
             observed = thresholding.observation(
                 backend, transformed.shape, config.slic_region_size_px, config.slic_downsample,
                 report.road_params, report.road, self.calibration, config.delta_pd_m,
+                config.delta_pd_px if config.threshold_mode == "pixels" else 0.0,
                 report.observed_range)
             drop: float | Any = config.delta_pd_px
             if config.threshold_mode != "pixels":
@@ -261,9 +264,10 @@ class Pipeline:
                      pixels: int) -> road_model.RoadModel:
         """The road model of a host copy of a frame's road fit report once the frame passes the
         checks (enough valid disparities, a fit, enough inliers); kept for the next frame's
-        band. A frame that fails them raises NoTextureError or NoRoadError; the road model it
-        came with carries on to the next frame, unless the frame before was refused too, when
-        the pipeline resets (the next frame is seeded)."""
+        band. A frame that fails them raises NoTextureError or NoRoadError; the last accepted
+        road model carries on to the next frame, unless the frame before was refused too or no
+        frame was accepted since the last seed, when the pipeline resets (the next frame is
+        seeded)."""
         config = self.config
         try:
             if valid_count / pixels < config.min_valid_fraction:
@@ -279,12 +283,13 @@ class Pipeline:
                     f"fit one (need {config.min_road_inlier_fraction:.0%}); is the camera "
                     "looking at the road?")
         except PotholeError:
-            self._refused += 1
-            if self._refused > 1 or self.road is None:
-                self.reset()
+            accepted, refused = self._accepted, self._refused + 1
+            self.reset()
+            if refused == 1 and accepted is not None:
+                self.road, self._accepted, self._refused = accepted, accepted, refused
             raise
         self._refused = 0
-        self.road = road
+        self.road = self._accepted = road
         return road
 
     def band(self, shape: tuple[int, int]) -> tuple[np.ndarray, int]:

@@ -955,12 +955,13 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
                                     kind="auto")
     report[road_model.FIT_LAYOUT["FIT_PLANAR_SIGMA"]] = 0.2
     report[road_model.FIT_LAYOUT["FIT_QUADRATIC_SIGMA"]] = 0.2
-    for depth in (0.004, 0.008, 0.03):
+    for depth, drop in ((0.004, 0.0), (0.008, 0.0), (0.03, 0.0), (0.0, 2.36), (0.0, 0.1)):
         want_range = np.empty(2)
         want = threshold.observation(CPU, sample.left.shape, 32, 2, params, report,
-                                     sample.calibration, depth, want_range)
+                                     sample.calibration, depth, drop, want_range)
         got_range = gpu.xp.empty(2, dtype=gpu.xp.float64)
         got = threshold.observation(gpu, sample.left.shape, 32, 2, gpu.upload(params),
-                                    gpu.upload(report), sample.calibration, depth, got_range)
+                                    gpu.upload(report), sample.calibration, depth, drop,
+                                    got_range)
         assert (to_host(got) != want).sum() <= max(1, want.size // 200)
         np.testing.assert_allclose(to_host(got_range), want_range, rtol=1e-6)

@@ -362,3 +362,21 @@ def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_never_a_pothole(
     everywhere = Pipeline(config, demo_sample.calibration).run(demo_sample.left,
                                                                 demo_sample.right)
     assert everywhere.host("observed").all() and np.isfinite(everywhere.observed_range_m).all()
+
+
+def test_a_refused_frame_keeps_the_last_accepted_road_once(demo_sample):
+    """A refused frame (no texture) leaves the last accepted road for the next frame; a second
+    refusal in a row, or a refusal with no accepted road since the seed, resets."""
+    blank = np.full_like(demo_sample.left, 128)
+    pipeline = Pipeline(Config(), demo_sample.calibration)
+    accepted = pipeline.run(demo_sample.left, demo_sample.right).road
+    with pytest.raises(NoTextureError):
+        pipeline.run(blank, blank)
+    assert pipeline.road is accepted
+    with pytest.raises(NoTextureError):
+        pipeline.run(blank, blank)
+    assert pipeline.road is None
+    strict = Pipeline(Config({"min_road_inlier_fraction": 1.0}), demo_sample.calibration)
+    with pytest.raises(NoRoadError):
+        strict.run(demo_sample.left, demo_sample.right)
+    assert strict.road is None

@@ -196,7 +196,8 @@ extern "C" __global__ void threshold_select(const double* result, double lo, dou
 // whose disparity drop equals the fit's robust sigma, fB (1 / (d - sigma) - 1 / d) incidence,
 // is at most depth_m. range: nearest and farthest distance (m) along the road plane from the
 // point below the camera of an observed superpixel, NaN where none is. road: the kernel
-// parameters (ROAD_*); fit: the fit report (FIT_*).
+// parameters (ROAD_*); fit: the fit report (FIT_*). With drop_px > 0 (the pixel threshold
+// mode) the test is instead d > drop_px >= sigma.
 __device__ __forceinline__ double block_reduce(double value, bool minimum, double* shared) {
     for (int offset = 16; offset > 0; offset >>= 1) {
         const double other = __shfl_down_sync(0xffffffffu, value, offset);
@@ -215,7 +216,8 @@ __device__ __forceinline__ double block_reduce(double value, bool minimum, doubl
 extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_observation(const double* road, const double* fit, int count, int cells_x, int step,
                       int width, int height, int downsample, double f, double cx, double cy,
-                      double fb, double depth_m, bool* observed, double* range) {
+                      double fb, double depth_m, double drop_px, bool* observed,
+                      double* range) {
     __shared__ double partial[SEARCH_THREADS / 32];
     const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
                  sin_phi = road[ROAD_SIN], curved = road[ROAD_CURVED];
@@ -238,7 +240,10 @@ threshold_observation(const double* road, const double* fit, int count, int cell
         const bool near_road = d > sigma && incidence > 0.0;
         const double safe = near_road ? d : 2.0 * sigma + 1.0;
         const bool seen = near_road
-                          && fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence <= depth_m;
+                          && (drop_px > 0.0
+                                  ? d > drop_px && drop_px >= sigma
+                                  : fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
+                                        <= depth_m);
         observed[k] = seen;
         if (seen) {
             const double z = fb / safe, ray_u = (u - cx) / f, ray_v = (v - cy) / f;

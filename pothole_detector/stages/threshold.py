@@ -210,17 +210,19 @@ def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
 
 def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
                 downsample: int, road_params: Any, road_report: Any,
-                calibration: StereoCalibration, depth_m: float,
+                calibration: StereoCalibration, depth_m: float, drop_px: float = 0.0,
                 observed_range: Any = None) -> Any:
-    """Which superpixels can show a pothole ``depth_m`` deep, and how far along the road they
-    reach, on the backend with nothing read back.
+    """Which superpixels can show a pothole ``depth_m`` deep (or, with ``drop_px`` > 0, the
+    pixel threshold mode, a pothole ``drop_px`` below the road), and how far along the road
+    they reach, on the backend with nothing read back.
 
     Superpixel k sits at the centre of its grid cell (superpixels.cell_centres; the SLIC of an
     HxW ``shape`` map with ``region_size_px`` and ``downsample``). It is observed where the ray
     there meets the road plane in front of the camera and a point ``depth_m`` below the road
     there lies farther off in disparity than the road fit's robust sigma
     (road_model.fit_sigma): the depth the matcher can resolve, fB (1 / (d - sigma) - 1 / d)
-    cos(incidence) at road disparity d, is at most ``depth_m``. Returns bool (count,) and
+    cos(incidence) at road disparity d, is at most ``depth_m``; with ``drop_px`` > 0, where
+    d > ``drop_px`` >= sigma. Returns bool (count,) and
     writes into ``observed_range`` (float64 (2,), where given) the nearest and farthest
     distance (m) along the road plane, from the point below the camera, of an observed
     superpixel, NaN where none is. On the GPU one single-block kernel (kernels/threshold.cu).
@@ -239,7 +241,7 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
             (road_params, road_report, i32(count), i32(-(-width // step)), i32(step),
              i32(width), i32(height), i32(downsample), f64(calibration.f),
              f64(calibration.cx), f64(calibration.cy), f64(calibration.fb), f64(depth_m),
-             observed, observed_range))
+             f64(drop_px), observed, observed_range))
         return observed
     u, v = superpixels.cell_centres(xp, shape, region_size_px, downsample)
     road = road_model.params_at(xp, road_params, u, v)
@@ -251,7 +253,8 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
     safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         resolvable = fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
-    observed = near_road & (resolvable <= depth_m)
+    observed = near_road & ((road > drop_px) & (drop_px >= sigma) if drop_px > 0
+                            else resolvable <= depth_m)
     z = fb / safe
     ray_m2 = z * z * (((u - calibration.cx) / f) ** 2 + ((v - calibration.cy) / f) ** 2 + 1.0)
     height_m = road_model.params_height(xp, road_params, calibration)
