@@ -26,7 +26,7 @@ import numpy as np
 from .backend import Backend, CapturedGraph, GraphMemory, Readback, StageClock, UploadBuffer, \
     to_host
 from .errors import PotholeError
-from .pipeline import FrameArrays, Pipeline, PipelineResult, check_pair
+from .pipeline import FrameArrays, Pipeline, PipelineResult
 from .stages import components, matching, measure, perspective, road_model, superpixels
 from .stages import threshold as thresholding
 
@@ -278,7 +278,7 @@ class FrameExecutor:
         (page-locked memory on the GPU; a new size replaces the buffers of the old one), its
         images sent ahead where ``send_ahead`` (else they go up at the frame's start)."""
         try:
-            check_pair(*pair)
+            matching.check_pair(*pair)
         except PotholeError as exc:
             return exc
         height, width = pair[0].shape[:2]

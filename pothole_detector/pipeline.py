@@ -16,9 +16,10 @@ import numpy as np
 
 from .backend import CPU, Backend, StageClock, to_host
 from .calibration import StereoCalibration
-from .errors import InputError, NoRoadError, NoTextureError, PotholeError
+from .errors import NoRoadError, NoTextureError, PotholeError
 from .params import Config
-from .stages import components, matching, measure, perspective, road_model, superpixels
+from .stages import components, matching, measure, perspective, road_model, seed
+from .stages import superpixels
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
 
@@ -159,7 +160,7 @@ class Pipeline:
     def match_pair(self, left: np.ndarray, right: np.ndarray) -> tuple[Any, int]:
         """D1 of a host pair (float32 HxW px, NaN invalid, on the backend) and the number of
         disparity levels searched; seeds and updates the road model like :meth:`run`."""
-        check_pair(left, right)
+        matching.check_pair(left, right)
         xp = self.backend.xp
         images = [self.backend.upload(matching.to_gray8(image)) for image in (left, right)]
         clock = StageClock(self.backend)
@@ -320,78 +321,13 @@ class Pipeline:
             return mode
         return "pixel" if self.matcher.kind(self.config) == "census" else "row"
 
-    def _fit(self, disparity: Any, stride: int, scale: float = 1.0) -> road_model.RoadModel:
+    def _fit(self, disparity: Any, stride: int) -> road_model.RoadModel:
         config = self.config
         return road_model.fit_model(
             self.backend, disparity, stride=stride, rounds=config.road_fit_rounds,
             outlier_k=config.road_outlier_k, kind=config.road_model,
-            quadratic_gain=config.road_quadratic_gain, coordinate_scale=scale,
-            coordinate_offset=(scale - 1.0) / 2.0)
+            quadratic_gain=config.road_quadratic_gain)
 
     def _seed(self, left: Any, right: Any) -> road_model.RoadModel:
-        """Road model from a full-range match of the (backend) pair reduced by the seed scale
-        (``coarse_scale``, or from the image width where it is 0). Where that finds too few
-        disparities or no road, it tries again without the left-right check (over a range near
-        half the image width the check leaves few pixels whose partner was matched; the robust
-        road fit rejects the outliers it would), then on the pair reduced half as much."""
-        scale = seed_scale(left.shape[1], self.config.coarse_scale)
-        tries = dict.fromkeys(((scale, True), (scale, False), (max(1, scale // 2), False)))
-        failure: PotholeError | None = None
-        for factor, checked in tries:
-            try:
-                return self._seed_at(left, right, factor, checked)
-            except (NoTextureError, NoRoadError) as exc:
-                failure = exc
-        assert failure is not None
-        raise failure
-
-    def _seed_at(self, left: Any, right: Any, scale: int,
-                 checked: bool) -> road_model.RoadModel:
-        """The seed's road model from the pair reduced by ``scale``, matched over up to half the
-        reduced width, with the left-right check where ``checked``. Enough valid disparities
-        are asked of the columns that the range lets match."""
-        config, xp = self.config, self.backend.xp
-        small_left = matching.downsample(xp, left, scale)
-        small_right = matching.downsample(xp, right, scale)
-        half_width = small_left.shape[1] // 2
-        levels = perspective.round_up_levels(min(config.max_disparity_px / scale, half_width))
-        shifts = xp.asarray(perspective.no_shifts(small_left.shape[0]))
-        coarse = self._seed_matcher(small_left, small_right, shifts, levels,
-                                    config if checked else config.replace(lr_max_diff_px=-1),
-                                    block_size=min(config.sgm_block_size, 5))
-        matchable = coarse[:, min(levels, coarse.shape[1] - 1):]
-        if float(xp.isfinite(matchable).mean()) < config.min_valid_fraction:
-            raise NoTextureError(
-                "the coarse seed pass found almost no disparities: the images lack texture, "
-                "are not a rectified pair, or the road is beyond max_disparity_px"
-            )
-        return self._fit(coarse, stride=1, scale=float(scale))
-
-def seed_scale(width: int, coarse_scale: int) -> int:
-    """The seed pass's reduction of an image ``width`` px wide: ``coarse_scale``, or where that
-    is 0, the factor that leaves the seed about SEED_COLUMNS columns."""
-    if coarse_scale > 0:
-        return coarse_scale
-    return max(1, round(width / SEED_COLUMNS))
-
-
-# columns the seed pass works on where coarse_scale is 0 (auto)
-SEED_COLUMNS = 512
-
-
-def check_pair(left: np.ndarray, right: np.ndarray) -> None:
-    """Raise InputError unless ``left`` and ``right`` are a pair the pipeline can take."""
-    for name, image in (("left", left), ("right", right)):
-        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
-            raise InputError(f"{name} image must be a non-empty HxW or HxWxC array")
-        if image.ndim == 3 and image.shape[2] not in (3, 4):
-            raise InputError(f"{name} image has {image.shape[2]} channels; use mono, RGB or RGBA")
-        if image.dtype not in (np.uint8, np.uint16):
-            raise InputError(f"{name} image is {image.dtype}; use 8- or 16-bit images")
-    if left.shape[:2] != right.shape[:2]:
-        raise InputError(
-            f"left image is {left.shape[1]}x{left.shape[0]} but right is "
-            f"{right.shape[1]}x{right.shape[0]}: a rectified pair has equal sizes"
-        )
-    if min(left.shape[:2]) < 16:
-        raise InputError(f"images of {left.shape[1]}x{left.shape[0]} are too small (min 16x16)")
+        """The seed pass (stages/seed.py) on the (backend) pair."""
+        return seed.seed_road(self.backend, self._seed_matcher, left, right, self.config)

@@ -306,36 +306,6 @@ def test_a_640x480_vehicle_rig_drive_is_processed_frame_by_frame():
                    and p.area_m2 > 0 and p.max_depth_m > 0 for p in outcome.potholes)
 
 
-def test_a_failed_seed_tries_again_without_the_check_then_at_half_the_scale(demo_sample,
-                                                                            monkeypatch):
-    pipeline = Pipeline(Config({"coarse_scale": 4}), demo_sample.calibration)
-    tries: list = []
-    seed_at = pipeline._seed_at
-
-    def failing(left, right, scale, checked):
-        tries.append((scale, checked))
-        if len(tries) < 3:
-            raise NoTextureError("no disparities")
-        return seed_at(left, right, scale, checked)
-
-    monkeypatch.setattr(pipeline, "_seed_at", failing)
-    assert pipeline.run(demo_sample.left, demo_sample.right).seeded
-    assert tries == [(4, True), (4, False), (2, False)]
-    tries.clear()
-    monkeypatch.setattr(pipeline, "_seed_at", lambda *args: tries.append(args[2:]) or
-                        (_ for _ in ()).throw(NoRoadError("no road")))
-    pipeline.reset()
-    with pytest.raises(NoRoadError):
-        pipeline.run(demo_sample.left, demo_sample.right)
-    assert tries == [(4, True), (4, False), (2, False)]
-
-
-def test_seed_scale_follows_the_image_width_when_asked():
-    from pothole_detector.pipeline import seed_scale
-    assert seed_scale(2079, 4) == 4 and seed_scale(640, 3) == 3
-    assert [seed_scale(width, 0) for width in (320, 640, 1280, 2079)] == [1, 1, 2, 4]
-
-
 def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_never_a_pothole(demo_sample):
     """A vehicle rig (disparity noise about 0.2 px) resolves a pothole delta_pd_m = 8 mm deep
     only near the camera: the far road is not observed, no pothole is reported there, and the

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from ..backend import Backend, to_host
+from ..errors import InputError
 from ..params import Config
 from . import census_sgm
 from .perspective import add_shifts, transform_right
@@ -173,3 +174,21 @@ def downsample(xp: Any, image: Any, factor: int) -> Any:
     crop = image[: height * factor, : width * factor]
     total = crop.reshape(height, factor, width, factor).sum(axis=(1, 3), dtype=xp.int32)
     return ((total + factor * factor // 2) // (factor * factor)).astype(xp.uint8)
+
+
+def check_pair(left: np.ndarray, right: np.ndarray) -> None:
+    """Raise InputError unless ``left`` and ``right`` are a pair the pipeline can take."""
+    for name, image in (("left", left), ("right", right)):
+        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
+            raise InputError(f"{name} image must be a non-empty HxW or HxWxC array")
+        if image.ndim == 3 and image.shape[2] not in (3, 4):
+            raise InputError(f"{name} image has {image.shape[2]} channels; use mono, RGB or RGBA")
+        if image.dtype not in (np.uint8, np.uint16):
+            raise InputError(f"{name} image is {image.dtype}; use 8- or 16-bit images")
+    if left.shape[:2] != right.shape[:2]:
+        raise InputError(
+            f"left image is {left.shape[1]}x{left.shape[0]} but right is "
+            f"{right.shape[1]}x{right.shape[0]}: a rectified pair has equal sizes"
+        )
+    if min(left.shape[:2]) < 16:
+        raise InputError(f"images of {left.shape[1]}x{left.shape[0]} are too small (min 16x16)")
