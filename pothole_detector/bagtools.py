@@ -68,11 +68,12 @@ def open_bag(path: str | Path) -> AnyReader:
     path = Path(path)
     if not path.exists():
         raise InputError(f"bag {path} does not exist")
-    reader = AnyReader([path], default_typestore=typestore())
     try:
+        reader = AnyReader([path], default_typestore=typestore())
         reader.open()
     except Exception as exc:  # rosbags raises several unrelated error types
-        raise InputError(f"cannot read bag {path}: {exc}") from None
+        raise InputError(f"{path} is not a bag that can be read ({exc}): give a ROS 2 bag "
+                         "directory (mcap or sqlite3) or a ROS 1 .bag file") from None
     return reader
 
 
@@ -280,9 +281,9 @@ def find_stereo_topics(topics: dict[str, str], left: str | None = None,
         found = [t for t, k in topics.items() if k == msgtype and f"/{side}" in t
                  and not t.rstrip("/").endswith(tuple(OUTPUT_TYPES))]
         if len(found) != 1:
+            option = f"--{side}-topic" if what == "image" else f"--{side}-info-topic"
             raise InputError(f"cannot tell the {side} {what} topic among {found or 'none'}; "
-                             f"name it with --{side}-{what.replace('camera_info', 'info')}"
-                             "-topic")
+                             f"name it with {option}")
         return found[0]
 
     return StereoTopics(pick(left, "left", IMAGE_TYPE, "image"),

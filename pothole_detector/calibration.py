@@ -98,6 +98,11 @@ def read_camera_info_yaml(path: str | Path) -> dict:
         raise CalibrationError(f"camera info file {path} does not exist") from None
     except yaml.YAMLError as exc:
         raise CalibrationError(f"camera info file {path} is not valid YAML: {exc}") from None
+    if not data:
+        raise CalibrationError(f"camera info file {path} is empty: it needs image_width, "
+                               "image_height, camera_matrix.data and projection_matrix.data")
+    if not isinstance(data, dict):
+        raise CalibrationError(f"camera info file {path} is not a ROS calibration mapping")
     try:
         width = int(data["image_width"])
         height = int(data["image_height"])

@@ -97,6 +97,12 @@ def _config(path: str | None, backend: str | None = None) -> Config:
 
 def _calibration(args: argparse.Namespace, width: int, height: int) -> StereoCalibration:
     if args.camera_info_left or args.camera_info_right:
+        given = [f"--{name.replace('_', '-')}" for name in ("focal", "baseline", "cx", "cy")
+                 if getattr(args, name) is not None]
+        if given:
+            verb = "conflicts" if len(given) == 1 else "conflict"
+            raise InputError(f"{' and '.join(given)} {verb} with the camera-info files, "
+                             "which hold the calibration: give one or the other")
         if not (args.camera_info_left and args.camera_info_right):
             raise InputError("give both --camera-info-left and --camera-info-right")
         calibration, size = load_stereo_camera_info(args.camera_info_left,
@@ -200,7 +206,8 @@ def run_record(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``pothole-detector`` console script."""
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # notices (which backend runs) go to stdout, so that an error is stderr's one line
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
     args = _parser().parse_args(argv)
     try:
         commands = {"detect": run_detect, "evaluate": run_evaluate, "play": run_play,

@@ -409,10 +409,26 @@ class PotholeDetectorNode(Node):
         super().destroy_node()
 
 
+USAGE = """usage: pothole_detector_node [--ros-args -r __ns:=NAMESPACE -p NAME:=VALUE ...
+                              --params-file config/pothole_detector.yaml]
+
+The pothole detector as a ROS 2 node. Subscribes to left/image_rect, right/image_rect,
+left/camera_info and right/camera_info (relative to its namespace; remap with -r) and publishes
+potholes, disparity, disparity_transformed, pothole_labels, pothole_points, pothole_markers,
+overlay and /diagnostics. Every parameter, with its range, is in config/pothole_detector.yaml;
+the README lists the topics and their types."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``pothole_detector_node``: spin the node until Ctrl-C."""
+    """Console script ``pothole_detector_node``: spin the node until Ctrl-C (``--help`` before
+    any ``--ros-args``: print the usage and exit)."""
+    args = list(sys.argv if argv is None else argv)
+    ours = args[1:args.index("--ros-args")] if "--ros-args" in args else args[1:]
+    if "-h" in ours or "--help" in ours:
+        print(USAGE)
+        return 0
     large_image_transport()
-    rclpy.init(args=list(sys.argv if argv is None else argv))
+    rclpy.init(args=args)
     try:
         node = PotholeDetectorNode()
     except PotholeError as exc:

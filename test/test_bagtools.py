@@ -51,7 +51,7 @@ def test_find_stereo_topics():
     found = bagtools.find_stereo_topics(types)
     assert (found.left, found.right_info, found.namespace) == (STEREO[0], STEREO[3], "/cam")
     types["/other/left/image_rect"] = bagtools.IMAGE_TYPE
-    with pytest.raises(InputError, match="--left-image-topic"):
+    with pytest.raises(InputError, match="name it with --left-topic$"):
         bagtools.find_stereo_topics(types)
     assert bagtools.find_stereo_topics(types, left=STEREO[0]).left == STEREO[0]
     with pytest.raises(InputError, match="no sensor_msgs/msg/Image topic /nope"):

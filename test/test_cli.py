@@ -66,10 +66,17 @@ def run_cli(*args):
                           capture_output=True, text=True, timeout=120)
 
 
-@pytest.mark.parametrize("case", ["missing", "size", "texture", "calibration", "config"])
-def test_bad_input_exits_with_one_line(case, pair_dir, tmp_path):
+@pytest.mark.parametrize("case,says", [
+    ("missing", "does not exist"), ("size", "equal sizes"), ("texture", "texture"),
+    ("calibration", "--focal and --baseline"), ("config", "delta_pd_px"),
+    ("same", "not a stereo pair"), ("empty_info", "is empty"), ("conflict", "conflicts"),
+    ("auto_backend", "not a stereo pair"), ("not_a_bag", "is not a bag")])
+def test_bad_input_exits_with_one_line(case, says, pair_dir, tmp_path):
+    """Each refusal: exit status 2 and one line on stderr that says why (under the auto
+    backend too, whose notice goes to stdout)."""
     left, right = pair_dir / "left.png", pair_dir / "right.png"
     extra = ["--focal", "430", "--baseline", "0.12"]
+    backend = ["--backend", "cpu"]
     if case == "missing":
         left = tmp_path / "nope.png"
     elif case == "size":
@@ -78,18 +85,39 @@ def test_bad_input_exits_with_one_line(case, pair_dir, tmp_path):
     elif case == "texture":
         left = right = tmp_path / "flat.png"
         cv2.imwrite(str(left), np.full((120, 160), 90, np.uint8))
+    elif case in ("same", "auto_backend"):
+        right = left
+        backend = [] if case == "auto_backend" else backend
     elif case == "calibration":
         extra = ["--focal", "430"]
     elif case == "config":
         config = tmp_path / "bad.yaml"
         config.write_text("pothole_detector:\n  ros__parameters:\n    delta_pd_px: -1\n")
         extra += ["--config", str(config)]
-    result = run_cli("detect", "--left", str(left), "--right", str(right), *extra, "--out",
-                     str(tmp_path / "o"), "--backend", "cpu")
-    assert result.returncode != 0
+    elif case == "empty_info":
+        (tmp_path / "empty.yaml").write_text("")
+        extra = ["--camera-info-left", str(tmp_path / "empty.yaml"),
+                 "--camera-info-right", str(pair_dir / "right.yaml")]
+    elif case == "conflict":
+        extra = ["--camera-info-left", str(pair_dir / "left.yaml"),
+                 "--camera-info-right", str(pair_dir / "right.yaml"), "--focal", "430"]
+    if case == "not_a_bag":
+        (tmp_path / "notes.txt").write_text("not a bag\n")
+        result = run_cli("process", str(tmp_path / "notes.txt"), "--out", str(tmp_path / "o"))
+    else:
+        result = run_cli("detect", "--left", str(left), "--right", str(right), *extra, "--out",
+                         str(tmp_path / "o"), *backend)
+    assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("pothole-detector: error:")
-    assert "Traceback" not in result.stderr
+    assert len(lines) == 1 and lines[0].startswith("pothole-detector: error:"), result.stderr
+    assert says in lines[0] and "Traceback" not in result.stderr
+
+
+def test_the_node_prints_its_usage_and_exits():
+    result = subprocess.run([sys.executable, "-m", "pothole_detector.node", "--help"],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.startswith("usage: pothole_detector_node")
+    assert "left/image_rect" in result.stdout and "--params-file" in result.stdout
 
 
 def test_evaluate_prints_the_papers_metrics(tmp_path, demo_sample):

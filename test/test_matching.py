@@ -76,3 +76,14 @@ def test_census_reference_on_the_cpu_matches_a_rendered_road(flat_sample):
     error = np.abs(disparity - truth)
     assert np.isfinite(disparity[:, 80:]).mean() > 0.8
     assert np.nanmedian(error) < 0.3 and np.nanmean(error > 1.0) < 0.03
+
+
+def test_a_pair_of_the_same_image_is_refused_as_no_stereo_pair(demo_sample):
+    from pothole_detector.errors import NoTextureError
+    from pothole_detector.stages.matching import check_pair
+    check_pair(demo_sample.left, demo_sample.right)
+    with pytest.raises(NoTextureError, match="not a stereo pair"):
+        check_pair(demo_sample.left, demo_sample.left.copy())
+    differs = demo_sample.left.copy()
+    differs[5, 7] ^= 1  # equal in every 16th row, not elsewhere
+    check_pair(demo_sample.left, differs)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ..backend import Backend, to_host
-from ..errors import InputError
+from ..errors import InputError, NoTextureError
 from ..params import Config
 from . import census_sgm
 from .perspective import add_shifts, transform_right
@@ -177,7 +177,8 @@ def downsample(xp: Any, image: Any, factor: int) -> Any:
 
 
 def check_pair(left: np.ndarray, right: np.ndarray) -> None:
-    """Raise InputError unless ``left`` and ``right`` are a pair the pipeline can take."""
+    """Raise InputError unless ``left`` and ``right`` are a pair the pipeline can take, and
+    NoTextureError where they are the same image (no disparity can be had)."""
     for name, image in (("left", left), ("right", right)):
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
             raise InputError(f"{name} image must be a non-empty HxW or HxWxC array")
@@ -192,3 +193,9 @@ def check_pair(left: np.ndarray, right: np.ndarray) -> None:
         )
     if min(left.shape[:2]) < 16:
         raise InputError(f"images of {left.shape[1]}x{left.shape[0]} are too small (min 16x16)")
+    # every 16th row first: a stereo pair differs there, so the whole comparison is rare; a
+    # blank pair is left to the texture checks
+    if np.array_equal(left[::16], right[::16]) and np.array_equal(left, right) \
+            and left.min() != left.max():
+        raise NoTextureError("no disparity: the left and right images are the same, not a "
+                             "stereo pair")

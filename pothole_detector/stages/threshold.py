@@ -243,7 +243,17 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
              f64(calibration.cx), f64(calibration.cy), f64(calibration.fb), f64(depth_m),
              f64(drop_px), observed, observed_range))
         return observed
-    u, v = superpixels.cell_centres(xp, shape, region_size_px, downsample)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return _observation(xp, superpixels.cell_centres(xp, shape, region_size_px, downsample),
+                            road_params, road_report, calibration, depth_m, drop_px,
+                            observed_range)
+
+
+def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_report: Any,
+                 calibration: StereoCalibration, depth_m: float, drop_px: float,
+                 observed_range: Any) -> Any:
+    """observation on the host (NumPy): the reference of kernels/threshold.cu's."""
+    u, v = centres
     road = road_model.params_at(xp, road_params, u, v)
     sigma = road_model.fit_sigma(xp, road_report, road_params)
     nx, ny, nz = road_model.params_normal(xp, road_params, calibration)
@@ -251,8 +261,7 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
     incidence = nx * (u - calibration.cx) / f + ny * (v - calibration.cy) / f + nz
     near_road = (road > sigma) & (incidence > 0)
     safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        resolvable = fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
+    resolvable = fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
     observed = near_road & ((road > drop_px) & (drop_px >= sigma) if drop_px > 0
                             else resolvable <= depth_m)
     z = fb / safe
