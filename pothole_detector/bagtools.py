@@ -322,8 +322,8 @@ class ProcessSummary:
 
 def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
                  summary: ProcessSummary) -> Iterator[tuple[int, Any, Any, Any, Any]]:
-    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag;
-    images that found no partner and pairs before any camera_info are counted in
+    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag (the
+    infos None for a pair before any camera_info); images that found no partner are counted in
     ``summary``."""
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import CameraInfo, Image
@@ -349,9 +349,7 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
             if "left_info" in infos and "right_info" in infos:
                 yield pair_stamp, left, right, infos["left_info"], infos["right_info"]
             else:
-                summary.failed += 1
-                summary.errors.append(f"stamp {pair_stamp}: no camera_info on "
-                                      f"{topics.left_info} and {topics.right_info} yet")
+                yield pair_stamp, left, right, None, None
     summary.unpaired += synchronizer.reset()
 
 
@@ -368,7 +366,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
     from . import conversions
     from .backend import get_backend
     from .imageio import write_rgb
-    from .outputs import output_messages
+    from .outputs import failure_messages, output_messages
     from .pipeline import Pipeline
 
     reader = open_bag(bag)
@@ -397,20 +395,28 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             image_count = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
             if pictures is not None:
                 Path(pictures).mkdir(parents=True, exist_ok=True)
+            def failed(stamp: int, header: Any, error: PotholeError) -> None:
+                summary.failed += 1
+                summary.errors.append(f"stamp {stamp}: {error}")
+                for name, message in failure_messages(header, str(error)).items():
+                    writer.write(output[name], stamp, serialize_message(message))
+
             def prepared() -> Iterator[_BagFrame]:
                 for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
                         _stereo_sets(reader, stereo, config, summary)):
                     if progress is not None:
                         progress(index, image_count)
                     try:
+                        if left_cal is None:
+                            raise InputError(f"no camera_info on {stereo.left_info} and "
+                                             f"{stereo.right_info} yet")
                         left_px = conversions.image_to_array(left_msg)
                         right_px = conversions.image_to_array(right_msg)
                         height, width = left_px.shape[:2]
                         calibration = conversions.calibration_from_camera_info(
                             left_cal, right_cal, width, height)
                     except PotholeError as exc:
-                        summary.failed += 1
-                        summary.errors.append(f"stamp {stamp}: {exc}")
+                        failed(stamp, left_msg.header, exc)
                         continue
                     yield _BagFrame(stamp, left_msg.header, left_px, right_px, calibration)
 
@@ -425,8 +431,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
                     outcome = next(outcomes)
                     stamp, header, left_px = frame.stamp, frame.header, frame.left
                     if isinstance(outcome, PotholeError):
-                        summary.failed += 1
-                        summary.errors.append(f"stamp {stamp}: {outcome}")
+                        failed(stamp, header, outcome)
                         continue
                     result = outcome
                     made = output_messages(result, left_px, calibration, header)

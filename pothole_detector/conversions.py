@@ -177,9 +177,12 @@ def potholes_message(potholes: Sequence[Pothole], road: RoadModel | None, header
                      observed_range_m: tuple[float, float] = (math.nan, math.nan)
                      ) -> PotholeArray:
     """pothole_detector_msgs/PotholeArray of measured potholes, the frame's road model and the
-    observed range of the road (near, far: m along the road; NaN where none was observed)."""
+    observed range of the road (near, far: m along the road; NaN where none was observed:
+    status NOT_OBSERVED, else PROCESSED)."""
+    seen = any(math.isfinite(value) for value in observed_range_m)
     msg = PotholeArray(header=header, observed_near_m=float(observed_range_m[0]),
-                       observed_far_m=float(observed_range_m[1]))
+                       observed_far_m=float(observed_range_m[1]),
+                       status=PotholeArray.PROCESSED if seen else PotholeArray.NOT_OBSERVED)
     if road is not None:
         msg.a0, msg.a1 = float(road.a0), float(road.a1)
         msg.roll_deg = math.degrees(road.roll_rad)
@@ -193,6 +196,12 @@ def potholes_message(potholes: Sequence[Pothole], road: RoadModel | None, header
         for p in potholes
     ]
     return msg
+
+
+def failed_potholes_message(header: Header, reason: str) -> PotholeArray:
+    """The PotholeArray of a stereo set that could not be processed: status FAILED, why."""
+    return PotholeArray(header=header, status=PotholeArray.FAILED, reason=reason,
+                        observed_near_m=math.nan, observed_far_m=math.nan)
 
 
 def road_point(u: np.ndarray, v: np.ndarray, road: RoadModel,

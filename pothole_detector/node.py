@@ -29,7 +29,7 @@ from . import conversions
 from .backend import Backend, get_backend
 from .calibration import StereoCalibration
 from .errors import ConfigError, PotholeError
-from .outputs import ON_REQUEST, output_messages
+from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
@@ -340,8 +340,14 @@ class PotholeDetectorNode(Node):
                 self._process(job, config, reset)
             except PotholeError as exc:
                 self._problem(type(exc).__name__, str(exc))
+                self._publish_failure(job, str(exc))
             except Exception as exc:  # noqa: BLE001 - the node must survive any frame
                 self._problem("internal", f"frame failed with {type(exc).__name__}: {exc}")
+                self._publish_failure(job, f"internal error: {type(exc).__name__}: {exc}")
+
+    def _publish_failure(self, job: StereoSet, reason: str) -> None:
+        for name, message in failure_messages(job.left.header, reason).items():
+            self._outputs[name].publish(message)
 
     def _pipeline_for(self, config: Config, calibration: StereoCalibration) -> Pipeline:
         key = (tuple(sorted((k, v) for k, v in config.as_dict().items()

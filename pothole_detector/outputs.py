@@ -79,3 +79,12 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
         made.overlay = overlay(left, array("labels"), result.potholes, array("observed"))
         messages["overlay"] = conversions.array_to_image(made.overlay, "rgb8", header)
     return made
+
+
+def failure_messages(header: "Header", reason: str) -> dict[str, Any]:
+    """The messages of a stereo set that could not be processed: ``potholes`` with status
+    FAILED and ``reason``, so that subscribers can tell a failed set from a lost message."""
+    from . import conversions
+
+    return {"potholes": conversions.failed_potholes_message(header, reason)}
+

@@ -41,8 +41,8 @@ def drive_bag(tmp_path_factory, drive_frames):
 def test_typestore_knows_our_messages():
     store = bagtools.typestore()
     names = [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/PotholeArray"][1]]
-    assert names == ["header", "a0", "a1", "roll_deg", "inlier_fraction", "observed_near_m",
-                     "observed_far_m", "potholes"]
+    assert names == ["header", "status", "reason", "a0", "a1", "roll_deg", "inlier_fraction",
+                     "observed_near_m", "observed_far_m", "potholes"]
     assert "bbox_px" in [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/Pothole"][1]]
 
 
@@ -195,10 +195,15 @@ def test_process_goes_on_after_a_failed_frame_and_a_new_calibration(tmp_path, dr
     after = Pipeline(Config(), wider)
     expected = {s0: before, s2: after.run(third.left, third.right),
                 s2 + 100_000_000: after.run(third.left, third.right)}
-    seen = {}
+    seen, failed = {}, {}
     for _, stamp, msg in bagtools.read_messages(tmp_path / "out", ["/cam/potholes"]):
+        if msg.status == msg.FAILED:
+            failed[stamp] = msg.reason
+            continue
+        assert msg.status == msg.PROCESSED
         seen[stamp] = sorted(p.area_m2 for p in msg.potholes)
     assert set(seen) == set(expected)
+    assert set(failed) == {s1} and "texture" in failed[s1]  # every set has its message
     for stamp, result in expected.items():
         np.testing.assert_allclose(seen[stamp], sorted(p.area_m2 for p in result.potholes),
                                    rtol=1e-5)

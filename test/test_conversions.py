@@ -114,7 +114,12 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
     array = conversions.potholes_message(result.potholes, result.road, HEADER,
                                          result.observed_range_m)
     assert (array.observed_near_m, array.observed_far_m) == result.observed_range_m
-    assert math.isnan(conversions.potholes_message([], None, HEADER).observed_far_m)
+    assert array.status == array.PROCESSED
+    unobserved = conversions.potholes_message([], None, HEADER)
+    assert math.isnan(unobserved.observed_far_m) and unobserved.status == unobserved.NOT_OBSERVED
+    failed = conversions.failed_potholes_message(HEADER, "no road plane")
+    assert (failed.status, failed.reason, list(failed.potholes)) == (failed.FAILED,
+                                                                     "no road plane", [])
     assert array.header.frame_id == "cam"
     assert [p.label for p in array.potholes] == [p.label for p in result.potholes]
     assert array.potholes[0].area_m2 == pytest.approx(result.potholes[0].area_m2)

@@ -262,7 +262,11 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
         assert p.spin(10, lambda: words in p.diagnostics().get("message", "")), words
         p.publish(good, stamp + 500_000_000)
         assert p.spin(15, lambda: stamp + 500_000_000 in p.stamps()), node.text()
-        assert stamp not in p.stamps()
+        # the refused set has its PotholeArray too: status FAILED and why
+        (refused,) = [m for m in p.received["potholes"]
+                      if conversions.stamp_ns(m.header) == stamp]
+        assert refused.status == refused.FAILED and words in refused.reason
+        assert not refused.potholes
     p.publish(good, T0 + 2)
     assert p.spin(10, lambda: "backwards" in p.diagnostics().get("message", ""))
     assert p.spin(15, lambda: T0 + 2 in p.stamps())
