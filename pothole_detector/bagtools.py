@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import functools
 import importlib
 import itertools
@@ -322,34 +323,45 @@ class ProcessSummary:
 
 def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
                  summary: ProcessSummary) -> Iterator[tuple[int, Any, Any, Any, Any]]:
-    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag (the
-    infos None for a pair before any camera_info); images that found no partner are counted in
-    ``summary``."""
+    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag. Each
+    pair takes the camera_info of its own stamp wherever the bag holds it (before or after the
+    images), else the newest one before it; the infos are None for a pair before any. Images
+    that found no partner are counted in ``summary``."""
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import CameraInfo, Image
 
     from . import conversions
     from .sync import StereoSynchronizer
 
-    wanted = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
-              topics.right_info: "right_info"}
-    connections = [c for c in reader.connections if c.topic in wanted]
+    info_roles = {topics.left_info: "left_info", topics.right_info: "right_info"}
+    infos: dict[str, dict[int, Any]] = {"left_info": {}, "right_info": {}}
+    for connection, _, rawdata in reader.messages(
+            connections=[c for c in reader.connections if c.topic in info_roles]):
+        info = deserialize_message(cdr_bytes(reader, connection, rawdata), CameraInfo)
+        infos[info_roles[connection.topic]][conversions.stamp_ns(info.header)] = info
+    stamps = {role: sorted(by_stamp) for role, by_stamp in infos.items()}
+
+    def info_at(role: str, stamp: int) -> Any:
+        if stamp in infos[role]:
+            return infos[role][stamp]
+        before = bisect.bisect_right(stamps[role], stamp)
+        return infos[role][stamps[role][before - 1]] if before else None
+
+    image_roles = {topics.left: "left", topics.right: "right"}
     synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
-    infos: dict[str, Any] = {}
-    for connection, _, rawdata in reader.messages(connections=connections):
-        role = wanted[connection.topic]
-        data = cdr_bytes(reader, connection, rawdata)
-        if role.endswith("info"):
-            infos[role] = deserialize_message(data, CameraInfo)
-            continue
-        msg = deserialize_message(data, Image)
-        outcome = synchronizer.add(role, conversions.stamp_ns(msg.header), msg)
+    for connection, _, rawdata in reader.messages(
+            connections=[c for c in reader.connections if c.topic in image_roles]):
+        msg = deserialize_message(cdr_bytes(reader, connection, rawdata), Image)
+        outcome = synchronizer.add(image_roles[connection.topic],
+                                   conversions.stamp_ns(msg.header), msg)
         summary.unpaired += outcome.dropped
         for pair_stamp, left, right in outcome.pairs:
-            if "left_info" in infos and "right_info" in infos:
-                yield pair_stamp, left, right, infos["left_info"], infos["right_info"]
-            else:
+            left_info, right_info = (info_at(role, pair_stamp)
+                                     for role in ("left_info", "right_info"))
+            if left_info is None or right_info is None:
                 yield pair_stamp, left, right, None, None
+            else:
+                yield pair_stamp, left, right, left_info, right_info
     summary.unpaired += synchronizer.reset()
 
 

@@ -208,3 +208,26 @@ def test_process_goes_on_after_a_failed_frame_and_a_new_calibration(tmp_path, dr
         np.testing.assert_allclose(seen[stamp], sorted(p.area_m2 for p in result.potholes),
                                    rtol=1e-5)
     assert seen[s2] != seen[s0]
+
+
+def test_process_pairs_camera_info_written_after_the_images(tmp_path, drive_frames):
+    """A bag that writes each camera_info after its images (bag time 5 ms later, header stamp
+    the images'): every pair still gets the camera_info of its own stamp."""
+    source, late = tmp_path / "ordered", tmp_path / "late"
+    assert bagtools.write_stereo_bag(source, drive_frames[:2], namespace="/cam") == 2
+    reader = bagtools.open_bag(source)
+    writer = bagtools.writer_for(late, "mcap")
+    writer.open()
+    try:
+        store = bagtools.typestore()
+        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                       for c in reader.connections}
+        for connection, timestamp, rawdata in reader.messages():
+            delay = 5_000_000 if connection.topic.endswith("camera_info") else 0
+            writer.write(connections[connection.id], timestamp + delay,
+                         bagtools.cdr_bytes(reader, connection, rawdata))
+    finally:
+        writer.close()
+        reader.close()
+    summary = bagtools.process(late, tmp_path / "out", Config({"backend": "cpu"}))
+    assert (summary.frames, summary.failed) == (2, 0), summary.errors
