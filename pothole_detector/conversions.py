@@ -110,6 +110,11 @@ def calibration_from_camera_info(left: CameraInfo, right: CameraInfo, width: int
             raise CalibrationError(
                 f"{side} camera_info is for {info.width}x{info.height} images but the images "
                 f"are {width}x{height}; publish the camera_info of the rectified images")
+        k = np.asarray(info.k, dtype=np.float64)
+        if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0:
+            raise CalibrationError(
+                f"{side} camera_info K has NaN, infinity or a focal length <= 0 ({list(k)}); "
+                "is the camera calibrated?")
     return StereoCalibration.from_projections(list(left.p), list(right.p))
 
 

@@ -274,6 +274,11 @@ class PotholeDetectorNode(Node):
             self._problem("sync", f"left and right images arrive but their stamps {mode}")
         if outcome.dropped:
             self._stats.unpaired_images(outcome.dropped)
+        if outcome.duplicate:
+            self._problem("duplicate", outcome.duplicate)
+        elif outcome.dropped:
+            self._problem("unpaired", f"{outcome.dropped} image(s) found no partner and were "
+                          "dropped; are both cameras publishing at the same rate?")
         if outcome.backwards:
             self._problem("stamps", outcome.backwards)
         now = time.monotonic()

@@ -16,11 +16,13 @@ class SyncOutcome(Generic[Item]):
 
     ``pairs``: (left stamp ns, left item, right item), oldest first; ``dropped``: items that
     can no longer be paired and were discarded; ``backwards``: a message saying that the stamps
-    went backwards (the queues were cleared; the new item was kept)."""
+    went backwards (the queues were cleared; the new item was kept); ``duplicate``: a message
+    saying that the item repeats its side's newest stamp (it was dropped and counted)."""
 
     pairs: list[tuple[int, Item, Item]] = field(default_factory=list)
     dropped: int = 0
     backwards: str | None = None
+    duplicate: str | None = None
 
 
 class StereoSynchronizer(Generic[Item]):
@@ -65,6 +67,12 @@ class StereoSynchronizer(Generic[Item]):
             raise ValueError(f"side must be 'left' or 'right', got {side!r}")
         outcome: SyncOutcome[Item] = SyncOutcome()
         newest = self._newest[side]
+        if newest is not None and stamp_ns == newest:
+            outcome.duplicate = (f"two {side} images stamped {stamp_ns / 1e9:.9f} s: the second "
+                                 "was dropped (is a driver republishing, or two publishers on "
+                                 "the topic?)")
+            outcome.dropped += 1
+            return outcome
         if newest is not None and stamp_ns < newest:
             outcome.backwards = (
                 f"{side} image stamps went backwards by {(newest - stamp_ns) / 1e9:.3f} s "

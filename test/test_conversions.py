@@ -76,6 +76,11 @@ def test_camera_info_round_trip_and_errors():
     broken.p[0] = math.nan
     with pytest.raises(CalibrationError, match="NaN"):
         conversions.calibration_from_camera_info(left, broken, 640, 360)
+    for index, value in ((0, math.nan), (4, 0.0), (2, math.inf)):
+        bad_k = conversions.camera_info_message(cal, 640, 360, HEADER)
+        bad_k.k[index] = value
+        with pytest.raises(CalibrationError, match="K has NaN, infinity or a focal length"):
+            conversions.calibration_from_camera_info(bad_k, right, 640, 360)
 
 
 def test_disparity_message_marks_invalid_outside_range():

@@ -65,3 +65,14 @@ def test_waiting_counts_items_per_side():
     sync.add("left", 1, "L")
     sync.add("left", 2, "L")
     assert (sync.waiting("left"), sync.waiting("right")) == (2, 0)
+
+
+def test_a_repeated_stamp_is_dropped_counted_and_said_not_paired_twice():
+    sync = StereoSynchronizer()
+    assert sync.add("left", 100, "L1").pairs == []
+    paired = sync.add("right", 100, "R1")
+    assert paired.pairs == [(100, "L1", "R1")]
+    again = sync.add("left", 100, "L1 again")
+    assert again.pairs == [] and again.dropped == 1 and "two left images" in again.duplicate
+    assert sync.waiting("left") == 0
+    assert sync.add("left", 200, "L2").duplicate is None
