@@ -14,6 +14,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -88,6 +89,11 @@ class Statistics:
         self.road_inlier_fraction = float("nan")
         self.potholes = 0
         self.frames = 0
+        self.started = time.monotonic()
+        self.last_image: float | None = None
+        self.camera_frame = ""
+        self.failures_in_a_row = 0
+        self.last_failure = ""
 
     def _trim(self, now: float) -> None:
         for queue in (self.inputs, self.processed):
@@ -99,6 +105,16 @@ class Statistics:
     def input_set(self) -> None:
         with self.lock:
             self.inputs.append(time.monotonic())
+
+    def image(self, frame_id: str) -> None:
+        with self.lock:
+            self.last_image = time.monotonic()
+            self.camera_frame = frame_id or self.camera_frame
+
+    def failed(self, reason: str) -> None:
+        with self.lock:
+            self.failures_in_a_row += 1
+            self.last_failure = reason
 
     def drop(self, count: int = 1) -> None:
         with self.lock:
@@ -122,6 +138,7 @@ class Statistics:
             self.road_inlier_fraction = inlier_fraction
             self.potholes = potholes
             self.frames += 1
+            self.failures_in_a_row = 0
 
     def snapshot(self) -> dict[str, Any]:
         now = time.monotonic()
@@ -142,6 +159,10 @@ class Statistics:
                 "input_errors": self.errors,
                 "last_error": self.last_error,
                 "seconds_since_error": now - self.last_error_time if self.errors else -1.0,
+                "seconds_since_input": now - (self.last_image or self.started),
+                "failures_in_a_row": self.failures_in_a_row,
+                "last_failure": self.last_failure,
+                "camera_frame": self.camera_frame,
             }
 
 
@@ -178,8 +199,7 @@ class PotholeDetectorNode(Node):
         self._inputs: list[Any] = []
         self._outputs: dict[str, Any] = {}
         self._make_io(self._config)
-        self._diagnostics_timer = self.create_timer(self._config.diagnostics_period_seconds,
-                                                    self._publish_diagnostics)
+        self._diagnostics_timer = self._wall_timer(self._config.diagnostics_period_seconds)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._worker = threading.Thread(target=self._work, name="pothole_worker", daemon=True)
@@ -207,8 +227,7 @@ class PotholeDetectorNode(Node):
         if "diagnostics_period_seconds" in changed:
             self._diagnostics_timer.cancel()
             self.destroy_timer(self._diagnostics_timer)
-            self._diagnostics_timer = self.create_timer(config.diagnostics_period_seconds,
-                                                        self._publish_diagnostics)
+            self._diagnostics_timer = self._wall_timer(config.diagnostics_period_seconds)
         self.get_logger().info(f"parameters changed: {', '.join(sorted(changed))}")
 
     # --- topics -----------------------------------------------------------------------------
@@ -260,6 +279,7 @@ class PotholeDetectorNode(Node):
 
     def _on_image(self, side: str, msg: Image) -> None:
         stamp_ns = conversions.stamp_ns(msg.header)
+        self._stats.image(msg.header.frame_id)
         with self._lock:
             outcome = self._synchronizer.add(side, stamp_ns, msg)
             if outcome.backwards:
@@ -345,9 +365,12 @@ class PotholeDetectorNode(Node):
                 self._process(job, config, reset)
             except PotholeError as exc:
                 self._problem(type(exc).__name__, str(exc))
+                self._stats.failed(str(exc))
                 self._publish_failure(job, str(exc))
             except Exception as exc:  # noqa: BLE001 - the node must survive any frame
-                self._problem("internal", f"frame failed with {type(exc).__name__}: {exc}")
+                reason = f"frame failed with {type(exc).__name__}: {exc}"
+                self._problem("internal", reason)
+                self._stats.failed(reason)
                 self._publish_failure(job, f"internal error: {type(exc).__name__}: {exc}")
 
     def _publish_failure(self, job: StereoSet, reason: str) -> None:
@@ -395,12 +418,31 @@ class PotholeDetectorNode(Node):
             self.get_logger().warning(message)
 
     def _publish_diagnostics(self) -> None:
+        """The node's health: ERROR after error_after_failed_frames failed frames in a row
+        (with the last reason), WARN when no stereo image came for input_timeout_seconds or
+        after a recent input problem, else OK; named after the node's full name, with the
+        camera's frame as hardware id."""
         snapshot = self._stats.snapshot()
+        config = self._config
         recent_error = 0 <= snapshot["seconds_since_error"] < 2 * self._stats.window
+        level, message = DiagnosticStatus.OK, "ok"
+        if recent_error:
+            level, message = DiagnosticStatus.WARN, snapshot["last_error"]
+        if snapshot["seconds_since_input"] > config.input_timeout_seconds:
+            level, message = DiagnosticStatus.WARN, (
+                f"no stereo image for {snapshot['seconds_since_input']:.1f} s on "
+                f"{self.resolve_topic_name('left/image_rect')} and "
+                f"{self.resolve_topic_name('right/image_rect')}"
+                + (f"; the last input problem: {snapshot['last_error']}" if recent_error
+                   else ""))
+        if snapshot["failures_in_a_row"] >= config.error_after_failed_frames:
+            level, message = DiagnosticStatus.ERROR, (
+                f"{snapshot['failures_in_a_row']} frames in a row failed; the last: "
+                f"{snapshot['last_failure']}")
         status = DiagnosticStatus(
-            name=f"{self.get_name()}: pipeline", hardware_id="stereo_camera",
-            level=DiagnosticStatus.WARN if recent_error else DiagnosticStatus.OK,
-            message=snapshot["last_error"] if recent_error else "ok",
+            name=f"{self.get_fully_qualified_name()}: pipeline",
+            hardware_id=snapshot["camera_frame"] or "stereo camera",
+            level=level, message=message,
             values=[KeyValue(key="backend",
                              value=self._backend.name if self._backend else "not started")]
             + [KeyValue(key=key, value=f"{value:.3f}" if isinstance(value, float) else str(value))
@@ -408,6 +450,12 @@ class PotholeDetectorNode(Node):
         )
         self._outputs["diagnostics"].publish(
             DiagnosticArray(header=self._header_now(), status=[status]))
+
+    def _wall_timer(self, period: float) -> Any:
+        """The diagnostics timer, on the steady clock: it keeps firing while a simulated
+        /clock (use_sim_time) pauses."""
+        return self.create_timer(period, self._publish_diagnostics,
+                                 clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _header_now(self) -> Header:
         return Header(stamp=self.get_clock().now().to_msg())

@@ -323,3 +323,30 @@ def test_the_parameter_file_applies_under_any_namespace_and_node_name(tmp_path, 
     finally:
         client_node.destroy_node()
     assert values == [41.5 if params_file == "written" else 32.0, 10]
+
+
+def test_diagnostics_tell_no_input_and_failures_in_a_row(node_factory, probe, frames):
+    """/diagnostics: named after the node's full name with the camera's frame as hardware id;
+    WARN while no image comes, ERROR once error_after_failed_frames frames fail in a row, and
+    no longer ERROR after a good frame."""
+    node_factory(backend="cpu", input_timeout_seconds=0.5, error_after_failed_frames=2,
+                 diagnostics_period_seconds=0.2, log_throttle_seconds=0.0)
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    assert p.spin(10, lambda: "no stereo image" in p.diagnostics().get("message", ""))
+    assert p.diagnostics()["level"] == 1
+    status = p.received["diagnostics"][-1].status[0]
+    assert status.name == "/stereo/pothole_detector: pipeline"
+    good = frames[0]
+    right = conversions.image_to_array(good["right"])[:, :600]
+    narrow = conversions.array_to_image(right, "mono8", good["right"].header)
+    for index in range(2):  # one at a time: a set arriving while the node is busy is dropped
+        p.publish(good, T0 + index, right=narrow)
+        assert p.spin(15, lambda: T0 + index in p.stamps())
+    assert p.spin(15, lambda: p.diagnostics().get("level") == 2), p.diagnostics()
+    assert "2 frames in a row failed" in p.diagnostics()["message"]
+    assert p.received["diagnostics"][-1].status[0].hardware_id == good["left"].header.frame_id
+    p.publish(good, T0 + 5)
+    assert p.spin(15, lambda: T0 + 5 in p.stamps())
+    assert p.spin(5, lambda: p.diagnostics().get("failures_in_a_row") == "0")
+    assert p.diagnostics()["level"] != 2
