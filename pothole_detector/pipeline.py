@@ -141,7 +141,7 @@ class Pipeline:
     def reset(self) -> None:
         """Forget the previous frame's road model; the next frame runs the seed pass."""
         self.road = None
-        self._accepted: road_model.RoadModel | None = None  # the last road a frame passed
+        self._accepted = None
         self._refused = 0
 
     def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:

@@ -11,7 +11,7 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
 from .components import relabel
-from .road_model import PARAM_LAYOUT, RoadModel, device_params
+from .road_model import PARAM_LAYOUT, RoadModel, device_params, road_plane
 
 
 @dataclass(frozen=True)
@@ -42,10 +42,7 @@ def road_normal(model: RoadModel, calibration: StereoCalibration) -> np.ndarray:
 
     Road disparity alpha + beta u + gamma v = f B / Z is the plane n . P = f B with
     n = (beta f, gamma f, alpha + beta cx + gamma cy)."""
-    beta = -model.a1 * math.sin(model.roll_rad)
-    gamma = model.a1 * math.cos(model.roll_rad)
-    f, cx, cy = calibration.f, calibration.cx, calibration.cy
-    normal = np.array([beta * f, gamma * f, model.a0 + beta * cx + gamma * cy])
+    normal = np.array(road_plane(np, model.kernel_params(), calibration)[0], dtype=np.float64)
     return normal / np.linalg.norm(normal)
 
 

@@ -403,7 +403,7 @@ def params_at(xp: Any, params: Any, u: Any, v: Any) -> Any:
         tuple(c), u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX)
 
 
-def _plane(xp: Any, params: Any, calibration: Any) -> tuple[tuple[Any, Any, Any], Any]:
+def road_plane(xp: Any, params: Any, calibration: Any) -> tuple[tuple[Any, Any, Any], Any]:
     """The plane n . P = f B of the linear part of the road model given by its kernel
     parameters: n = (beta f, gamma f, a0 + beta cx + gamma cy) and |n| (backend scalars)."""
     layout = PARAM_LAYOUT
@@ -417,14 +417,14 @@ def _plane(xp: Any, params: Any, calibration: Any) -> tuple[tuple[Any, Any, Any]
 def params_normal(xp: Any, params: Any, calibration: Any) -> tuple[Any, Any, Any]:
     """Unit normal (three backend scalars) of the plane of the linear part of the road model
     given by its kernel parameters, as measure.road_normal computes it from a RoadModel."""
-    normal, norm = _plane(xp, params, calibration)
+    normal, norm = road_plane(xp, params, calibration)
     return normal[0] / norm, normal[1] / norm, normal[2] / norm
 
 
 def params_height(xp: Any, params: Any, calibration: Any) -> Any:
     """The camera's height (m, a backend scalar) above the plane of the linear part of the
     road model given by its kernel parameters: f B / |n|."""
-    _, norm = _plane(xp, params, calibration)
+    _, norm = road_plane(xp, params, calibration)
     return calibration.fb / norm
 
 
