@@ -17,10 +17,11 @@ from . import __version__
 from .backend import BACKEND_CHOICES, get_backend
 from .calibration import StereoCalibration, load_stereo_camera_info
 from .errors import InputError, PotholeError
-from .evaluation import draw_progress, evaluate
+from .evaluation import draw_progress, evaluate, evaluate_synthetic, synthetic_markdown
 from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
 from .pipeline import Pipeline, PipelineResult
+from .rig_matrix import RIG_CLASS_NAMES
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -43,8 +44,21 @@ def _parser() -> argparse.ArgumentParser:
     _common(detect)
 
     evaluate_cmd = commands.add_parser(
-        "evaluate", help="the paper's metrics over a directory of pairs with ground truth")
-    evaluate_cmd.add_argument("directory", help="fan_potholes, KITTI or Middlebury folder")
+        "evaluate", help="the paper's metrics over a directory of pairs with ground truth, or "
+                         "over rendered scenes of a matrix of rigs (--synthetic)")
+    evaluate_cmd.add_argument("directory", nargs="?",
+                              help="fan_potholes, KITTI or Middlebury folder")
+    evaluate_cmd.add_argument("--synthetic", action="store_true",
+                              help="render scenes of each rig class and score them")
+    evaluate_cmd.add_argument("--rig-class", action="append", choices=RIG_CLASS_NAMES,
+                              help="with --synthetic: only this class (repeatable)")
+    evaluate_cmd.add_argument("--scenes", type=int, default=3,
+                              help="with --synthetic: scenes with potholes per class")
+    evaluate_cmd.add_argument("--clean-scenes", type=int, default=1,
+                              help="with --synthetic: pothole-free scenes per class")
+    evaluate_cmd.add_argument("--seed", type=int, default=0,
+                              help="with --synthetic: which draw of scenes")
+    evaluate_cmd.add_argument("--cache", help="with --synthetic: keep renders in this folder")
     evaluate_cmd.add_argument("--out", help="also write the report (Markdown) here")
     _common(evaluate_cmd)
 
@@ -162,9 +176,17 @@ def run_detect(args: argparse.Namespace) -> int:
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
+    if args.synthetic == bool(args.directory):
+        raise InputError("evaluate needs a DIRECTORY of pairs or --synthetic (not both)")
     config = _config(args.config, args.backend)
-    report = evaluate(args.directory, config, get_backend(config.backend))
-    text = report.markdown()
+    if args.synthetic:
+        if args.scenes < 0 or args.clean_scenes < 0 or args.scenes + args.clean_scenes == 0:
+            raise InputError("--scenes and --clean-scenes must be >= 0, one of them > 0")
+        text = synthetic_markdown(evaluate_synthetic(
+            config, get_backend(config.backend), args.rig_class, args.scenes,
+            args.clean_scenes, args.seed, args.cache))
+    else:
+        text = evaluate(args.directory, config, get_backend(config.backend)).markdown()
     print(text)
     if args.out:
         Path(args.out).write_text(text)

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import hashlib
+import math
+import pickle
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, TextIO
+from typing import Any, Iterable, Iterator, TextIO
 
 import cv2
 import numpy as np
@@ -330,3 +333,180 @@ def _evaluate_disparity(sample: Sample, config: Config, backend: Backend,
             report.disparity_rows.append({"name": sample.name, "matcher": matcher,
                                           "region": region_name, "levels": n_levels, "ms": ms,
                                           **errors})
+
+
+@dataclass
+class RigTally:
+    """Per rig class: pixel and pothole counts (inside the observed range and overall), roll
+    errors, relative measurement errors of matched potholes, and what went wrong."""
+
+    scenes: int = 0
+    pixels_observed: PixelCounts = field(default_factory=PixelCounts)
+    pixels_all: PixelCounts = field(default_factory=PixelCounts)
+    detections: int = 0
+    matched: int = 0
+    truths_observed: int = 0
+    matched_observed: int = 0
+    truths_all: int = 0
+    clean_scenes: int = 0
+    false_on_clean: int = 0
+    roll_errors_deg: list[float] = field(default_factory=list)
+    depth_errors: list[float] = field(default_factory=list)
+    area_errors: list[float] = field(default_factory=list)
+    volume_errors: list[float] = field(default_factory=list)
+    bad_reports: int = 0
+    failed: int = 0
+
+    def pothole_scores(self, observed: bool) -> tuple[float, float, float]:
+        """Pothole precision, recall and F at IoU 0.3 (recall of the potholes inside the
+        observed range, or of all)."""
+        truths, hits = ((self.truths_observed, self.matched_observed) if observed
+                        else (self.truths_all, self.matched))
+        precision = self.matched / self.detections if self.detections else 1.0
+        recall = hits / truths if truths else 1.0
+        total = precision + recall
+        return precision, recall, 2 * precision * recall / total if total else 0.0
+
+
+def truth_roll_deg(sample: Any) -> float:
+    """The road model's roll (deg, RoadModel convention) of a rendered scene's flat road: from
+    the world's up axis in the left optical frame."""
+    up = sample.camera_from_world @ np.array([0.0, 0.0, 1.0])
+    return float(np.degrees(np.arctan2(up[0], -up[1])))
+
+
+def match_potholes(labels: np.ndarray, truth: np.ndarray, min_iou: float = 0.3
+                   ) -> list[tuple[int, int]]:
+    """One-to-one (detection label, truth label) pairs whose pixel IoU is at least
+    ``min_iou``, best first. ``labels`` and ``truth``: integer HxW, 0 = none."""
+    both = (labels > 0) & (truth > 0)
+    pairs, overlap = np.unique(np.stack([labels[both], truth[both]]), axis=1,
+                               return_counts=True)
+    detected = np.bincount(labels.ravel())
+    true = np.bincount(truth.ravel())
+    scored = sorted(((count / (detected[d] + true[t] - count), int(d), int(t))
+                     for (d, t), count in zip(pairs.T, overlap)), reverse=True)
+    used_d: set[int] = set()
+    used_t: set[int] = set()
+    found = []
+    for iou, d, t in scored:
+        if iou >= min_iou and d not in used_d and t not in used_t:
+            used_d.add(d)
+            used_t.add(t)
+            found.append((d, t))
+    return found
+
+
+def _along_road_m(sample: Any, shape: Any) -> float:
+    """Distance (m) along the road from the point below the camera to a pothole's centre."""
+    return float(shape.y_m - sample.camera_origin_world[1])
+
+
+def _score_scene(tally: RigTally, sample: Any, result: Any) -> None:
+    labels = result.host("labels")
+    truth = sample.labels.astype(np.int64)
+    observed = result.host("observed")
+    predicted, is_pothole = labels > 0, truth > 0
+    everywhere = np.ones_like(predicted)
+    tally.pixels_all.add(predicted, is_pothole, everywhere)
+    tally.pixels_observed.add(predicted, is_pothole, observed)
+    tally.roll_errors_deg.append(abs(result.road.roll_deg - truth_roll_deg(sample)))
+    near, far = result.observed_range_m
+    pairs = match_potholes(labels, truth)
+    matched_truths = {t for _, t in pairs}
+    for index, shape in enumerate(sample.potholes, start=1):
+        if not np.any(truth == index):
+            continue
+        tally.truths_all += 1
+        if near <= _along_road_m(sample, shape) <= far:
+            tally.truths_observed += 1
+            tally.matched_observed += index in matched_truths
+    tally.detections += len(result.potholes)
+    tally.matched += len(pairs)
+    by_label = {p.label: p for p in result.potholes}
+    for d, t in pairs:
+        found, shape = by_label.get(d), sample.potholes[t - 1]
+        if found is None:
+            continue
+        tally.depth_errors.append(abs(found.max_depth_m - shape.depth_m) / shape.depth_m)
+        tally.area_errors.append(abs(found.area_m2 - shape.area_m2) / shape.area_m2)
+        tally.volume_errors.append(abs(found.volume_m3 - shape.volume_m3) / shape.volume_m3)
+    for found in result.potholes:
+        numbers = (found.area_m2, found.max_depth_m, found.mean_depth_m, found.volume_m3)
+        tally.bad_reports += not all(math.isfinite(x) and x > 0 for x in numbers)
+
+
+def _rendered(scene: Any, cache: Path | None) -> Any:
+    """The scene rendered, from ``cache`` (a folder of .pkl files keyed by the scene) when
+    it holds it."""
+    from .synthetic import render
+
+    if cache is None:
+        return render(scene)
+    path = cache / f"{hashlib.sha1(repr(scene).encode()).hexdigest()[:16]}.pkl"
+    if path.is_file():
+        return pickle.loads(path.read_bytes())
+    sample = render(scene)
+    cache.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(pickle.dumps(sample))
+    return sample
+
+
+def evaluate_synthetic(config: Config, backend: Backend, classes: Iterable[str] | None = None,
+                       scenes: int = 3, clean_scenes: int = 1, seed: int = 0,
+                       cache: str | Path | None = None, stream: TextIO = sys.stderr,
+                       ) -> dict[str, RigTally]:
+    """Render ``scenes`` scenes with potholes and distractors and ``clean_scenes`` scenes with
+    distractors only per rig class (rig_matrix.RIG_CLASSES, or those named), run the pipeline
+    on each (a fresh pipeline per scene, so each is seeded) and tally them per class."""
+    from .rig_matrix import RIG_CLASS_BY_NAME, RIG_CLASSES, sample_scene
+
+    rigs = [RIG_CLASS_BY_NAME[name] for name in classes] if classes else list(RIG_CLASSES)
+    jobs = [(rig, index, index >= scenes) for rig in rigs
+            for index in range(scenes + clean_scenes)]
+    tallies = {rig.name: RigTally() for rig in rigs}
+    cache_dir = Path(cache) if cache else None
+    for rig, index, clean in progress(jobs, stream, label="evaluate --synthetic"):
+        scene = sample_scene(rig, index, potholes=0 if clean else 3,
+                             distractors=6 if clean else 4, seed=seed)
+        sample = _rendered(scene, cache_dir)
+        tally = tallies[rig.name]
+        try:
+            result = Pipeline(config, sample.calibration, backend).run(sample.left,
+                                                                       sample.right)
+        except PotholeError:
+            tally.failed += 1
+            continue
+        if clean:
+            tally.clean_scenes += 1
+            tally.false_on_clean += len(result.potholes)
+            tally.roll_errors_deg.append(abs(result.road.roll_deg - truth_roll_deg(sample)))
+        else:
+            tally.scenes += 1
+            _score_scene(tally, sample, result)
+    return tallies
+
+
+def synthetic_markdown(tallies: dict[str, RigTally]) -> str:
+    """The per-class table of :func:`evaluate_synthetic`."""
+    lines = ["| rig class | scenes | pixel P / R / F (observed) | pixel F (all) | "
+             "pothole P / R / F (observed) | pothole R / F (all) | false on clean roads | "
+             "roll error median (deg) | depth / area / volume error median | bad reports | "
+             "failed |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, t in tallies.items():
+        obs, every = t.pixels_observed, t.pixels_all
+        p, r, f = t.pothole_scores(True)
+        _, r_all, f_all = t.pothole_scores(False)
+
+        def median(values: list[float]) -> str:
+            return f"{100 * float(np.median(values)):.0f} %" if values else "-"
+
+        roll = f"{float(np.median(t.roll_errors_deg)):.2f}" if t.roll_errors_deg else "-"
+        lines.append(
+            f"| {name} | {t.scenes} + {t.clean_scenes} clean | {obs.precision:.2f} / "
+            f"{obs.recall:.2f} / {obs.f_score:.2f} | {every.f_score:.2f} | {p:.2f} / {r:.2f} /"
+            f" {f:.2f} | {r_all:.2f} / {f_all:.2f} | {t.false_on_clean} | {roll} | "
+            f"{median(t.depth_errors)} / {median(t.area_errors)} / {median(t.volume_errors)} "
+            f"| {t.bad_reports} | {t.failed} |")
+    return "\n".join(lines) + "\n"

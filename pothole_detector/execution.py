@@ -285,12 +285,12 @@ class FrameExecutor:
         buffers = self._uploads.get((height, width))
         if buffers is None:
             layout = [((height, width), np.uint8), ((height, width), np.uint8),
-                      ((3, height), np.int32)]
+                      ((3, height), np.int32), ((road_model.PRIOR_PARAMS,), np.float64)]
             buffers = [UploadBuffer(self.backend, layout) for _ in range(2)]
             self._uploads = {(height, width): buffers}
         buffer = buffers.pop(0)
         buffers.append(buffer)
-        left_host, right_host, _ = buffer.writable()
+        left_host, right_host = buffer.writable()[:2]
         matching.to_gray8(pair[0], out=left_host)
         matching.to_gray8(pair[1], out=right_host)
         if send_ahead:
@@ -315,11 +315,11 @@ class FrameExecutor:
         seeded = pipeline.road is None or not config.gpt_enabled
         seeding = config.gpt_enabled and pipeline.road is None
         staged.send_ahead(2)
-        pair, shifts, levels = pipeline.prepare(lambda table: _send(staged, table),
-                                                (height, width), clock)
+        pair, shifts, levels = pipeline.prepare(
+            lambda table, prior: _send(staged, table, prior), (height, width), clock)
         key = (height, width, levels)
         graphed = backend.is_gpu and config.cuda_graph and not seeding \
-            and config.threshold_mode == "pixels" and pipeline.matcher.kind(config) == "census"
+            and pipeline.matcher.kind(config) == "census"
         graph = self.graphs.get(key, pipeline.matcher.generation, self._capture) \
             if graphed else None
         if graph is None:
@@ -337,12 +337,12 @@ class FrameExecutor:
             self._unpublished = frame
         return frame
 
-    def _frame(self, pair: tuple[Any, Any, Any], levels: int, clock: StageClock,
+    def _frame(self, pair: tuple[Any, Any, Any, Any], levels: int, clock: StageClock,
                after_fit: Callable[[_Frame], None]) -> _Frame:
         """The pipeline's stages from SGM on, into a new report."""
         config = self.pipeline.config
-        n_sp = superpixels.grid_count(pair[0].shape, config.slic_region_size_px,
-                                      config.slic_downsample)
+        region_px = superpixels.region_size(config.slic_region_size_px, pair[0].shape[1])
+        n_sp = superpixels.grid_count(pair[0].shape, region_px, config.slic_downsample)
         frame = _Frame(FrameReport(self.backend.xp, components.device_capacity(n_sp)),
                        pixels=int(pair[0].size))
         frame.arrays = self.pipeline.stages(*pair, levels, frame.report, clock,
@@ -361,15 +361,16 @@ class FrameExecutor:
 
     def _capture(self, key: _GraphKey) -> CapturedGraph:
         """:meth:`_frame` of a (height, width, levels) captured as two CUDA graphs, cut after
-        the road fit; the outputs: the input arrays (left, right, shifts) they read and the
+        the road fit; the outputs: the input arrays (left, right, shifts, prior) they read and the
         frame."""
         height, width, levels = key
         xp = self.backend.xp
 
-        def body(cut: Callable[[], None]) -> tuple[tuple[Any, Any, Any], _Frame]:
+        def body(cut: Callable[[], None]) -> tuple[tuple[Any, Any, Any, Any], _Frame]:
             pair = (xp.empty((height, width), dtype=xp.uint8),
                     xp.empty((height, width), dtype=xp.uint8),
-                    xp.empty((3, height), dtype=xp.int32))
+                    xp.empty((3, height), dtype=xp.int32),
+                    xp.empty(road_model.PRIOR_PARAMS, dtype=xp.float64))
             return pair, self._frame(pair, levels, StageClock(self.backend, timed=False),
                                      lambda frame: cut())
 
@@ -377,7 +378,7 @@ class FrameExecutor:
             self._graph_memory = GraphMemory()
         return self.backend.capture(body, self._graph_memory)
 
-    def _replay(self, graph: CapturedGraph, pair: tuple[Any, Any, Any],
+    def _replay(self, graph: CapturedGraph, pair: tuple[Any, Any, Any, Any],
                 clock: StageClock) -> _Frame:
         """One replay of a frame's graphs on the uploaded ``pair``, the header's readback
         between them; the frame's arrays are the graph's (see :meth:`_publish`; the frame
@@ -459,7 +460,7 @@ class FrameExecutor:
         kept = host.components_kept
         potholes, _ = measure.keep_large(
             measure.potholes_from_sums(host.sums[1:kept + 1], host.extremes[1:kept + 1]),
-            config.min_pothole_area_m2)
+            config.min_pothole_area_m2, config.min_pothole_depth_m, config.max_pothole_depth_m)
         timings = clock.timings()
         timings["total"] = sum(timings.values())
         timings["host"] = (time.perf_counter() - frame.started) * 1e3 - frame.lent_ms
@@ -470,16 +471,19 @@ class FrameExecutor:
             superpixels=arrays.superpixels.labels, observed=arrays.observed,
             observed_range_m=(float(host.observed_range[0]), float(host.observed_range[1])),
             road=frame.road,
-            threshold_px=road_mean if config.threshold_reference == "road_mean" else t_r,
+            threshold_px={"split": t_r, "road_mean": road_mean, "road_fit": config.delta_dt_px}[
+                thresholding.reference_for(config.threshold_reference, config.threshold_mode)],
             band=(lowest, int(frame.levels)),
             disparity_range=(float(lowest), float(highest + frame.levels - 1)),
             potholes=potholes, backend=self.backend.name, seeded=frame.seeded,
             timings_ms=timings)
 
 
-def _send(staged: UploadBuffer, shifts: np.ndarray) -> tuple[Any, Any, Any]:
-    """The GPT shift table written behind the pair in ``staged`` and the whole buffer queued
-    for upload: the backend (left, right, shifts)."""
-    staged.writable(2)[0][...] = shifts
-    left, right, shifts_dev = staged.upload()
-    return left, right, shifts_dev
+def _send(staged: UploadBuffer, shifts: np.ndarray, prior: np.ndarray
+          ) -> tuple[Any, Any, Any, Any]:
+    """The GPT shift table and the road fit's prior written behind the pair in ``staged`` and
+    the whole buffer queued for upload: the backend (left, right, shifts, prior)."""
+    shifts_host, prior_host = staged.writable(2)
+    shifts_host[...] = shifts
+    prior_host[...] = prior
+    return staged.upload()

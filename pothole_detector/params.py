@@ -105,6 +105,9 @@ PARAMETERS: tuple[Param, ...] = (
           "(0 = off).", 0, 10000),
     Param("speckle_range_px", int, 2, "Disparity variation (px) allowed inside one blob.", 0, 64),
     Param("median_filter", bool, True, "3x3 median on the disparity map after matching."),
+    Param("max_camera_height_m", float, 10.0,
+          "The seed pass takes no plane for the road that puts the camera higher above it "
+          "than this (m): walls, far trees and sky are not the road.", 0.1, 1000),
     Param("min_valid_fraction", float, 0.05,
           "Fewer valid disparities than this fraction of the image means no texture: an error.",
           0, 1),
@@ -120,15 +123,21 @@ PARAMETERS: tuple[Param, ...] = (
     Param("road_outlier_k", float, 2.5,
           "Pixels whose residual exceeds k robust sigmas are dropped before the next round.",
           0.5, 20),
+    Param("road_prior_change_deg", float, 1.0,
+          "How far the camera may turn about its x axis between frames (deg): a frame's road "
+          "fit starts from the pixels within the disparity such a turn moves the road (plus 3 "
+          "robust sigmas) of the previous frame's road, so cars, walls and trees do not tilt "
+          "it; 0 starts from every valid pixel.", 0, 45),
     Param("min_road_inlier_fraction", float, 0.3,
           "Below this fraction of valid pixels on the road, report no road and no potholes.",
           0, 1),
     Param("delta_dt_px", float, 32.0, "delta_DT: value of the road in the transformed map (px).",
           0, 1024),
     # superpixels
-    Param("slic_region_size_px", int, 32,
-          "SLIC grid step S in full-resolution px (the SLIC image uses S / slic_downsample).",
-          4, 512),
+    Param("slic_region_size_px", int, 0,
+          "SLIC grid step S in full-resolution px (the SLIC image uses S / slic_downsample); "
+          "0: the image width / 64 (32 px at 2079 px wide, 10 px at 640), so that superpixels "
+          "take the same share of the view on any image size.", 0, 512),
     Param("slic_compactness", float, 2.0,
           "SLIC m: a spatial distance of S weighs like m px of transformed disparity.", 0.01, 100),
     Param("slic_iterations", int, 6, "Fixed number of SLIC k-means iterations.", 1, 50),
@@ -137,15 +146,26 @@ PARAMETERS: tuple[Param, ...] = (
           1, 8),
     # threshold and selection
     Param("histogram_bin_px", float, 0.25, "Bin width of the 2D histogram (px).", 0.01, 10),
-    Param("threshold_reference", str, "road_mean",
-          "What delta_PD is subtracted from: the mean D2 of the road cluster (the paper's text) "
-          "or the k-means split t_r itself.", choices=("road_mean", "split")),
-    Param("threshold_mode", str, "pixels",
-          "Pothole tolerance delta_PD given in pixels or as a metric depth in metres.",
+    Param("threshold_reference", str, "auto",
+          "What delta_PD is subtracted from: the road model's own level delta_DT (road_fit), "
+          "the mean D2 of the histogram's road cluster (road_mean, the paper's text), the "
+          "histogram split t_r itself (split), or auto (road_fit in metres mode, road_mean in "
+          "pixels mode).", choices=("auto", "road_fit", "road_mean", "split")),
+    Param("threshold_mode", str, "metres",
+          "Pothole tolerance delta_PD as a depth below the road (metres: the same on any rig) "
+          "or as a disparity drop in pixels (the paper's, which fits one rig only).",
           choices=("pixels", "metres")),
     Param("delta_pd_px", float, 2.36, "delta_PD in pixels (paper: 2.36).", 0, 100),
-    Param("delta_pd_m", float, 0.008,
-          "delta_PD as a depth below the road (m), converted per superpixel.", 0, 1),
+    Param("delta_pd_m", float, 0.004,
+          "delta_PD as a depth below the road (m), converted per superpixel into the "
+          "disparity drop of a point that deep.", 0, 1),
+    Param("threshold_noise_sigmas", float, 3.0,
+          "Metres mode: where the matcher cannot resolve delta_pd_m, the threshold is the "
+          "depth whose disparity drop is this many robust sigmas of the road fit.", 0, 20),
+    Param("max_threshold_m", float, 0.03,
+          "Metres mode: the road counts as observed (potholes are looked for) only where the "
+          "threshold depth is at most this (m); the observed range in the outputs says where.",
+          0, 10),
     Param("superpixel_min_valid_fraction", float, 0.0,
           "A superpixel needs more than this fraction of valid disparities to be selectable "
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),
@@ -157,12 +177,17 @@ PARAMETERS: tuple[Param, ...] = (
           1, 1000),
     Param("min_pothole_area_m2", float, 0.0005, "Components smaller on the road are dropped.",
           0, 100),
+    Param("min_pothole_depth_m", float, 0.008,
+          "Components whose mean depth below the road is less are dropped (shallow dips, "
+          "noise).", 0, 1),
+    Param("max_pothole_depth_m", float, 0.5,
+          "Components whose mean depth below the road is more are dropped (mismatched "
+          "disparities, not potholes).", 0, 100),
     # device
     Param("cuda_graph", bool, True,
           "GPU backend: replay each frame's SGM and later stages as CUDA graphs per image "
           "size and level count (same results, two launches instead of about fifty); "
-          "per-stage timings need it off. Not used for seed frames or the metres threshold "
-          "mode."),
+          "per-stage timings need it off. Not used for seed frames."),
     # node
     Param("backend", str, "auto", "Array backend: gpu (CuPy), cpu (NumPy), or auto (gpu when "
           "CuPy sees a device, else cpu).", choices=("auto", "cpu", "gpu"), group="node"),

@@ -164,39 +164,56 @@ class Pipeline:
         xp = self.backend.xp
         images = [self.backend.upload(matching.to_gray8(image)) for image in (left, right)]
         clock = StageClock(self.backend)
-        pair, _, levels = self.prepare(lambda shifts: (*images, xp.asarray(shifts)),
-                                       images[0].shape, clock)
+        (*pair, prior), _, levels = self.prepare(
+            lambda shifts, prior: (*images, xp.asarray(shifts), xp.asarray(prior)),
+            images[0].shape, clock)
         disparity = self.matcher(*pair, levels, self.config)
         if self.config.gpt_enabled:
             try:
-                self.road = self._fit(disparity, stride=self.config.road_fit_stride)
+                self.road = self._fit(disparity, stride=self.config.road_fit_stride,
+                                      prior=prior)
             except NoRoadError:
                 self.reset()
         return disparity, levels
 
     # --- the method, in order -------------------------------------------------------------
 
-    def prepare(self, send: Callable[[np.ndarray], tuple[Any, Any, Any]],
+    def prepare(self, send: Callable[[np.ndarray, np.ndarray], tuple[Any, Any, Any, Any]],
                 shape: tuple[int, int], clock: StageClock
-                ) -> tuple[tuple[Any, Any, Any], np.ndarray, int]:
-        """Seed and GPT: ``send(shifts)`` puts the pair and the host GPT shift table on the
-        backend and returns (left, right, shifts); where no road model carries over, the coarse
-        seed pass fits one on the pair and the shifts go again. Returns the backend (left,
-        right, shifts), the host shifts (int32 (3, H)) and the level count of the band."""
+                ) -> tuple[tuple[Any, Any, Any, Any], np.ndarray, int]:
+        """Seed and GPT: ``send(shifts, prior)`` puts the pair, the host GPT shift table and
+        the road fit's prior (road_model.prior_params) on the backend and returns (left,
+        right, shifts, prior); where no road model carries over, the coarse seed pass fits one
+        on the pair and the shifts and prior go again. Returns the backend (left, right,
+        shifts, prior), the host shifts (int32 (3, H)) and the level count of the band."""
         seeding = self.config.gpt_enabled and self.road is None
         with clock.stage("gpt"):
             shifts, levels = self.band(shape)
-            left, right, shifts_dev = send(shifts)
+            left, right, shifts_dev, prior_dev = send(shifts, self.prior())
         if seeding:
             with clock.stage("seed"):
                 self.road = self._seed(left, right)
                 shifts, levels = self.band(shape)
                 shifts_dev = self.backend.upload(shifts)
-        return (left, right, shifts_dev), shifts, levels
+                prior_dev = self.backend.upload(self.prior())
+        return (left, right, shifts_dev, prior_dev), shifts, levels
 
-    def stages(self, left: Any, right: Any, shifts: Any, levels: int, report: FrameReport,
-               clock: StageClock, checkpoint: Checkpoint) -> FrameArrays:
-        """SGM to measure on a prepared pair. Small results go into ``report`` (valid count,
+    def prior(self) -> np.ndarray:
+        """The road fit's prior (host float64 (PRIOR_PARAMS,), road_model.prior_params): the
+        current road model and the distance from it that a turn of the camera by
+        ``road_prior_change_deg`` allows, used where at least ``min_road_inlier_fraction`` of
+        the valid pixels lie that close; none without a road model or with the change 0."""
+        road, change = self.road, self.config.road_prior_change_deg
+        if road is None or change <= 0:
+            return road_model.prior_params(None, 0.0)
+        return road_model.prior_params(
+            road, road_model.prior_tolerance_px(road, self.calibration, change),
+            self.config.min_road_inlier_fraction)
+
+    def stages(self, left: Any, right: Any, shifts: Any, prior: Any, levels: int,
+               report: FrameReport, clock: StageClock, checkpoint: Checkpoint) -> FrameArrays:
+        """SGM to measure on a prepared pair (``prior``: the road fit's, see :meth:`prior`).
+        Small results go into ``report`` (valid count,
         road fit, threshold search, component counts, pothole sums); nothing is read back but
         what ``checkpoint`` reads."""
         config, backend = self.config, self.backend
@@ -209,7 +226,7 @@ class Pipeline:
             road_model.fit(backend, disparity, stride=config.road_fit_stride,
                            rounds=config.road_fit_rounds, outlier_k=config.road_outlier_k,
                            kind=config.road_model, quadratic_gain=config.road_quadratic_gain,
-                           report=report.road, params=report.road_params)
+                           report=report.road, params=report.road_params, prior=prior)
         road = checkpoint.road_fitted(report)
         with clock.stage("dt"):
             transformed = transform_disparity(backend, disparity, road, config.delta_dt_px)
@@ -218,24 +235,23 @@ class Pipeline:
             thresholding.threshold_search(backend, transformed, config.histogram_bin_px,
                                           config.delta_dt_px, result=report.threshold)
         with clock.stage("slic"):
-            found = superpixels.superpixels(backend, transformed, config.slic_region_size_px,
+            region_px = superpixels.region_size(config.slic_region_size_px, transformed.shape[1])
+            found = superpixels.superpixels(backend, transformed, region_px,
                                             config.slic_compactness, config.slic_iterations,
                                             config.slic_downsample)
         with clock.stage("threshold"):
             join_threshold()
-            observed = thresholding.observation(
-                backend, transformed.shape, config.slic_region_size_px, config.slic_downsample,
+            pixels = config.threshold_mode == "pixels"
+            observed, drops = thresholding.observation(
+                backend, transformed.shape, region_px, config.slic_downsample,
                 report.road_params, report.road, self.calibration, config.delta_pd_m,
-                config.delta_pd_px if config.threshold_mode == "pixels" else 0.0,
-                report.observed_range)
-            drop: float | Any = config.delta_pd_px
-            if config.threshold_mode != "pixels":
-                drop = thresholding.metric_drop(xp, found.labels, found.count,
-                                                checkpoint.host_road(report), self.calibration,
-                                                config.delta_pd_m)
+                config.delta_pd_px if pixels else 0.0, config.threshold_noise_sigmas,
+                config.max_threshold_m, report.observed_range)
+            drop = config.delta_pd_px if pixels else drops
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
-                config.threshold_reference == "road_mean", found.means,
+                thresholding.reference_for(config.threshold_reference, config.threshold_mode),
+                found.means,
                 xp.where(observed, found.valid_fraction, xp.float32(-1)), drop,
                 config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
@@ -259,7 +275,8 @@ class Pipeline:
                             self.calibration, sums=report.sums, extremes=report.extremes)
             return measure.area_filter(backend, labels, report.sums, report.counts[1:2],
                                        report.capacity, config.min_pothole_area_m2,
-                                       report.counts[3:4])
+                                       report.counts[3:4], config.min_pothole_depth_m,
+                                       config.max_pothole_depth_m)
 
     def checked_road(self, road_report: np.ndarray, valid_count: float,
                      pixels: int) -> road_model.RoadModel:
@@ -321,13 +338,14 @@ class Pipeline:
             return mode
         return "pixel" if self.matcher.kind(self.config) == "census" else "row"
 
-    def _fit(self, disparity: Any, stride: int) -> road_model.RoadModel:
+    def _fit(self, disparity: Any, stride: int, prior: Any = None) -> road_model.RoadModel:
         config = self.config
         return road_model.fit_model(
             self.backend, disparity, stride=stride, rounds=config.road_fit_rounds,
             outlier_k=config.road_outlier_k, kind=config.road_model,
-            quadratic_gain=config.road_quadratic_gain)
+            quadratic_gain=config.road_quadratic_gain, prior=prior)
 
     def _seed(self, left: Any, right: Any) -> road_model.RoadModel:
         """The seed pass (stages/seed.py) on the (backend) pair."""
-        return seed.seed_road(self.backend, self._seed_matcher, left, right, self.config)
+        return seed.seed_road(self.backend, self._seed_matcher, left, right, self.config,
+                              self.calibration)

@@ -20,8 +20,9 @@ from .calibration import StereoCalibration
 
 @dataclass(frozen=True)
 class PotholeShape:
-    """An elliptic paraboloid pothole: depth(r) = depth_m (1 - r^2) inside the ellipse of
-    semi-axes (a, b) m centred at (x, y) m on the road, rotated by ``angle_deg``."""
+    """An elliptic pothole: depth(r) = depth_m (1 - r^n) inside the ellipse of semi-axes
+    (a, b) m centred at (x, y) m on the road, rotated by ``angle_deg``; n = ``wall_power``
+    (2: a paraboloid bowl, larger: steeper walls and a flatter floor)."""
 
     x_m: float
     y_m: float
@@ -29,26 +30,93 @@ class PotholeShape:
     b_m: float
     depth_m: float
     angle_deg: float = 0.0
+    wall_power: float = 2.0
 
     @property
     def area_m2(self) -> float:
         return math.pi * self.a_m * self.b_m
 
     @property
+    def mean_depth_m(self) -> float:
+        return self.depth_m * self.wall_power / (self.wall_power + 2.0)
+
+    @property
     def volume_m3(self) -> float:
-        return self.area_m2 * self.depth_m / 2.0
+        return self.area_m2 * self.mean_depth_m
 
     def depth_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Depth below the road surface (m, >= 0) at world points (x, y) m."""
         c, s = math.cos(math.radians(self.angle_deg)), math.sin(math.radians(self.angle_deg))
         dx, dy = x - self.x_m, y - self.y_m
         r2 = ((c * dx + s * dy) / self.a_m) ** 2 + ((-s * dx + c * dy) / self.b_m) ** 2
-        return np.where(r2 < 1.0, self.depth_m * (1.0 - r2), 0.0)
+        wall = r2 if self.wall_power == 2.0 else r2 ** (0.5 * self.wall_power)
+        return np.where(r2 < 1.0, self.depth_m * (1.0 - wall), 0.0)
+
+
+@dataclass(frozen=True)
+class BumpShape:
+    """A raised shape on the road (distractor): ``profile`` dome (paraboloid cap), disc (a flat
+    manhole cover with a 1 cm chamfer) or ridge (a speed bump: cos^2 across ``b_m``, flat along
+    ``a_m``), ``height_m`` above the road, semi-axes (a, b) m, rotated by ``angle_deg``."""
+
+    x_m: float
+    y_m: float
+    a_m: float
+    b_m: float
+    height_m: float
+    profile: str = "dome"
+    angle_deg: float = 0.0
+
+    def depth_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Depth below the road surface (m, <= 0 on the bump) at world points (x, y) m."""
+        c, s = math.cos(math.radians(self.angle_deg)), math.sin(math.radians(self.angle_deg))
+        dx, dy = x - self.x_m, y - self.y_m
+        p, q = (c * dx + s * dy) / self.a_m, (-s * dx + c * dy) / self.b_m
+        if self.profile == "ridge":
+            shape = np.where((np.abs(p) < 1.0) & (np.abs(q) < 1.0),
+                             np.cos(0.5 * np.pi * q) ** 2, 0.0)
+        elif self.profile == "disc":
+            r = np.sqrt(p * p + q * q)
+            edge = 0.01 / min(self.a_m, self.b_m)
+            shape = np.clip((1.0 - r) / edge, 0.0, 1.0)
+        else:
+            shape = np.maximum(1.0 - (p * p + q * q), 0.0)
+        return -self.height_m * shape
+
+
+@dataclass(frozen=True)
+class Paint:
+    """A change of the road's brightness without relief, fixed to the ground (distractor): an
+    ellipse (stain, patch, shadow: ``shade`` multiplies the texture's brightness) or, with
+    ``kind`` line, a band of half-width ``b_m`` and half-length ``a_m`` (lane marking: bright;
+    crack: dark and thin), rotated by ``angle_deg``."""
+
+    x_m: float
+    y_m: float
+    a_m: float
+    b_m: float
+    shade: float
+    kind: str = "ellipse"
+    angle_deg: float = 0.0
+
+    def mask(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        c, s = math.cos(math.radians(self.angle_deg)), math.sin(math.radians(self.angle_deg))
+        dx, dy = x - self.x_m, y - self.y_m
+        p, q = (c * dx + s * dy) / self.a_m, (-s * dx + c * dy) / self.b_m
+        if self.kind == "line":
+            return (np.abs(p) < 1.0) & (np.abs(q) < 1.0)
+        return p * p + q * q < 1.0
 
 
 @dataclass(frozen=True)
 class Scene:
-    """A rectified stereo rig over a road. Angles in degrees, lengths in metres, pixels px."""
+    """A rectified stereo rig over a road. Angles in degrees, lengths in metres, pixels px.
+
+    The road's base surface is Z = -crown x^2 - y^2 / (2 R) with R =
+    ``grade_radius_m`` (> 0 a crest, < 0 a sag, 0 flat); ``potholes`` are what detection must
+    find, ``relief`` (bumps, shallow dips) and ``paint`` are distractors that it must not.
+    ``noise_grey``: sigma of the Gaussian sensor noise (grey levels); ``right_gain``: the right
+    camera's gain relative to the left."""
 
     width: int = 640
     height: int = 360
@@ -62,6 +130,15 @@ class Scene:
     potholes: tuple[PotholeShape, ...] = ()
     texture_seed: int = 7
     supersample: int = 2
+    grade_radius_m: float = 0.0
+    relief: tuple[PotholeShape | BumpShape, ...] = ()
+    paint: tuple[Paint, ...] = ()
+    noise_grey: float = 0.0
+    right_gain: float = 1.0
+
+    def features(self) -> tuple[PotholeShape | BumpShape, ...]:
+        """Every shape that moves the surface: the potholes, then the distractors' relief."""
+        return self.potholes + self.relief
 
     @property
     def calibration(self) -> StereoCalibration:
@@ -84,10 +161,10 @@ class StereoSample:
     camera_origin_world: np.ndarray = field(repr=False)
 
     def centroid_cam_m(self, index: int) -> np.ndarray:
-        """Centroid (3,) of pothole ``index``'s surface in the left optical frame (m): the
-        paraboloid's surface centroid lies at half its depth below the ellipse centre."""
+        """Centroid (3,) of pothole ``index``'s surface in the left optical frame (m): it lies
+        at the mean depth below the ellipse centre."""
         shape = self.potholes[index]
-        world = np.array([shape.x_m, shape.y_m, -shape.depth_m / 2.0])
+        world = np.array([shape.x_m, shape.y_m, -shape.mean_depth_m])
         return self.camera_from_world @ (world - self.camera_origin_world)
 
 
@@ -101,31 +178,61 @@ def _axes(scene: Scene) -> np.ndarray:
     return np.stack([c * x - s * y, s * x + c * y, z], axis=1)
 
 
+def _grade(scene: Scene) -> float:
+    """The base surface's curvature along the road: 1 / (2 R) (1/m), 0 for a flat grade."""
+    return 0.5 / scene.grade_radius_m if scene.grade_radius_m else 0.0
+
+
 def _surface_depth(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """How far the surface lies below Z = 0 at world (x, y): crown plus potholes (m)."""
+    """How far the surface lies below Z = 0 at world (x, y): crown, grade, potholes, relief
+    (m, negative above)."""
     depth = scene.crown_per_m * x * x
-    for shape in scene.potholes:
+    if scene.grade_radius_m:
+        depth = depth + _grade(scene) * y * y
+    for shape in scene.features():
         depth = depth + shape.depth_at(x, y)
     return depth
+
+
+def _base_hit(scene: Scene, origin: np.ndarray, directions: np.ndarray,
+              offset: float) -> np.ndarray:
+    """Ray parameter of the first crossing of the base surface raised by ``offset`` m
+    (Z = offset - crown x^2 - grade y^2): the smallest positive root of a quadratic; NaN where
+    the ray never meets it."""
+    crown, grade = scene.crown_per_m, _grade(scene)
+    dx, dy, dz = directions[:, 0], directions[:, 1], directions[:, 2]
+    a = crown * dx * dx + grade * dy * dy
+    b = dz + 2.0 * (crown * origin[0] * dx + grade * origin[1] * dy)
+    c = origin[2] + crown * origin[0] ** 2 + grade * origin[1] ** 2 - offset
+    with np.errstate(divide="ignore", invalid="ignore"):
+        linear = np.where(b < -1e-9, -c / b, np.nan)
+        if crown == 0.0 and grade == 0.0:
+            return linear
+        root = np.sqrt(b * b - 4.0 * a * c)
+        roots = np.stack([(-b - root) / (2.0 * a), (-b + root) / (2.0 * a)])
+        roots = np.where(roots > 0, roots, np.inf).min(axis=0)
+        quadratic = np.where(np.isfinite(roots), roots, np.nan)
+    return np.where(np.abs(a) > 1e-15, quadratic, linear)
 
 
 def _cast(scene: Scene, origin: np.ndarray, directions: np.ndarray, steps: int = 48,
           refinements: int = 24) -> np.ndarray:
     """Ray parameter s (= optical depth, directions have optical z = 1) of the first surface
     crossing for each ray (N,); NaN for rays that never reach the road."""
-    dz = directions[:, 2]
-    s = np.full(directions.shape[0], np.nan)
-    down = dz < -1e-9
-    max_depth = sum(p.depth_m for p in scene.potholes) + scene.crown_per_m * 1e2
-    s_near = -origin[2] / np.where(down, dz, -1.0)
-    s_far = (origin[2] + max_depth) / np.where(down, -dz, 1.0)
+    features = scene.features()
+    max_height = sum(shape.height_m for shape in features if isinstance(shape, BumpShape))
+    max_below = sum(shape.depth_m for shape in features if isinstance(shape, PotholeShape))
+    s_near = _base_hit(scene, origin, directions, max_height)
+    s = _base_hit(scene, origin, directions, 0.0) if max_height else s_near.copy()
+    far = _base_hit(scene, origin, directions, -max_below)
+    s_far = np.where(np.isfinite(far), far, s_near + 1e3)
 
     def gap(param: np.ndarray, rows: np.ndarray) -> np.ndarray:
         point = origin[None, :] + param[:, None] * directions[rows]
         return point[:, 2] + _surface_depth(scene, point[:, 0], point[:, 1])
 
-    s[down] = s_near[down]
-    rows = np.nonzero(down & _near_potholes(scene, origin, directions, s_near, s_far))[0]
+    down = np.isfinite(s_near)
+    rows = np.nonzero(down & _near_features(scene, origin, directions, s_near, s_far))[0]
     if rows.size == 0:
         return s
     near, far = s_near[rows], s_far[rows]
@@ -147,17 +254,15 @@ def _cast(scene: Scene, origin: np.ndarray, directions: np.ndarray, steps: int =
     return s
 
 
-def _near_potholes(scene: Scene, origin: np.ndarray, directions: np.ndarray,
+def _near_features(scene: Scene, origin: np.ndarray, directions: np.ndarray,
                    s_near: np.ndarray, s_far: np.ndarray) -> np.ndarray:
-    """Rays whose ground track between s_near and s_far passes within a pothole's bounding
-    circle (or any ray when the road has a crown)."""
-    if scene.crown_per_m != 0.0:
-        return np.ones(directions.shape[0], dtype=bool)
+    """Rays whose ground track between s_near and s_far passes within a pothole's or a bump's
+    bounding circle."""
     start = origin[None, :2] + s_near[:, None] * directions[:, :2]
     track = (s_far - s_near)[:, None] * directions[:, :2]
     length2 = np.maximum((track ** 2).sum(axis=1), 1e-18)
     near = np.zeros(directions.shape[0], dtype=bool)
-    for shape in scene.potholes:
+    for shape in scene.features():
         centre = np.array([shape.x_m, shape.y_m])
         along = np.clip(((centre - start) * track).sum(axis=1) / length2, 0.0, 1.0)
         closest = start + along[:, None] * track
@@ -185,10 +290,19 @@ def _texture(seed: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return total / weight_sum
 
 
-def _render_view(scene: Scene, axes: np.ndarray, origin: np.ndarray,
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pothole_depth(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Depth below the base surface (m) of the potholes alone at world (x, y)."""
+    depth = scene.crown_per_m * x * x
+    for shape in scene.potholes:
+        depth = depth + shape.depth_at(x, y)
+    return depth
+
+
+def _render_view(scene: Scene, axes: np.ndarray, origin: np.ndarray, gain: float = 1.0,
+                 noise_stream: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Image (uint8 HxW), optical depth at pixel centres (HxW, NaN = no road) and world
-    points at pixel centres (HxWx3) of one camera."""
+    points at pixel centres (HxWx3) of one camera, whose gain is ``gain`` and whose sensor
+    noise is drawn from stream ``noise_stream``."""
     k = scene.supersample
     f, cx, cy = scene.focal_px, (scene.width - 1) / 2.0, (scene.height - 1) / 2.0
     offsets = (np.arange(k) + 0.5) / k - 0.5
@@ -201,10 +315,18 @@ def _render_view(scene: Scene, axes: np.ndarray, origin: np.ndarray,
     points = origin[None, :] + s[:, None] * directions
     hit = np.isfinite(s)
     shade = np.full(s.shape, 0.5)
-    texture = _texture(scene.texture_seed, points[hit, 0], points[hit, 1])
-    inside = _surface_depth(scene, points[hit, 0], points[hit, 1]) > 1e-6
+    x, y = points[hit, 0], points[hit, 1]
+    texture = _texture(scene.texture_seed, x, y)
+    inside = _pothole_depth(scene, x, y) > 1e-6
     shade[hit] = np.where(inside, 0.25 + 0.5 * texture, 0.15 + 0.8 * texture)
+    for paint in scene.paint:
+        shade[hit] = np.where(paint.mask(x, y), shade[hit] * paint.shade, shade[hit])
     image = shade.reshape(scene.height, k, scene.width, k).mean(axis=(1, 3))
+    if gain != 1.0:
+        image = image * gain
+    if scene.noise_grey > 0.0:
+        noise = np.random.default_rng([scene.texture_seed, noise_stream])
+        image = image + noise.normal(0.0, scene.noise_grey / 255.0, image.shape)
     image8 = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
     centre_rays = np.stack(np.meshgrid((np.arange(scene.width) - cx) / f,
@@ -223,7 +345,7 @@ def render(scene: Scene) -> StereoSample:
     left_origin = np.array([0.0, scene.camera_y_m, scene.camera_height_m])
     right_origin = left_origin + scene.baseline_m * axes[:, 0]
     left, depth, world = _render_view(scene, axes, left_origin)
-    right, _, _ = _render_view(scene, axes, right_origin)
+    right, _, _ = _render_view(scene, axes, right_origin, scene.right_gain, 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         disparity = (scene.focal_px * scene.baseline_m / depth).astype(np.float32)
     labels = np.zeros(depth.shape, dtype=np.uint16)

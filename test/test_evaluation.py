@@ -52,3 +52,40 @@ def test_discover_finds_the_shared_sets():
     assert sum(n.startswith("model1_") for n in names) == 8
     assert any(n.startswith("kitti2012_training/") for n in names)
     assert {"cones", "teddy"} <= set(names)
+
+
+def test_match_potholes_pairs_by_iou_one_to_one():
+    from pothole_detector.evaluation import match_potholes
+    truth = np.zeros((10, 20), np.int64)
+    truth[1:5, 1:5], truth[1:5, 10:14] = 1, 2
+    labels = np.zeros_like(truth)
+    labels[1:5, 2:6] = 1   # IoU 12 / 20 with truth 1
+    labels[1:2, 10:11] = 2  # IoU 1 / 16 with truth 2: too little
+    labels[7:9, 7:9] = 3   # nothing there
+    assert match_potholes(labels, truth) == [(1, 1)]
+    assert match_potholes(labels, truth, min_iou=0.05) == [(1, 1), (2, 2)]
+
+
+def test_truth_roll_is_the_fitted_roll_of_the_rendered_road():
+    from dataclasses import replace
+
+    from pothole_detector.evaluation import truth_roll_deg
+    from pothole_detector.stages.road_model import fit_road
+    from pothole_detector.synthetic import demo_scene, render
+    sample = render(replace(demo_scene(320, 180, roll_deg=3.0), potholes=(), supersample=1))
+    assert truth_roll_deg(sample) == pytest.approx(
+        fit_road(np, sample.disparity).roll_deg, abs=0.02)
+
+
+def test_synthetic_evaluation_scores_a_rendered_scene(tmp_path):
+    from pothole_detector.backend import CPU
+    from pothole_detector.evaluation import evaluate_synthetic, synthetic_markdown
+    from pothole_detector.params import Config
+    tallies = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1,
+                                 cache=tmp_path)
+    tally = tallies["robot"]
+    assert (tally.scenes, tally.clean_scenes, tally.failed, tally.bad_reports) == (1, 1, 0, 0)
+    assert tally.pixels_observed.f_score > 0.7 and tally.false_on_clean == 0
+    assert tally.matched >= 2 and max(tally.roll_errors_deg) < 0.5
+    assert len(list(tmp_path.glob("*.pkl"))) == 2
+    assert "| robot | 1 + 1 clean |" in synthetic_markdown(tallies)

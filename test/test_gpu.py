@@ -662,6 +662,28 @@ def test_road_fit_on_device_gives_the_kept_models_kernel_params(gpu, kind):
     assert np.isnan(to_host(failed)).all()
 
 
+@pytest.mark.parametrize("kind", ["planar", "auto"])
+def test_road_fit_with_a_prior_on_the_gpu_matches_the_reference(gpu, kind):
+    """A road beside a wall of nearer disparities: with the prior both backends fit the road
+    (the same report), without it the wall tilts the fit."""
+    from pothole_detector.stages import road_model
+    disparity = crowned_road(120, 230, seed=11)
+    truth = road_model.fit_road(np, disparity, stride=2, kind="planar")
+    walled = disparity.copy()
+    walled[:, 140:] = 60.0 + np.random.default_rng(2).normal(0, 0.3, (120, 90))
+    prior = road_model.prior_params(truth, 2.0, 0.3)
+    want = road_model.fit_report(np, walled, stride=2, kind=kind, prior=prior)
+    got, _ = road_model.fit_on_device(gpu, gpu.upload(walled), stride=2, kind=kind,
+                                      prior=gpu.upload(prior))
+    used = slice(None) if kind != "planar" else slice(0, road_model.FIT_LAYOUT["FIT_CURVATURE"])
+    np.testing.assert_allclose(to_host(got)[used], want[used], rtol=1e-6)
+    fitted = road_model.model_from_report(want, kind, 0.1)
+    assert abs(fitted.roll_deg - truth.roll_deg) < 0.2
+    unguided, _ = road_model.fit_on_device(gpu, gpu.upload(walled), stride=2, kind=kind)
+    assert abs(road_model.model_from_report(to_host(unguided), kind, 0.1).roll_deg
+               - truth.roll_deg) > 1.0
+
+
 def test_device_road_params_drive_transform_and_measure_like_the_model(gpu, demo_sample):
     from pothole_detector.stages import road_model
     disparity = demo_sample.disparity.astype(np.float32)
@@ -686,7 +708,7 @@ def test_device_road_params_drive_transform_and_measure_like_the_model(gpu, demo
                                rtol=1e-4)
 
 
-@pytest.mark.parametrize("reference", ["split", "road_mean"])
+@pytest.mark.parametrize("reference", ["split", "road_mean", "road_fit"])
 def test_select_on_the_gpu_matches_select_superpixels(gpu, reference):
     rng = np.random.default_rng(3)
     image = (32 + rng.normal(0, 0.4, (90, 170))).astype(np.float32)
@@ -697,19 +719,19 @@ def test_select_on_the_gpu_matches_select_superpixels(gpu, reference):
     fraction = rng.random(n).astype(np.float32)
     result = threshold.threshold_search(gpu, gpu.upload(image), 0.25, 32.0)
     t_r, road_mean = threshold.split_from_result(to_host(result), 0.25, 32.0)
-    reference_px = road_mean if reference == "road_mean" else t_r
+    reference_px = {"split": t_r, "road_mean": road_mean, "road_fit": 32.0}[reference]
     drops = rng.uniform(0.5, 3.0, n)
     for drop, t_s in ((2.0, reference_px - 2.0), (drops, reference_px - drops)):
         expected = threshold.select_superpixels(np, means, fraction, t_s, 0.5)
         found = threshold.select(
-            gpu, result, 0.25, 32.0, reference == "road_mean", gpu.upload(means),
+            gpu, result, 0.25, 32.0, reference, gpu.upload(means),
             gpu.upload(fraction), drop if isinstance(drop, float) else gpu.upload(drop), 0.5)
         np.testing.assert_array_equal(to_host(found), expected)
         assert 0 < expected.sum() < n
     none_found = threshold.threshold_search(
         gpu, gpu.upload(np.full((30, 40), np.nan, np.float32)), 0.25, 32.0)
     assert not to_host(threshold.select(
-        gpu, none_found, 0.25, 32.0, False, gpu.upload(means), gpu.upload(fraction), 2.0,
+        gpu, none_found, 0.25, 32.0, "split", gpu.upload(means), gpu.upload(fraction), 2.0,
         0.5)).any()
 
 
@@ -744,15 +766,17 @@ def test_area_filter_on_the_gpu_keeps_the_rows_keep_large_keeps(gpu, demo_sample
                                         demo_sample.calibration)
     areas = sorted(p.area_m2 for p in potholes)
     min_area = (areas[0] + areas[1]) / 2  # drops the smallest
+    depths = sorted(p.mean_depth_m for p in potholes)
+    max_depth = (depths[-1] + depths[-2]) / 2  # drops the deepest
     capacity = count + 5
     sums, _ = measure.measure(gpu, gpu.upload(labels), capacity, gpu.upload(disparity),
                               road_model.device_params(gpu, road), demo_sample.calibration)
     kept_after = gpu.xp.zeros(1, dtype=gpu.xp.int32)
     filtered = measure.area_filter(
         gpu, gpu.upload(labels), sums, gpu.xp.array([count], dtype=gpu.xp.int32), capacity,
-        min_area, kept_after)
-    kept, keep = measure.keep_large(potholes, min_area)
-    assert int(to_host(kept_after)[0]) == len(kept) == count - 1
+        min_area, kept_after, 0.001, max_depth)
+    kept, keep = measure.keep_large(potholes, min_area, 0.001, max_depth)
+    assert int(to_host(kept_after)[0]) == len(kept) == count - 2
     expected, _ = components.relabel(np, labels, keep)
     np.testing.assert_array_equal(to_host(filtered), expected)
 
@@ -902,7 +926,7 @@ def test_cuda_graph_overflow_fallback_and_memory(demo_sample, monkeypatch):
     overflow the report measures them again, the same as without graphs."""
     left, right = to_gray8(demo_sample.left), to_gray8(demo_sample.right)
     gpu = get_backend("gpu")
-    config = Config({"matcher": "census", "gpt_enabled": False, "max_disparity_px": 64})
+    config = Config({"matcher": "census", "gpt_enabled": False, "max_disparity_px": 128})
     graphed = Pipeline(config, demo_sample.calibration, gpu)
     for _ in range(3):
         result = graphed.run(left, right)
@@ -955,13 +979,17 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
                                     kind="auto")
     report[road_model.FIT_LAYOUT["FIT_PLANAR_SIGMA"]] = 0.2
     report[road_model.FIT_LAYOUT["FIT_QUADRATIC_SIGMA"]] = 0.2
-    for depth, drop in ((0.004, 0.0), (0.008, 0.0), (0.03, 0.0), (0.0, 2.36), (0.0, 0.1)):
+    for depth, drop, sigmas, most in ((0.004, 0.0, 1.0, 0.004), (0.008, 0.0, 3.0, 0.03),
+                                      (0.004, 0.0, 3.0, np.inf), (0.03, 0.0, 0.0, 0.03),
+                                      (0.0, 2.36, 3.0, 0.03), (0.0, 0.1, 3.0, 0.03)):
         want_range = np.empty(2)
-        want = threshold.observation(CPU, sample.left.shape, 32, 2, params, report,
-                                     sample.calibration, depth, drop, want_range)
+        want, want_drops = threshold.observation(CPU, sample.left.shape, 32, 2, params, report,
+                                                 sample.calibration, depth, drop, sigmas, most,
+                                                 want_range)
         got_range = gpu.xp.empty(2, dtype=gpu.xp.float64)
-        got = threshold.observation(gpu, sample.left.shape, 32, 2, gpu.upload(params),
-                                    gpu.upload(report), sample.calibration, depth, drop,
-                                    got_range)
+        got, got_drops = threshold.observation(
+            gpu, sample.left.shape, 32, 2, gpu.upload(params), gpu.upload(report),
+            sample.calibration, depth, drop, sigmas, most, got_range)
         assert (to_host(got) != want).sum() <= max(1, want.size // 200)
         np.testing.assert_allclose(to_host(got_range), want_range, rtol=1e-6)
+        np.testing.assert_allclose(to_host(got_drops)[want], want_drops[want], rtol=1e-9)

@@ -34,3 +34,48 @@ def test_kitti_gpt_sgm_against_plain_sgbm():
     assert mean["ours"] <= mean["plain"] + 1.0
     assert all(r["levels"] <= p["levels"] for r, p in zip(ours, plain))
     assert all(r["density"] > 85 for r in ours)
+
+
+def test_kitti_road_frames_have_no_pothole_and_the_lidar_roll():
+    """KITTI frames (a car's rig among cars, walls and trees; no potholes): the road plane's
+    roll within 1.5 deg of the plane the LiDAR ground truth holds, and no pothole."""
+    import cv2
+    import numpy as np
+
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.evaluation import discover
+    from pothole_detector.pipeline import Pipeline
+    samples = [s for s in discover(shared_data("kitti")) if s.disparity_format == "kitti"]
+    assert len(samples) == 4
+    for sample in samples:
+        left = cv2.imread(str(sample.left))[:, :, ::-1].copy()
+        right = cv2.imread(str(sample.right))[:, :, ::-1].copy()
+        height, width = left.shape[:2]
+        calibration = StereoCalibration.from_focal_baseline(
+            sample.focal_px, sample.baseline_m, width, height, 609.6, 172.9)
+        result = Pipeline(Config(), calibration, CPU).run(left, right)
+        truth = sample.ground_truth_disparity()
+        rows, cols = np.nonzero(np.isfinite(truth))
+        lidar = _ransac_plane_roll_deg(cols, rows, truth[rows, cols])
+        assert abs(result.road.roll_deg - lidar) < 1.5, sample.name
+        assert result.potholes == [], sample.name
+
+
+def _ransac_plane_roll_deg(u, v, d):
+    """The roll (deg, RoadModel convention) of the plane d = a + b u + c v with the most points
+    within 1 px, from 2000 three-point hypotheses."""
+    import numpy as np
+    rng = np.random.default_rng(0)
+    design = np.stack([np.ones_like(u), u, v], axis=1).astype(np.float64)
+    best, best_count = None, -1
+    for _ in range(2000):
+        pick = rng.choice(len(d), 3, replace=False)
+        if abs(np.linalg.det(design[pick])) < 1e-9:
+            continue
+        plane = np.linalg.solve(design[pick], d[pick])
+        count = int((np.abs(design @ plane - d) < 1.0).sum())
+        if plane[2] > 0 and count > best_count:
+            best, best_count = plane, count
+    inliers = np.abs(design @ best - d) < 1.0
+    a, b, c = np.linalg.lstsq(design[inliers], d[inliers], rcond=None)[0]
+    return float(np.degrees(np.arctan2(-b, c)))

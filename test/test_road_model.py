@@ -127,3 +127,39 @@ def test_model_from_report_raises_for_a_failed_fit():
         model_from_report(_report(1.0, 0.8, status=1), "auto", 0.1)
     with pytest.raises(NoRoadError, match="line"):
         model_from_report(_report(1.0, 0.8, status=2), "planar", 0.1)
+
+
+def test_a_prior_keeps_a_wall_of_nearer_disparities_out_of_the_fit():
+    """Road beside a wall (40 % of the columns at one nearer disparity): every valid pixel
+    tilts the fit; starting from the pixels near the prior road finds the road again."""
+    from pothole_detector.stages.road_model import fit_report, model_from_report, prior_params
+    rng = np.random.default_rng(4)
+    v, u = np.mgrid[0:120, 0:230].astype(np.float64)
+    truth = RoadModel(20.0, 0.12, 0.03)
+    road = (truth.at(np, u, v) + rng.normal(0, 0.2, u.shape)).astype(np.float32)
+    road[:, 140:] = 60.0
+    unguided = model_from_report(fit_report(np, road, stride=2), "planar", 0.1)
+    assert abs(unguided.roll_deg - truth.roll_deg) > 5
+    rough = RoadModel(19.0, 0.125, 0.01)  # a degree off in roll, a pixel off in level
+    report = fit_report(np, road, stride=2, prior=prior_params(rough, 4.0))
+    guided = model_from_report(report, "planar", 0.1)
+    assert abs(guided.roll_deg - truth.roll_deg) < 0.15
+    assert guided.a1 == pytest.approx(0.12, rel=5e-3)
+    valid = np.isfinite(road[::2, ::2]).sum()
+    assert report[1] == valid  # the valid count is every valid pixel, not the prior's
+    assert guided.inlier_fraction == pytest.approx(140 / 230, abs=0.02)
+    assert np.array_equal(fit_report(np, road, stride=2, prior=prior_params(None, 4.0)),
+                          fit_report(np, road, stride=2), equal_nan=True)
+    # a stale prior (the road moved): too few pixels near it, so every valid pixel counts
+    stale = prior_params(RoadModel(40.0, 0.12, 0.03), 4.0, 0.3)
+    assert np.array_equal(fit_report(np, road, stride=2, prior=stale),
+                          fit_report(np, road, stride=2), equal_nan=True)
+
+
+def test_prior_tolerance_follows_the_rig():
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.stages.road_model import prior_tolerance_px
+    calibration = StereoCalibration.from_focal_baseline(1000.0, 0.12, 1280, 720)
+    road = RoadModel(10.0, 0.1, 0.0, sigma_px=0.5)
+    expected = 0.1 * 1000.0 * math.tan(math.radians(1.0)) + 1.5
+    assert prior_tolerance_px(road, calibration, 1.0) == pytest.approx(expected)

@@ -116,22 +116,26 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
 }
 
 // One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
-// min_area and its sums make a report (measure.reportable); new_id numbers the ones that stay
+// min_area, its mean depth lies in [min_depth, max_depth], and its sums make a report (measure.reportable); new_id numbers the ones that stay
 // 1..m in order (0 for the others and for label 0); kept_after[0] = m. The pipeline's area
 // filter; the host repeats the test on the same sums when it reads them back.
-__device__ bool reportable(const double* row, double min_area) {
+__device__ bool reportable(const double* row, double min_area, double min_depth,
+                           double max_depth) {
     for (int k = 0; k < SUMS; ++k)
         if (!isfinite(row[k])) return false;
-    return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && row[3] > 0.0;
+    return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && row[3] > 0.0
+           && row[3] >= min_depth * row[2] && row[3] <= max_depth * row[2];
 }
 
 extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,
-                                        double min_area, int* new_id, int* kept_after) {
+                                        double min_area, double min_depth, double max_depth,
+                                        int* new_id, int* kept_after) {
     if (threadIdx.x != 0 || blockIdx.x != 0) return;
     const int count = min(kept[0], capacity);
     int next = 0;
     new_id[0] = 0;
     for (int label = 1; label <= count; ++label)
-        new_id[label] = reportable(sums + label * SUMS, min_area) ? ++next : 0;
+        new_id[label] = reportable(sums + label * SUMS, min_area, min_depth, max_depth) ? ++next
+                                                                                 : 0;
     kept_after[0] = next;
 }

@@ -16,8 +16,11 @@
 // model: the chosen model as the other kernels read it (stages/road_model.RoadModel
 // .kernel_params): a0, a1, cos(phi), sin(phi), c0..c5 (zeros unless the quadratic model is
 // chosen), curved (0 or 1); NaN when the fit failed, so later stages find no road.
+// prior: a road model in the same layout, then at PRIOR_TOLERANCE the distance (px) from it
+// within which the fit takes pixels (0: no prior, every valid pixel), at PRIOR_MIN_SHARE the
+// share of the valid pixels that must lie that close (else every valid pixel).
 // Defined by the launcher (stages/road_model.py, _kernel): THREADS, BINS, MAX_SUMS, the fit
-// report's layout (FIT_*) and the road parameters' (ROAD_*).
+// report's layout (FIT_*), the road parameters' (ROAD_*) and PRIOR_*.
 
 #include "block_scan.cuh"
 
@@ -98,6 +101,14 @@ __device__ __forceinline__ double curvature_at(const double* c, double x, double
     const double inner_x = __dadd_rn(__dadd_rn(c[1], __dmul_rn(c[3], x)), __dmul_rn(c[4], y));
     const double inner_y = __dadd_rn(c[2], __dmul_rn(c[5], y));
     return __dadd_rn(__dadd_rn(c[0], __dmul_rn(x, inner_x)), __dmul_rn(y, inner_y));
+}
+
+// The road disparity of a model in the kernel parameters' layout, as road_model.params_at.
+__device__ __forceinline__ double params_at(const double* p, double u, double v, double x,
+                                            double y) {
+    const double planar = __dadd_rn(p[ROAD_A0], __dmul_rn(p[ROAD_A1], __dsub_rn(
+        __dmul_rn(v, p[ROAD_COS]), __dmul_rn(u, p[ROAD_SIN]))));
+    return __dadd_rn(planar, __dmul_rn(p[ROAD_CURVED], curvature_at(p + ROAD_C0, x, y)));
 }
 
 // Sum of COUNT per-thread values over the grid in a fixed order (warps, then blocks); result
@@ -403,7 +414,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
          double* __restrict__ residual, double* __restrict__ planar,
          unsigned* __restrict__ keys, int local_keys, int auto_select, double quadratic_gain,
          unsigned* __restrict__ barrier, double* __restrict__ partials,
-         unsigned* __restrict__ hists, double* __restrict__ out, double* __restrict__ model) {
+         unsigned* __restrict__ hists, double* __restrict__ out, double* __restrict__ model,
+         const double* __restrict__ prior) {
     // local_keys: the block's keys (for_each_element's local numbering) fit the dynamic
     // shared memory and the median's passes read them there instead of from `keys`
     extern __shared__ unsigned shared_keys[];
@@ -418,6 +430,16 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
     const double* column_x = tables + width + height;
     const double* row_y = tables + 2 * width + height;
     const bool leader = blockIdx.x == 0;
+    const double prior_tolerance = prior[PRIOR_TOLERANCE];
+    __shared__ int prior_active;
+    // pixels the prior's band leaves out of every round, once the prior is in use
+    auto outside = [&](float raw, int row, int col) {
+        return prior_active && !(fabs((double)raw * scale
+                                      - params_at(prior, column_u[col], row_v[row],
+                                                  column_x[col], row_y[row]))
+                                 <= prior_tolerance);
+    };
+    if (threadIdx.x == 0) prior_active = 0;
     if (threadIdx.x == 0) {
         state.status = 0;
         state.use_mask = 0;
@@ -426,6 +448,28 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
     }
     __syncthreads();
     for (int phase = 0; phase < (quadratic ? 2 : 1); ++phase) {
+        if (prior_tolerance > 0.0) {
+            // the first fit's mask: valid pixels within prior_tolerance of the prior
+            double counts[2] = {0.0, 0.0};
+            for_each_element(height, width, [&](int i, int row, int col, int local) {
+                const float raw = sub[i];
+                if (!finite(raw)) return;
+                const double r = (double)raw * scale - params_at(prior, column_u[col],
+                                                                 row_v[row], column_x[col],
+                                                                 row_y[row]);
+                residual[i] = r;
+                counts[0] += 1.0;
+                if (fabs(r) <= prior_tolerance) counts[1] += 1.0;
+            });
+            grid_sums<2>(counts, partial, state, grid);
+            if (threadIdx.x == 0) {
+                state.use_mask = state.sums[1] >= prior[PRIOR_MIN_SHARE] * state.sums[0];
+                prior_active = state.use_mask;
+                state.threshold = prior_tolerance;
+                if (phase == 0 && leader) out[FIT_VALID] = state.sums[0];
+            }
+            __syncthreads();
+        }
         for (int round = 0; round <= rounds; ++round) {
             const bool use_mask = state.use_mask;
             const double threshold = state.threshold;
@@ -434,7 +478,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                 double values[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
                 for_each_element(height, width, [&](int i, int row, int col, int local) {
                     const float raw = sub[i];
-                    if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold)))
+                    if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold))
+                        || outside(raw, row, col))
                         return;
                     const double d = (double)raw * scale;
                     const double u = column_u[col], v = row_v[row];
@@ -456,7 +501,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                 for (int k = 0; k < 27; ++k) values[k] = 0.0;
                 for_each_element(height, width, [&](int i, int row, int col, int local) {
                     const float raw = sub[i];
-                    if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold)))
+                    if (!finite(raw) || (use_mask && !(fabs(residual[i]) <= threshold))
+                        || outside(raw, row, col))
                         return;
                     const double d = (double)raw * scale;
                     const double x = column_x[col], y = row_y[row];
@@ -476,7 +522,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             __syncthreads();
             if (state.status != 0) break;
             const unsigned count = (unsigned)state.sums[0];
-            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader)
+            if (phase == 0 && round == 0 && threadIdx.x == 0 && leader
+                && !(prior_tolerance > 0.0))
                 out[FIT_VALID] = state.sums[0];
             // residuals of this round's model, keys of this round's mask, first histogram
             for (int i = threadIdx.x; i < 2 * BINS; i += THREADS) (&hist[0][0])[i] = 0;
@@ -487,7 +534,8 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                     key_store[local_keys ? local : i] = NOT_MASKED;
                     return;
                 }
-                const bool masked = !use_mask || fabs(residual[i]) <= threshold;
+                const bool masked = (!use_mask || fabs(residual[i]) <= threshold)
+                                    && !outside(raw, row, col);
                 const double d = (double)raw * scale;
                 double model;
                 if (phase == 0) {
@@ -518,7 +566,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
         double inliers[1] = {0.0};
         for_each_element(height, width, [&](int i, int row, int col, int local) {
             if (!finite(sub[i])) return;
-            if (fabs(residual[i]) <= threshold) inliers[0] += 1.0;
+            if (fabs(residual[i]) <= threshold && !outside(sub[i], row, col)) inliers[0] += 1.0;
             if (phase == 0 && quadratic) planar[i] = planar_at(state, column_u[col], row_v[row]);
         });
         grid_sums<1>(inliers, partial, state, grid);

@@ -173,31 +173,35 @@ threshold_search(double* tables, double* result, int n_bins) {
 // t_r or the road mean, t_s = reference - delta_pd (compared in float32 like the reference's
 // Python scalar) or reference - tolerance[i] (float64 per superpixel, metric mode).
 extern "C" __global__ void threshold_select(const double* result, double lo, double bin_px,
-                                            int road_mean_reference, double delta_pd,
+                                            int reference_kind, double road_level,
+                                            double delta_pd,
                                             const double* tolerance, int per_superpixel,
                                             const float* means, const float* valid_fraction,
                                             float min_valid_fraction, int n, bool* selected) {
     const int i = blockIdx.x * blockDim.x + threadIdx.x;
     if (i >= n) return;
     const double split = __dadd_rn(lo, __dmul_rn(__dadd_rn(result[1], 1.0), bin_px));
-    const double reference = road_mean_reference ? result[2] : split;
+    const double reference = reference_kind == 2 ? road_level
+                             : reference_kind == 1 ? result[2] : split;
     const float mean = means[i];
     const bool below = per_superpixel
         ? (double)mean < __dsub_rn(reference, tolerance[i])
         : mean < (float)__dsub_rn(reference, delta_pd);
-    selected[i] = result[0] != 0.0 && finite(mean) && below
+    selected[i] = (reference_kind == 2 || result[0] != 0.0) && finite(mean) && below
                   && valid_fraction[i] > min_valid_fraction;
 }
 
-// Which superpixels can show a pothole depth_m deep (stages/threshold.observation, the
-// reference): one block, a thread per superpixel in turn. Superpixel k sits at the centre of
-// its grid cell (k / cells_x, k % cells_x) of `step` px on the map reduced by `downsample`. It
-// is observed where the ray there meets the road plane in front of the camera and the depth
-// whose disparity drop equals the fit's robust sigma, fB (1 / (d - sigma) - 1 / d) incidence,
-// is at most depth_m. range: nearest and farthest distance (m) along the road plane from the
-// point below the camera of an observed superpixel, NaN where none is. road: the kernel
-// parameters (ROAD_*); fit: the fit report (FIT_*). With drop_px > 0 (the pixel threshold
-// mode) the test is instead d > drop_px >= sigma.
+// Per superpixel the threshold as a disparity drop (drops, px) and whether the road is
+// observed there (stages/threshold.observation, the reference): one block, a thread per
+// superpixel in turn. Superpixel k sits at the centre of its grid cell (k / cells_x,
+// k % cells_x) of `step` px on the map reduced by `downsample`. Metric mode: the threshold
+// depth is depth_m or, where more, the depth whose disparity drop is noise_sigmas robust
+// sigmas of the fit, fB (1 / (d - k sigma) - 1 / d) incidence; observed where the ray meets the
+// road plane in front of the camera and the threshold depth is at most max_depth_m. With
+// drop_px > 0 (the pixel threshold mode) the drop is drop_px, observed where
+// d > drop_px >= sigma. range: nearest and farthest distance (m) along the road plane from
+// the point below the camera of an observed superpixel, NaN where none is. road: the kernel
+// parameters (ROAD_*); fit: the fit report (FIT_*).
 __device__ __forceinline__ double block_reduce(double value, bool minimum, double* shared) {
     for (int offset = 16; offset > 0; offset >>= 1) {
         const double other = __shfl_down_sync(0xffffffffu, value, offset);
@@ -216,8 +220,8 @@ __device__ __forceinline__ double block_reduce(double value, bool minimum, doubl
 extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_observation(const double* road, const double* fit, int count, int cells_x, int step,
                       int width, int height, int downsample, double f, double cx, double cy,
-                      double fb, double depth_m, double drop_px, bool* observed,
-                      double* range) {
+                      double fb, double depth_m, double drop_px, double noise_sigmas,
+                      double max_depth_m, bool* observed, double* drops, double* range) {
     __shared__ double partial[SEARCH_THREADS / 32];
     const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
                  sin_phi = road[ROAD_SIN], curved = road[ROAD_CURVED];
@@ -237,13 +241,22 @@ threshold_observation(const double* road, const double* fit, int count, int cell
                                      + y * (c[2] + c[5] * y));
         const double incidence = raw_x / norm * (u - cx) / f + raw_y / norm * (v - cy) / f
                                  + raw_z / norm;
-        const bool near_road = d > sigma && incidence > 0.0;
-        const double safe = near_road ? d : 2.0 * sigma + 1.0;
-        const bool seen = near_road
-                          && (drop_px > 0.0
-                                  ? d > drop_px && drop_px >= sigma
-                                  : fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
-                                        <= depth_m);
+        bool seen;
+        double safe;
+        if (drop_px > 0.0) {
+            const bool near_road = d > sigma && incidence > 0.0;
+            safe = near_road ? d : 2.0 * sigma + 1.0;
+            seen = near_road && d > drop_px && drop_px >= sigma;
+            drops[k] = drop_px;
+        } else {
+            const double noise = noise_sigmas * sigma;
+            const bool near_road = d > noise && incidence > 0.0;
+            safe = near_road ? d : 2.0 * noise + 1.0;
+            const double resolvable = fb * (1.0 / (safe - noise) - 1.0 / safe) * incidence;
+            const double threshold_m = fmax(resolvable, depth_m);
+            seen = near_road && threshold_m <= max_depth_m;
+            drops[k] = safe - fb / (fb / safe + threshold_m / (near_road ? incidence : 1.0));
+        }
         observed[k] = seen;
         if (seen) {
             const double z = fb / safe, ray_u = (u - cx) / f, ray_v = (v - cy) / f;

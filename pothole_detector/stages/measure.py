@@ -191,51 +191,62 @@ def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: 
 
 
 def area_filter(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: int,
-                min_area_m2: float, kept_after: Any) -> Any:
+                min_area_m2: float, kept_after: Any, min_depth_m: float = 0.0,
+                max_depth_m: float = math.inf) -> Any:
     """Labels 1..kept (backend int32 (1,)) of the int32 HxW ``labels`` whose footprint area in
-    :func:`measure`'s ``sums`` reaches ``min_area_m2`` and makes a report (:func:`reportable`),
+    :func:`measure`'s ``sums`` reaches ``min_area_m2``, whose mean depth lies in
+    [``min_depth_m``, ``max_depth_m``] and that make a report (:func:`reportable`),
     renumbered 1..m in order (in place on the GPU: a one-thread kernel and a gather, nothing
     read back); writes m to the backend int32 (1,) ``kept_after``. Returns the labels.
     :func:`keep_large` keeps the same rows."""
     xp = backend.xp
     if not backend.is_gpu:
         count = int(kept[0])
-        keep = np.concatenate([[False], reportable(sums[1:count + 1], min_area_m2)])
+        keep = np.concatenate([[False], reportable(sums[1:count + 1], min_area_m2,
+                                                   min_depth_m, max_depth_m)])
         kept_after[0] = int(keep.sum())
         if kept_after[0] < count:
             labels, _ = relabel(xp, labels, keep)
         return labels
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     _kernel(backend, "measure_keep")(
-        (1,), (32,), (sums, kept, np.int32(capacity), np.float64(min_area_m2), new_id,
+        (1,), (32,), (sums, kept, np.int32(capacity), np.float64(min_area_m2),
+                      np.float64(min_depth_m), np.float64(min(max_depth_m, 1e300)), new_id,
                       kept_after))
     return xp.take(new_id, labels, out=labels)
 
 
-def reportable(sums: np.ndarray, min_area_m2: float) -> np.ndarray:
+def reportable(sums: np.ndarray, min_area_m2: float, min_depth_m: float = 0.0,
+               max_depth_m: float = math.inf) -> np.ndarray:
     """Bool (k,) over rows of measure sums (float64 (k, MEASURE_SUMS)): the pothole's sums are
     finite, its area reaches ``min_area_m2`` and is positive, and it has a measured depth
-    (valid area and depth x area positive): a report with finite, positive numbers."""
+    (valid area and depth x area positive) whose mean lies in [``min_depth_m``,
+    ``max_depth_m``]: a report with finite, positive, possible numbers."""
     sums = np.asarray(sums)
     return np.isfinite(sums).all(axis=1) & (sums[:, 1] >= min_area_m2) & (sums[:, 1] > 0) \
-        & (sums[:, 2] > 0) & (sums[:, 3] > 0)
+        & (sums[:, 2] > 0) & (sums[:, 3] > 0) & (sums[:, 3] >= min_depth_m * sums[:, 2]) \
+        & (sums[:, 3] <= max_depth_m * sums[:, 2])
 
 
-def keep_large(potholes: list[Pothole], min_area_m2: float) -> tuple[list[Pothole], np.ndarray]:
+def keep_large(potholes: list[Pothole], min_area_m2: float, min_depth_m: float = 0.0,
+               max_depth_m: float = math.inf) -> tuple[list[Pothole], np.ndarray]:
     """The potholes that make a report (:func:`reportable`: finite, positive area reaching
-    ``min_area_m2``, positive depth), renumbered 1..m, and the bool (k+1,) keep table over
-    labels 0..k (label 0 never kept)."""
-    keep = np.array([False] + [_reported(p, min_area_m2) for p in potholes])
+    ``min_area_m2``, positive mean depth in [``min_depth_m``, ``max_depth_m``]), renumbered
+    1..m, and the bool (k+1,) keep table over labels 0..k (label 0 never kept)."""
+    keep = np.array([False] + [_reported(p, min_area_m2, min_depth_m, max_depth_m)
+                               for p in potholes])
     kept = [replace(p, label=i)
             for i, p in enumerate((p for p, k in zip(potholes, keep[1:]) if k), 1)]
     return kept, keep
 
 
-def _reported(pothole: Pothole, min_area_m2: float) -> bool:
+def _reported(pothole: Pothole, min_area_m2: float, min_depth_m: float,
+              max_depth_m: float) -> bool:
     """keep_large's test on a measured pothole: reportable's on the numbers it was made of."""
     numbers = (pothole.area_m2, pothole.mean_depth_m, pothole.volume_m3, *pothole.centroid_cam_m)
     return all(math.isfinite(n) for n in numbers) and pothole.area_m2 >= min_area_m2 \
-        and pothole.area_m2 > 0 and pothole.mean_depth_m > 0
+        and pothole.area_m2 > 0 and pothole.mean_depth_m > 0 \
+        and min_depth_m <= pothole.mean_depth_m <= max_depth_m
 
 
 def _kernel(backend: Backend, name: str) -> Any:

@@ -33,6 +33,12 @@ ROAD_REPORT = FIT_LAYOUT["ROAD_REPORT"]
 PARAM_LAYOUT = {"ROAD_A0": 0, "ROAD_A1": 1, "ROAD_COS": 2, "ROAD_SIN": 3, "ROAD_C0": 4,
                 "ROAD_CURVED": 10, "ROAD_PARAMS": 11}
 ROAD_PARAMS = PARAM_LAYOUT["ROAD_PARAMS"]
+# A prior for the fit (float64 (PRIOR_PARAMS,)): a road model's kernel parameters, the distance
+# (px) from it within which the fit looks for the road (0: no prior), and the share of the valid
+# pixels that must lie that close for the prior to be used (else it is stale: every valid pixel).
+PRIOR_TOLERANCE = ROAD_PARAMS
+PRIOR_MIN_SHARE = ROAD_PARAMS + 1
+PRIOR_PARAMS = ROAD_PARAMS + 2
 _F = FIT_LAYOUT
 
 
@@ -222,13 +228,17 @@ FIT_FAILURES = {
 
 def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
                outlier_k: float = 2.5, kind: str = "planar", coordinate_scale: float = 1.0,
-               coordinate_offset: float = 0.0) -> np.ndarray:
+               coordinate_offset: float = 0.0, prior: Any = None) -> np.ndarray:
     """Fit the road model to an HxW disparity map (px, NaN = invalid): the fit report, host
     float64 (ROAD_REPORT,), laid out as :func:`model_from_report` reads it.
 
     The first fit uses every valid pixel of the ``stride`` grid; each of ``rounds`` refits drops
     pixels whose residual exceeds ``outlier_k`` robust sigmas. The quadratic correction (kind
-    quadratic or auto) is fitted to the planar model's inliers by rounds of its own. Pixel
+    quadratic or auto) is fitted to the planar model's inliers by rounds of its own. With a
+    ``prior`` (float64 (PRIOR_PARAMS,) of :func:`prior_params`: the road expected and how far
+    from it the road may lie, px), the fit takes only the valid pixels that close to it: the
+    road region, not the cars, walls and trees beside it; unless fewer than the prior's share
+    of the valid pixels lie there (a stale prior), when it takes every valid pixel. Pixel
     (i, j) of the map sits at full-resolution coordinates
     ``coordinate_scale * (j, i) + coordinate_offset`` and its disparity is scaled likewise, so
     the model is always in full-resolution pixels.
@@ -242,14 +252,20 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
     valid = xp.isfinite(d)
     basis = _basis(xp, d, u, v)
     report = np.full(ROAD_REPORT, np.nan)
+    first = valid
+    if prior is not None and float(prior[PRIOR_TOLERANCE]) > 0:
+        expected = params_at(xp, prior, u, v)
+        near = valid & (xp.abs(d - expected) <= prior[PRIOR_TOLERANCE])
+        if float(near.sum()) >= float(prior[PRIOR_MIN_SHARE]) * float(valid.sum()):
+            first = near
 
     def robust_rounds(model: RoadModel, refit: Any) -> tuple[RoadModel, float, float]:
-        mask = valid
+        mask = first
         for round_index in range(rounds + 1):
             model = refit(model, mask)
             residual = d - model.at(xp, u, v)
             sigma = _robust_sigma(xp, residual, mask)
-            mask = valid & (xp.abs(residual) <= outlier_k * xp.maximum(sigma, 1e-3))
+            mask = first & (xp.abs(residual) <= outlier_k * xp.maximum(sigma, 1e-3))
         inliers, sigma_px, report[_F["FIT_VALID"]] = to_host(xp.stack(
             [mask.sum(), sigma, valid.sum()]).astype(xp.float64))
         return model, inliers, sigma_px
@@ -283,26 +299,30 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
 
 def fit_road(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
              outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
-             coordinate_scale: float = 1.0, coordinate_offset: float = 0.0) -> RoadModel:
+             coordinate_scale: float = 1.0, coordinate_offset: float = 0.0,
+             prior: Any = None) -> RoadModel:
     """The road model of :func:`fit_report` (kind auto: quadratic where it lowers the inlier
     sigma by the fraction ``quadratic_gain``). Raises NoRoadError when the fit fails."""
     return model_from_report(
         fit_report(xp, disparity, stride=stride, rounds=rounds, outlier_k=outlier_k, kind=kind,
-                   coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset),
+                   coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset,
+                   prior=prior),
         kind, quadratic_gain)
 
 
 def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
         outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
         coordinate_scale: float = 1.0, coordinate_offset: float = 0.0, report: Any = None,
-        params: Any = None) -> tuple[Any, Any]:
+        params: Any = None, prior: Any = None) -> tuple[Any, Any]:
     """The road fit stage: the fit report (float64 (ROAD_REPORT,), see
     :func:`model_from_report`) and the chosen model's kernel parameters (float64
     (ROAD_PARAMS,), as RoadModel.kernel_params; NaN when the fit failed) as backend arrays,
-    written into ``report`` and ``params`` where given. On the GPU :func:`fit_on_device`, nothing
+    written into ``report`` and ``params`` where given; ``prior``: a backend (PRIOR_PARAMS,)
+    array of :func:`prior_params` or None (see :func:`fit_report`). On the GPU :func:`fit_on_device`, nothing
     read back; on the CPU :func:`fit_report`."""
     options = dict(stride=stride, rounds=rounds, outlier_k=outlier_k, kind=kind,
-                   coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset)
+                   coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset,
+                   prior=prior)
     if backend.is_gpu:
         return fit_on_device(backend, disparity, quadratic_gain=quadratic_gain, report=report,
                              params=params, **options)
@@ -326,7 +346,8 @@ def fit_model(backend: Backend, disparity: Any, *, quadratic_gain: float = 0.1,
 def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
                   outlier_k: float = 2.5, kind: str = "planar", quadratic_gain: float = 0.1,
                   coordinate_scale: float = 1.0, coordinate_offset: float = 0.0,
-                  report: Any = None, params: Any = None) -> tuple[Any, Any]:
+                  report: Any = None, params: Any = None, prior: Any = None
+                  ) -> tuple[Any, Any]:
     """:func:`fit_road` as one cooperative launch of one block per multiprocessor
     (kernels/road.cu), nothing read back: returns the device report (float64 (ROAD_REPORT,),
     see :func:`model_from_report`) and the chosen model's kernel parameters (float64
@@ -354,6 +375,8 @@ def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: 
     workspace = xp.zeros(16 + totals_bytes + histogram_count * ROAD_BINS * 4, dtype=xp.uint8)
     report = xp.empty(ROAD_REPORT, dtype=xp.float64) if report is None else report
     params = xp.empty(ROAD_PARAMS, dtype=xp.float64) if params is None else params
+    if prior is None:
+        prior = _no_prior(backend)
     kernel = _kernel(backend, "road_fit", cooperative=True)
     if local_keys and key_bytes > 48 * 1024 - ROAD_STATIC_SHARED_BYTES:
         kernel.max_dynamic_shared_size_bytes = MAX_SHARED_KEY_BYTES
@@ -363,7 +386,7 @@ def fit_on_device(backend: Backend, disparity: Any, *, stride: int = 1, rounds: 
             planar_values, keys, np.int32(local_keys), np.int32(kind == "auto"),
             np.float64(quadratic_gain), workspace[:16].view(xp.uint32),
             workspace[16:16 + totals_bytes].view(xp.float64),
-            workspace[16 + totals_bytes:].view(xp.uint32), report, params),
+            workspace[16 + totals_bytes:].view(xp.uint32), report, params, prior),
            shared_mem=key_bytes if local_keys else 0)
     return report, params
 
@@ -436,6 +459,32 @@ def fit_sigma(xp: Any, report: Any, params: Any) -> Any:
                     report[FIT_LAYOUT["FIT_PLANAR_SIGMA"]])
 
 
+def prior_params(model: RoadModel | None, tolerance_px: float,
+                 min_share: float = 0.0) -> np.ndarray:
+    """The fit's prior (host float64 (PRIOR_PARAMS,)): ``model``'s kernel parameters,
+    ``tolerance_px`` and ``min_share``; no prior (all zeros) where ``model`` is None."""
+    prior = np.zeros(PRIOR_PARAMS)
+    if model is not None:
+        prior[:ROAD_PARAMS] = model.kernel_params()
+        prior[PRIOR_TOLERANCE] = tolerance_px
+        prior[PRIOR_MIN_SHARE] = min_share
+    return prior
+
+
+def prior_tolerance_px(model: RoadModel, calibration: Any, change_deg: float) -> float:
+    """How far (px) the road may lie from ``model`` in the next frame: the disparity by which a
+    turn of the camera by ``change_deg`` about its x axis moves the road (a1 f tan(change)),
+    plus three of the model's robust sigmas."""
+    return float(abs(model.a1) * calibration.f * math.tan(math.radians(change_deg))
+                 + 3.0 * model.sigma_px)
+
+
+@lru_cache(maxsize=4)
+def _no_prior(backend: Backend) -> Any:
+    """A device prior that asks for none."""
+    return backend.upload(np.zeros(PRIOR_PARAMS))
+
+
 def device_params(backend: Backend, model: RoadModel | Any) -> Any:
     """Kernel parameters (device float64 (ROAD_PARAMS,)) of a RoadModel (one small upload) or
     of a device parameter array from :func:`fit_on_device` (returned as it is)."""
@@ -455,6 +504,7 @@ ROAD_STATIC_SHARED_BYTES = 36 * 1024
 MAX_SHARED_KEY_BYTES = 160 * 1024
 
 _ROAD_DEFINES = {"THREADS": 32 * ROAD_WARPS, "BINS": ROAD_BINS, "MAX_SUMS": ROAD_MAX_SUMS,
+                 "PRIOR_TOLERANCE": PRIOR_TOLERANCE, "PRIOR_MIN_SHARE": PRIOR_MIN_SHARE,
                  **FIT_LAYOUT, **PARAM_LAYOUT}
 
 @lru_cache(maxsize=4)

@@ -3,19 +3,32 @@ reset), from a coarse full-range match of the reduced pair."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
-from ..backend import Backend
+import numpy as np
+
+from ..backend import Backend, to_host
 from ..errors import NoRoadError, NoTextureError, PotholeError
+from ..calibration import StereoCalibration
 from ..params import Config
 from . import matching, perspective, road_model
 
 # columns the seed pass works on where coarse_scale is 0 (auto)
 SEED_COLUMNS = 512
+# the road region search: plane hypotheses, points scored, inlier distance (coarse px)
+REGION_HYPOTHESES = 256
+REGION_POINTS = 16384
+REGION_TOLERANCE_PX = 1.0
+# the share of the valid coarse pixels the region must hold, as a fraction of
+# min_road_inlier_fraction (the coarse pass is sparse and noisier than the frame's)
+REGION_MIN_SHARE = 1.0 / 3.0
+# the largest roll (deg) of the camera about its optical axis against the road
+MAX_ROLL_DEG = 45.0
 
 
 def seed_road(backend: Backend, matcher: matching.Matcher, left: Any, right: Any,
-              config: Config) -> road_model.RoadModel:
+              config: Config, calibration: StereoCalibration) -> road_model.RoadModel:
     """Road model from a full-range match of the (backend, uint8 HxW) pair reduced by the
     seed scale (``coarse_scale``, or from the image width where it is 0). Where that finds too
     few disparities or no road, it tries again without the left-right check (over a range near
@@ -27,7 +40,8 @@ def seed_road(backend: Backend, matcher: matching.Matcher, left: Any, right: Any
     failure: PotholeError | None = None
     for factor, checked in tries:
         try:
-            return seed_at(backend, matcher, left, right, config, factor, checked)
+            return seed_at(backend, matcher, left, right, config, factor, checked,
+                           calibration)
         except (NoTextureError, NoRoadError) as exc:
             failure = exc
     assert failure is not None
@@ -35,7 +49,8 @@ def seed_road(backend: Backend, matcher: matching.Matcher, left: Any, right: Any
 
 
 def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, config: Config,
-            scale: int, checked: bool) -> road_model.RoadModel:
+            scale: int, checked: bool, calibration: StereoCalibration
+            ) -> road_model.RoadModel:
     """One try of the seed: the pair reduced by ``scale``, matched over up to half the reduced
     width, with the left-right check where ``checked``. Enough valid disparities are asked of
     the columns that the range lets match."""
@@ -54,11 +69,73 @@ def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, 
             "the coarse seed pass found almost no disparities: the images lack texture, "
             "are not a rectified pair, or the road is beyond max_disparity_px"
         )
+    offset = (scale - 1.0) / 2.0
+    region = road_region(to_host(coarse), float(scale), offset, calibration,
+                         config.max_camera_height_m)
+    need = config.min_road_inlier_fraction * REGION_MIN_SHARE
+    if region is None or region.inlier_fraction < need:
+        share = 0.0 if region is None else region.inlier_fraction
+        raise NoRoadError(
+            f"no road plane in the coarse seed pass: {share:.0%} of the disparities lie on one "
+            f"(need {need:.0%}); is the camera looking at the road?")
+    prior = road_model.prior_params(region, 2.0 * REGION_TOLERANCE_PX * scale)
     return road_model.fit_model(
         backend, coarse, stride=1, rounds=config.road_fit_rounds,
         outlier_k=config.road_outlier_k, kind=config.road_model,
         quadratic_gain=config.road_quadratic_gain, coordinate_scale=float(scale),
-        coordinate_offset=(scale - 1.0) / 2.0)
+        coordinate_offset=offset, prior=backend.upload(prior))
+
+
+def road_region(coarse: np.ndarray, scale: float, offset: float,
+                calibration: StereoCalibration, max_height_m: float
+                ) -> road_model.RoadModel | None:
+    """The road's plane in a coarse disparity map (host float32 h x w px, NaN invalid; pixel
+    (i, j) at full-resolution (u, v) = scale (j, i) + offset, disparity x scale), found before
+    any fit so that cars, walls, trees and sky do not pull it: of REGION_HYPOTHESES planes
+    through three valid pixels each, those that can be a road under the camera (disparity
+    growing down the image, roll within MAX_ROLL_DEG, the camera at most ``max_height_m``
+    above the plane: road_model.params_height), the one with the most pixels within
+    REGION_TOLERANCE_PX of it, less the pixels lying well behind it (the camera cannot see
+    through the road; potholes are small), each pixel weighted by its row (the road is the
+    lower part of the view). A planar RoadModel in full-resolution px whose inlier fraction is
+    the share of the valid pixels within REGION_TOLERANCE_PX of it, or None where no plane can
+    be the road."""
+    rows, cols = np.nonzero(np.isfinite(coarse))
+    if rows.size < 3:
+        return None
+    rng = np.random.default_rng(0)
+    if rows.size > REGION_POINTS:
+        keep = rng.choice(rows.size, REGION_POINTS, replace=False)
+        rows, cols = rows[keep], cols[keep]
+    points = np.stack([np.ones(rows.size), cols * scale + offset, rows * scale + offset], 1)
+    values = coarse[rows, cols].astype(np.float64) * scale
+    picks = rng.integers(0, rows.size, (REGION_HYPOTHESES, 3))
+    systems = points[picks]
+    solvable = np.abs(np.linalg.det(systems)) > 1e-6
+    planes = np.zeros((REGION_HYPOTHESES, 3))
+    planes[solvable] = np.linalg.solve(systems[solvable], values[picks][solvable][..., None])[..., 0]
+    alpha, beta, gamma = planes.T
+    normal = np.stack([beta * calibration.f, gamma * calibration.f,
+                       alpha + beta * calibration.cx + gamma * calibration.cy])
+    with np.errstate(divide="ignore"):
+        height_m = calibration.fb / np.linalg.norm(normal, axis=0)
+    roll_deg = np.degrees(np.arctan2(-beta, gamma))
+    plausible = solvable & (gamma > 0) & (np.abs(roll_deg) <= MAX_ROLL_DEG) \
+        & (height_m <= max_height_m)
+    if not plausible.any():
+        return None
+    planes = planes[plausible]
+    expected = planes @ points.T
+    residual = values[None, :] - expected
+    tolerance = REGION_TOLERANCE_PX * scale
+    behind = (residual < -3.0 * tolerance) & (expected > 0)
+    lower = points[:, 2] + 1.0
+    score = ((np.abs(residual) <= tolerance).astype(np.float64) - behind) @ lower
+    best = int(np.argmax(score))
+    alpha, beta, gamma = planes[best]
+    share = float(np.mean(np.abs(residual[best]) <= tolerance))
+    return road_model.RoadModel(np.float64(alpha), np.float64(math.hypot(beta, gamma)),
+                                math.atan2(-beta, gamma), inlier_fraction=share)
 
 
 def seed_scale(width: int, coarse_scale: int) -> int:

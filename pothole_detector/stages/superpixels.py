@@ -21,6 +21,9 @@ from ..backend import Backend
 
 # block size of the SLIC centre update (kernels/slic.cu, slic_update)
 UPDATE_THREADS = 256
+# slic_region_size_px 0: superpixels across the image width, and the smallest grid step (px)
+REGIONS_ACROSS = 64
+MIN_REGION_PX = 8
 _SLIC_DEFINES = {"UPDATE_THREADS": UPDATE_THREADS}
 
 def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
@@ -234,6 +237,15 @@ def _block_mean_gpu(backend: Backend, image: Any, factor: int) -> tuple[Any, Any
         (xp.ascontiguousarray(image, dtype=xp.float32), np.int32(image.shape[1]),
          np.int32(factor), np.int32(height), np.int32(width), filled, valid))
     return filled, valid
+
+
+def region_size(region_size_px: int, width: int) -> int:
+    """The SLIC grid step S (full-resolution px) for ``slic_region_size_px``: as given, or
+    where it is 0, one that cuts the image width into REGIONS_ACROSS superpixels (at least
+    MIN_REGION_PX): the same share of the view on any image size."""
+    if region_size_px > 0:
+        return region_size_px
+    return max(MIN_REGION_PX, round(width / REGIONS_ACROSS))
 
 
 def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:

@@ -20,6 +20,8 @@ HISTOGRAM_ABOVE_PX = 64.0
 MAX_SHARED_TABLE_BYTES = 200 * 1024
 # kernels/threshold.cu: the table kernel's tile side (px) and block size, the search's block size
 _THRESHOLD_KERNEL = {"TILE": 64, "TABLE_THREADS": 256, "SEARCH_THREADS": 1024}
+# threshold_reference values select() takes, in the order kernels/threshold.cu numbers them
+REFERENCES = ("split", "road_mean", "road_fit")
 
 
 def neighbour_mean(xp: Any, image: Any) -> Any:
@@ -147,32 +149,43 @@ def _search_on_device(backend: Backend, transformed: Any, bin_px: float, road_le
     return result
 
 
+def reference_for(reference: str, threshold_mode: str) -> str:
+    """The threshold reference ``threshold_reference`` asks for: auto is the road fit in the
+    metric mode and the road cluster's mean (the paper's) in the pixel mode."""
+    if reference != "auto":
+        return reference
+    return "road_mean" if threshold_mode == "pixels" else "road_fit"
+
+
 def select(backend: Backend, result: Any, bin_px: float, road_level: float,
-           road_mean_reference: bool, means: Any, valid_fraction: Any,
+           reference: str, means: Any, valid_fraction: Any,
            threshold_drop: float | Any, min_valid_fraction: float) -> Any:
     """The selection stage: bool (n,) of pothole superpixels, those whose mean D2 (``means``,
     float32 (n,)) lies below t_s = reference - ``threshold_drop`` with more than
-    ``min_valid_fraction`` valid pixels. The reference is the road mean or t_r of the search
-    ``result`` of :func:`threshold_search`; ``threshold_drop`` is delta_PD (px) or a float64
-    (n,) of per-superpixel drops (metric mode). No superpixel is selected where the search found
-    no split. On the GPU one kernel (kernels/threshold.cu) reads ``result`` on the device."""
+    ``min_valid_fraction`` valid pixels. The ``reference`` (REFERENCES) is t_r (split) or the
+    road cluster's mean (road_mean) of the search ``result`` of :func:`threshold_search`, or
+    the road model's own level ``road_level`` (road_fit); ``threshold_drop`` is delta_PD (px)
+    or a float64 (n,) of per-superpixel drops (metric mode). With a reference from the search,
+    no superpixel is selected where it found no split. On the GPU one kernel
+    (kernels/threshold.cu) reads ``result`` on the device."""
     xp = backend.xp
     lo, _ = histogram_range(bin_px, road_level)
     n = means.shape[0]
     per_superpixel = not isinstance(threshold_drop, (float, int))
     if not backend.is_gpu:
         t_r, road_mean = split_from_result(result, bin_px, road_level)
-        reference = road_mean if road_mean_reference else t_r
-        if not math.isfinite(reference):
+        level = {"split": t_r, "road_mean": road_mean, "road_fit": road_level}[reference]
+        if not math.isfinite(level):
             return xp.zeros(n, dtype=bool)
-        return select_superpixels(xp, means, valid_fraction, reference - threshold_drop,
+        return select_superpixels(xp, means, valid_fraction, level - threshold_drop,
                                   min_valid_fraction)
     drops = xp.ascontiguousarray(threshold_drop, dtype=xp.float64) if per_superpixel \
         else result
     selected = xp.empty(n, dtype=xp.bool_)
     _kernel(backend, "threshold_select")(
         ((n + 255) // 256,), (256,),
-        (result, np.float64(lo), np.float64(bin_px), np.int32(road_mean_reference),
+        (result, np.float64(lo), np.float64(bin_px), np.int32(REFERENCES.index(reference)),
+         np.float64(road_level),
          np.float64(0.0 if per_superpixel else threshold_drop), drops,
          np.int32(per_superpixel), xp.ascontiguousarray(means, dtype=xp.float32),
          xp.ascontiguousarray(valid_fraction, dtype=xp.float32),
@@ -211,28 +224,32 @@ def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
 def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
                 downsample: int, road_params: Any, road_report: Any,
                 calibration: StereoCalibration, depth_m: float, drop_px: float = 0.0,
-                observed_range: Any = None) -> Any:
-    """Which superpixels can show a pothole ``depth_m`` deep (or, with ``drop_px`` > 0, the
-    pixel threshold mode, a pothole ``drop_px`` below the road), and how far along the road
-    they reach, on the backend with nothing read back.
+                noise_sigmas: float = 3.0, max_depth_m: float = math.inf,
+                observed_range: Any = None) -> tuple[Any, Any]:
+    """Per superpixel, the threshold, as the drop below the road's disparity (px) of a pothole
+    just deep enough, and whether the road is observed there; and how far along the road the
+    observed superpixels reach. On the backend with nothing read back.
 
     Superpixel k sits at the centre of its grid cell (superpixels.cell_centres; the SLIC of an
-    HxW ``shape`` map with ``region_size_px`` and ``downsample``). It is observed where the ray
-    there meets the road plane in front of the camera and a point ``depth_m`` below the road
-    there lies farther off in disparity than the road fit's robust sigma
-    (road_model.fit_sigma): the depth the matcher can resolve, fB (1 / (d - sigma) - 1 / d)
-    cos(incidence) at road disparity d, is at most ``depth_m``; with ``drop_px`` > 0, where
-    d > ``drop_px`` >= sigma. Returns bool (count,) and
-    writes into ``observed_range`` (float64 (2,), where given) the nearest and farthest
-    distance (m) along the road plane, from the point below the camera, of an observed
-    superpixel, NaN where none is. On the GPU one single-block kernel (kernels/threshold.cu).
-    """
+    HxW ``shape`` map with ``region_size_px`` and ``downsample``), where the road's disparity
+    is d and the ray meets the road plane at cos(incidence). Metric mode (``drop_px`` 0): the
+    threshold depth is ``depth_m``, or where more, the depth the matcher resolves there:
+    fB (1 / (d - k sigma) - 1 / d) cos(incidence), the depth whose disparity drop is
+    k = ``noise_sigmas`` times the road fit's robust sigma (road_model.fit_sigma); the drop is
+    that depth's, and the road is observed where the ray meets it in front of the camera and
+    the threshold depth is at most ``max_depth_m``. Pixel mode (``drop_px`` > 0): the drop is
+    ``drop_px``, observed where d > ``drop_px`` >= sigma. Returns bool (count,) observed and
+    float64 (count,) drops, and writes into ``observed_range`` (float64 (2,), where given) the
+    nearest and farthest distance (m) along the road plane, from the point below the camera,
+    of an observed superpixel, NaN where none is. On the GPU one single-block kernel
+    (kernels/threshold.cu)."""
     xp = backend.xp
     count = superpixels.grid_count(shape, region_size_px, downsample)
     observed_range = xp.empty(2, dtype=xp.float64) if observed_range is None \
         else observed_range
     if backend.is_gpu:
         observed = xp.empty(count, dtype=xp.bool_)
+        drops = xp.empty(count, dtype=xp.float64)
         height, width = shape[0] // downsample, shape[1] // downsample
         step = superpixels.grid_step(region_size_px, downsample)
         f64, i32 = np.float64, np.int32
@@ -241,17 +258,19 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
             (road_params, road_report, i32(count), i32(-(-width // step)), i32(step),
              i32(width), i32(height), i32(downsample), f64(calibration.f),
              f64(calibration.cx), f64(calibration.cy), f64(calibration.fb), f64(depth_m),
-             f64(drop_px), observed, observed_range))
-        return observed
+             f64(drop_px), f64(noise_sigmas), f64(min(max_depth_m, 1e300)), observed, drops,
+             observed_range))
+        return observed, drops
     with np.errstate(divide="ignore", invalid="ignore"):
         return _observation(xp, superpixels.cell_centres(xp, shape, region_size_px, downsample),
                             road_params, road_report, calibration, depth_m, drop_px,
-                            observed_range)
+                            noise_sigmas, max_depth_m, observed_range)
 
 
 def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_report: Any,
                  calibration: StereoCalibration, depth_m: float, drop_px: float,
-                 observed_range: Any) -> Any:
+                 noise_sigmas: float, max_depth_m: float, observed_range: Any
+                 ) -> tuple[Any, Any]:
     """observation on the host (NumPy): the reference of kernels/threshold.cu's."""
     u, v = centres
     road = road_model.params_at(xp, road_params, u, v)
@@ -259,11 +278,19 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
     nx, ny, nz = road_model.params_normal(xp, road_params, calibration)
     f, fb = calibration.f, calibration.fb
     incidence = nx * (u - calibration.cx) / f + ny * (v - calibration.cy) / f + nz
-    near_road = (road > sigma) & (incidence > 0)
-    safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
-    resolvable = fb * (1.0 / (safe - sigma) - 1.0 / safe) * incidence
-    observed = near_road & ((road > drop_px) & (drop_px >= sigma) if drop_px > 0
-                            else resolvable <= depth_m)
+    if drop_px > 0:
+        near_road = (road > sigma) & (incidence > 0)
+        observed = near_road & (road > drop_px) & (drop_px >= sigma)
+        drops = xp.full(road.shape, drop_px, dtype=xp.float64)
+        safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
+    else:
+        noise = noise_sigmas * sigma
+        near_road = (road > noise) & (incidence > 0)
+        safe = xp.where(near_road, road, 2.0 * noise + 1.0)
+        resolvable = fb * (1.0 / (safe - noise) - 1.0 / safe) * incidence
+        threshold_m = xp.maximum(resolvable, depth_m)
+        observed = near_road & (threshold_m <= max_depth_m)
+        drops = safe - fb / (fb / safe + threshold_m / xp.where(near_road, incidence, 1.0))
     z = fb / safe
     ray_m2 = z * z * (((u - calibration.cx) / f) ** 2 + ((v - calibration.cy) / f) ** 2 + 1.0)
     height_m = road_model.params_height(xp, road_params, calibration)
@@ -271,7 +298,7 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
     span = xp.stack([xp.where(observed, along, xp.inf).min(),
                      xp.where(observed, along, -xp.inf).max()])
     observed_range[...] = xp.where(xp.isfinite(span), span, xp.nan)
-    return observed
+    return observed, drops
 
 
 def metric_tolerance_px(xp: Any, u: Any, v: Any, road: RoadModel,
