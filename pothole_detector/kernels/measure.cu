@@ -116,7 +116,8 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
 }
 
 // One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
-// min_area, its mean depth lies in [min_depth, max_depth], and its sums make a report (measure.reportable); new_id numbers the ones that stay
+// min_area, its mean depth lies in [min_depth, max_depth], and its sums make a report
+// (measure.reportable); new_id numbers the ones that stay
 // 1..m in order (0 for the others and for label 0); kept_after[0] = m. The pipeline's area
 // filter; the host repeats the test on the same sums when it reads them back.
 __device__ bool reportable(const double* row, double min_area, double min_depth,

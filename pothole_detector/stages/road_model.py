@@ -318,8 +318,8 @@ def fit(backend: Backend, disparity: Any, *, stride: int = 1, rounds: int = 3,
     :func:`model_from_report`) and the chosen model's kernel parameters (float64
     (ROAD_PARAMS,), as RoadModel.kernel_params; NaN when the fit failed) as backend arrays,
     written into ``report`` and ``params`` where given; ``prior``: a backend (PRIOR_PARAMS,)
-    array of :func:`prior_params` or None (see :func:`fit_report`). On the GPU :func:`fit_on_device`, nothing
-    read back; on the CPU :func:`fit_report`."""
+    array of :func:`prior_params` or None (see :func:`fit_report`). On the GPU
+    :func:`fit_on_device`, nothing read back; on the CPU :func:`fit_report`."""
     options = dict(stride=stride, rounds=rounds, outlier_k=outlier_k, kind=kind,
                    coordinate_scale=coordinate_scale, coordinate_offset=coordinate_offset,
                    prior=prior)

@@ -113,7 +113,8 @@ def road_region(coarse: np.ndarray, scale: float, offset: float,
     systems = points[picks]
     solvable = np.abs(np.linalg.det(systems)) > 1e-6
     planes = np.zeros((REGION_HYPOTHESES, 3))
-    planes[solvable] = np.linalg.solve(systems[solvable], values[picks][solvable][..., None])[..., 0]
+    planes[solvable] = np.linalg.solve(systems[solvable],
+                                       values[picks][solvable][..., None])[..., 0]
     alpha, beta, gamma = planes.T
     normal = np.stack([beta * calibration.f, gamma * calibration.f,
                        alpha + beta * calibration.cx + gamma * calibration.cy])
