@@ -27,8 +27,8 @@ from pothole_detector.pipeline import Pipeline  # noqa: E402
 from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
 
-STAGES = ("seed", "gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure",
-          "total")
+STAGES = ("seed", "gpt", "sgm", "road", "dt", "slic", "threshold", "components", "refine",
+          "measure", "total")
 
 
 def frames() -> list[tuple[str, np.ndarray, np.ndarray, StereoCalibration]]:

@@ -35,8 +35,8 @@ from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E4
 from pothole_detector.stages.perspective import round_up_levels  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
 
-STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "measure", "graph",
-          "readback")
+STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "refine", "measure",
+          "graph", "readback")
 
 
 def frames(data: Path | None, real_count: int):

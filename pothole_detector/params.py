@@ -169,6 +169,10 @@ PARAMETERS: tuple[Param, ...] = (
     Param("superpixel_min_valid_fraction", float, 0.0,
           "A superpixel needs more than this fraction of valid disparities to be selectable "
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),
+    Param("refine_depth_fraction", float, 0.25,
+          "Pixel-level refinement: pixels within half a superpixel of a pothole join it where "
+          "their depth below the road (a 5x5 mean) exceeds this fraction of the threshold, so "
+          "that rims are not cut at superpixel edges; 0 turns it off.", 0, 1),
     # components
     Param("corner_fraction", float, 0.1,
           "Components touching a corner square of this fraction of the short side are dropped.",

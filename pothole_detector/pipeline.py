@@ -18,7 +18,7 @@ from .backend import CPU, Backend, StageClock, to_host
 from .calibration import StereoCalibration
 from .errors import NoRoadError, NoTextureError, PotholeError
 from .params import Config
-from .stages import components, matching, measure, perspective, road_model, seed
+from .stages import components, matching, measure, perspective, refine, road_model, seed
 from .stages import superpixels
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
@@ -76,8 +76,9 @@ class PipelineResult:
 @dataclass
 class FrameArrays:
     """What :meth:`Pipeline.stages` leaves on the backend: D1, D2, the valid mask, the
-    superpixels, the candidate mask on the SLIC grid, the pothole labels and the bool
-    per-superpixel mask of where the road is observed."""
+    superpixels, the candidate mask on the SLIC grid, the pothole labels, the bool
+    per-superpixel mask of where the road is observed and the float64 per-superpixel threshold
+    drops (px)."""
 
     disparity: Any
     transformed: Any
@@ -86,6 +87,7 @@ class FrameArrays:
     candidate: Any
     labels: Any
     observed: Any = None
+    drops: Any = None
 
 
 class FrameReport(Protocol):
@@ -255,21 +257,28 @@ class Pipeline:
                 xp.where(observed, found.valid_fraction, xp.float32(-1)), drop,
                 config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
-        frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed)
+        frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
+                            drops)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
     def label_and_measure(self, frame: FrameArrays, road: road_model.RoadModel | Any,
                           report: FrameReport, clock: StageClock) -> Any:
-        """Components and measure of ``frame``'s candidate mask into ``report`` (labels of
-        up to ``report.capacity`` components; more set its overflow count): the labels after
-        the area filter."""
+        """Components, refinement and measure of ``frame``'s candidate mask into ``report``
+        (labels of up to ``report.capacity`` components; more set its overflow count): the
+        labels after the area filter."""
         config, backend, found = self.config, self.backend, frame.superpixels
         with clock.stage("components"):
             labels = components.pothole_components(
                 backend, frame.candidate, frame.valid, found.labels, found.count,
                 config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
                 report.capacity, report.counts[:3])
+        with clock.stage("refine"):
+            region_px = superpixels.region_size(config.slic_region_size_px,
+                                                labels.shape[1])
+            labels = refine.refine_labels(
+                backend, labels, frame.transformed, found.labels, frame.drops, frame.observed,
+                config.delta_dt_px, refine.radius(region_px), config.refine_depth_fraction)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, frame.disparity, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)

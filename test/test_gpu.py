@@ -993,3 +993,25 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
         assert (to_host(got) != want).sum() <= max(1, want.size // 200)
         np.testing.assert_allclose(to_host(got_range), want_range, rtol=1e-6)
         np.testing.assert_allclose(to_host(got_drops)[want], want_drops[want], rtol=1e-9)
+
+
+def test_refinement_on_the_gpu_matches_the_reference(gpu):
+    from pothole_detector.stages.refine import refine_labels
+    rng = np.random.default_rng(8)
+    transformed = (32 + rng.normal(0, 0.3, (180, 320))).astype(np.float32)
+    transformed[40:120, 60:200] -= 2.0
+    transformed[rng.random(transformed.shape) < 0.1] = np.nan
+    labels = np.zeros(transformed.shape, np.int32)
+    labels[60:100, 80:150] = 1
+    labels[130:150, 250:300] = 2
+    superpixel_labels = (np.arange(180)[:, None] // 20 * 16 + np.arange(320)[None, :] // 20
+                         ).astype(np.int32)
+    drops = rng.uniform(1.0, 4.0, 9 * 16)
+    observed = rng.random(9 * 16) < 0.8
+    want = refine_labels(CPU, labels, transformed, superpixel_labels, drops, observed, 32.0, 10,
+                         0.25)
+    got = refine_labels(gpu, gpu.upload(labels), gpu.upload(transformed),
+                        gpu.upload(superpixel_labels), gpu.upload(drops), gpu.upload(observed),
+                        32.0, 10, 0.25)
+    assert (to_host(got) != want).mean() < 1e-3
+    assert (want > labels).sum() > 1000
