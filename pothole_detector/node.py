@@ -18,7 +18,10 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.event_handler import PublisherEventCallbacks, QoSRequestedIncompatibleQoSInfo
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, \
+    ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
@@ -31,13 +34,13 @@ from .backend import Backend, get_backend
 from .calibration import StereoCalibration
 from .errors import ConfigError, PotholeError
 from .outputs import ON_REQUEST, failure_messages, output_messages
-from .params import NODE_NAME, PARAMETERS, Config, Param
+from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
 from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
-QOS_PARAMETERS = frozenset({"qos_reliability", "qos_depth"})
+QOS_PARAMETERS = frozenset({"qos_depth"})
 SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
                              "queue_size"})
 INFO_HISTORY = 32
@@ -209,12 +212,16 @@ class PotholeDetectorNode(Node):
 
     def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         try:
-            self._config.replace(**{p.name: p.value for p in parameters})
+            self._config.replace(**{p.name: p.value for p in parameters
+                                    if p.name in PARAMETER_BY_NAME})
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        parameters = [p for p in parameters if p.name in PARAMETER_BY_NAME]
+        if not parameters:
+            return
         changed = {p.name for p in parameters}
         with self._lock:
             self._config = self._config.replace(**{p.name: p.value for p in parameters})
@@ -237,30 +244,60 @@ class PotholeDetectorNode(Node):
             self.destroy_subscription(subscription)
         for publisher in self._outputs.values():
             self.destroy_publisher(publisher)
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=config.qos_depth,
-            reliability=(ReliabilityPolicy.RELIABLE if config.qos_reliability == "reliable"
-                         else ReliabilityPolicy.BEST_EFFORT))
+        # inputs as camera drivers publish (sensor data: best effort, which takes reliable
+        # publishers too), outputs reliable; each per topic through the standard
+        # qos_overrides.<topic>.subscription|publisher.<policy> parameters
+        # (a profile of its own for each topic: the overrides change it in place)
+        def profile(reliability: ReliabilityPolicy) -> QoSProfile:
+            return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=config.qos_depth,
+                              reliability=reliability, durability=DurabilityPolicy.VOLATILE)
+
+        overrides = QoSOverridingOptions.with_default_policies()
+
+        def subscribe(kind: Any, topic: str, callback: Any) -> Any:
+            return self.create_subscription(kind, topic, callback,
+                                            profile(ReliabilityPolicy.BEST_EFFORT),
+                                            qos_overriding_options=overrides)
+
+        def publish(kind: Any, topic: str) -> Any:
+            events = PublisherEventCallbacks(
+                incompatible_qos=lambda info: self._incompatible_subscriber(topic, info))
+            return self.create_publisher(kind, topic, profile(ReliabilityPolicy.RELIABLE),
+                                         event_callbacks=events,
+                                         qos_overriding_options=overrides)
+
         self._inputs = [
-            self.create_subscription(Image, "left/image_rect",
-                                     lambda m: self._on_image("left", m), qos),
-            self.create_subscription(Image, "right/image_rect",
-                                     lambda m: self._on_image("right", m), qos),
-            self.create_subscription(CameraInfo, "left/camera_info",
-                                     lambda m: self._on_info("left", m), qos),
-            self.create_subscription(CameraInfo, "right/camera_info",
-                                     lambda m: self._on_info("right", m), qos),
+            subscribe(Image, "left/image_rect", lambda m: self._on_image("left", m)),
+            subscribe(Image, "right/image_rect", lambda m: self._on_image("right", m)),
+            subscribe(CameraInfo, "left/camera_info", lambda m: self._on_info("left", m)),
+            subscribe(CameraInfo, "right/camera_info", lambda m: self._on_info("right", m)),
         ]
         self._outputs = {
-            "disparity": self.create_publisher(DisparityImage, "disparity", qos),
-            "disparity_transformed": self.create_publisher(Image, "disparity_transformed", qos),
-            "pothole_labels": self.create_publisher(Image, "pothole_labels", qos),
-            "pothole_points": self.create_publisher(PointCloud2, "pothole_points", qos),
-            "potholes": self.create_publisher(PotholeArray, "potholes", qos),
-            "pothole_markers": self.create_publisher(MarkerArray, "pothole_markers", qos),
-            "overlay": self.create_publisher(Image, "overlay", qos),
+            "disparity": publish(DisparityImage, "disparity"),
+            "disparity_transformed": publish(Image, "disparity_transformed"),
+            "pothole_labels": publish(Image, "pothole_labels"),
+            "pothole_points": publish(PointCloud2, "pothole_points"),
+            "potholes": publish(PotholeArray, "potholes"),
+            "pothole_markers": publish(MarkerArray, "pothole_markers"),
+            "overlay": publish(Image, "overlay"),
             "diagnostics": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
         }
+
+    def _incompatible_subscriber(self, topic: str,
+                                 info: QoSRequestedIncompatibleQoSInfo) -> None:
+        """A subscriber asked for QoS that an output does not offer: say what it offers and how
+        to match, once per topic and throttle period."""
+        policy = QoSPolicyKind(info.last_policy_kind).name.lower()
+        name = self.resolve_topic_name(topic)
+        offered = self._outputs[topic].qos_profile if topic in self._outputs else None
+        offer = "" if offered is None else (
+            f"it offers {offered.reliability.name.lower()}, "
+            f"{offered.durability.name.lower()} durability (no history for late joiners), "
+            f"keep last {offered.depth}; ")
+        self._problem(f"qos:{name}",
+                      f"a subscriber of {name} asks for QoS the publisher does not offer (DDS "
+                      f"names the {policy} policy), so it gets nothing; {offer}subscribe with "
+                      f"volatile durability, or set qos_overrides.{name}.publisher.* to match")
 
     def _on_info(self, side: str, msg: CameraInfo) -> None:
         with self._lock:

@@ -203,11 +203,10 @@ PARAMETERS: tuple[Param, ...] = (
           group="node"),
     Param("queue_size", int, 10, "Unpaired images kept per side while waiting for a partner.",
           1, 1000, group="node"),
-    Param("qos_reliability", str, "reliable",
-          "QoS reliability of every subscription and publisher. best_effort loses most large "
-          "images over DDS; its subscriptions still take reliable publishers.",
-          choices=("reliable", "best_effort"), group="node"),
-    Param("qos_depth", int, 5, "QoS history depth of every subscription and publisher.",
+    Param("qos_depth", int, 5,
+          "QoS history depth of the inputs (sensor data: best effort) and outputs (reliable); "
+          "per topic, the qos_overrides.<topic>.subscription|publisher.depth|history|"
+          "reliability parameters override it and the rest at start-up.",
           1, 1000, group="node"),
     Param("diagnostics_period_seconds", float, 1.0, "Period of /diagnostics messages (s).",
           0.1, 60, group="node"),

@@ -16,7 +16,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
@@ -98,13 +98,23 @@ class Probe:
     """A test-side node: publishes stereo input and collects every output of the node."""
 
     def __init__(self, namespace: str = "/stereo", reliability: str = "reliable",
-                 outputs: tuple[str, ...] = tuple(OUTPUTS)) -> None:
+                 outputs: tuple[str, ...] = tuple(OUTPUTS), input_reliability: str = "reliable",
+                 durability: str = "volatile") -> None:
+        """``reliability`` and ``durability``: of the output subscriptions;
+        ``input_reliability``: of the camera publishers."""
         self.namespace = namespace
         self.node = rclpy.create_node(f"probe_{uuid.uuid4().hex[:8]}")
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
-        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE
-                         if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
+
+        def profile(reliability_name: str) -> QoSProfile:
+            return QoSProfile(
+                depth=50, reliability=ReliabilityPolicy.RELIABLE
+                if reliability_name == "reliable" else ReliabilityPolicy.BEST_EFFORT,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL
+                if durability == "transient_local" else DurabilityPolicy.VOLATILE)
+
+        qos, camera = profile(reliability), profile(input_reliability)
         self.received: dict[str, list[Any]] = defaultdict(list)
         self._subs = [
             self.node.create_subscription(OUTPUTS[name], f"{namespace}/{name}",
@@ -115,12 +125,12 @@ class Probe:
             DiagnosticArray, "/diagnostics", lambda m: self.received["diagnostics"].append(m),
             10))
         self.inputs = {
-            "left": self.node.create_publisher(Image, f"{namespace}/left/image_rect", qos),
-            "right": self.node.create_publisher(Image, f"{namespace}/right/image_rect", qos),
+            "left": self.node.create_publisher(Image, f"{namespace}/left/image_rect", camera),
+            "right": self.node.create_publisher(Image, f"{namespace}/right/image_rect", camera),
             "left_info": self.node.create_publisher(CameraInfo, f"{namespace}/left/camera_info",
-                                                    qos),
+                                                    camera),
             "right_info": self.node.create_publisher(CameraInfo,
-                                                     f"{namespace}/right/camera_info", qos),
+                                                     f"{namespace}/right/camera_info", camera),
         }
 
     def spin(self, seconds: float, until: Callable[[], bool] | None = None) -> bool:

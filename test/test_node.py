@@ -16,6 +16,7 @@ pytest.importorskip("pothole_detector_msgs.msg")
 import rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
+from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
@@ -176,20 +177,42 @@ def test_parameters_change_at_run_time_and_bad_values_are_refused(node_factory, 
     assert len(p.received["potholes"][2].potholes) >= 2
 
 
-@pytest.mark.parametrize("reliability", ["reliable", "best_effort"])
-def test_qos_reliability(node_factory, probe, frames, reliability):
-    node_factory(backend="cpu", qos_reliability=reliability)
-    p = probe(reliability=reliability, outputs=("potholes",))
+@pytest.mark.parametrize("camera", ["best_effort", "reliable"])
+def test_default_qos_takes_either_camera_and_serves_either_subscriber(node_factory, probe,
+                                                                      frames, camera):
+    """Inputs are sensor data (best effort takes a best-effort camera driver and a reliable
+    one), outputs reliable (a reliable and a best-effort subscriber both get them)."""
+    node_factory(backend="cpu")
+    p = probe(input_reliability=camera, outputs=("potholes",))
+    listener = probe(reliability="best_effort", outputs=("potholes",))
     p.wait_connected()
     for index in range(5):
         p.publish(frames[index % len(frames)], T0 + index * 300_000_000)
         p.spin(0.3)
-    p.spin(10, lambda: len(p.received["potholes"]) >= 5)
-    got = len(p.received["potholes"])
-    if reliability == "reliable":
-        assert got == 5
-    else:
-        assert got >= 1, "best effort delivered nothing at 640x360"
+        listener.spin(0.05)
+    assert p.spin(10, lambda: len(p.received["potholes"]) >= 3)
+    listener.spin(3, lambda: len(listener.received["potholes"]) >= 3)
+    assert len(listener.received["potholes"]) >= 3
+    info = p.node.get_publishers_info_by_topic("/stereo/potholes")[0].qos_profile
+    assert info.reliability == ReliabilityPolicy.RELIABLE
+    info = p.node.get_subscriptions_info_by_topic("/stereo/left/image_rect")[0].qos_profile
+    assert info.reliability == ReliabilityPolicy.BEST_EFFORT
+
+
+def test_qos_overrides_per_topic_and_a_transient_local_subscriber_is_told(node_factory, probe,
+                                                                        frames):
+    node = node_factory(backend="cpu", **{
+        "qos_overrides./stereo/potholes.publisher.reliability": "best_effort",
+        "qos_overrides./stereo/left/image_rect.subscription.reliability": "reliable"})
+    p = probe(outputs=("overlay",), durability="transient_local")
+    p.wait_connected()
+    assert p.spin(10, lambda: "subscriber of /stereo/overlay asks for QoS" in node.text())
+    assert "it offers reliable, volatile durability (no history for late joiners)" \
+        in node.text()  # the override of one topic leaves the others as they were
+    info = p.node.get_publishers_info_by_topic("/stereo/potholes")[0].qos_profile
+    assert info.reliability == ReliabilityPolicy.BEST_EFFORT
+    info = p.node.get_subscriptions_info_by_topic("/stereo/left/image_rect")[0].qos_profile
+    assert info.reliability == ReliabilityPolicy.RELIABLE
 
 
 def test_approximate_sync_pairs_jittered_stamps(node_factory, probe, frames):
