@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 import threading
 import time
@@ -22,6 +23,7 @@ from rclpy.event_handler import PublisherEventCallbacks, QoSRequestedIncompatibl
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, \
     ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
@@ -524,7 +526,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(USAGE)
         return 0
     large_image_transport()
-    rclpy.init(args=args)
+    # Ctrl-C and SIGTERM stop the spin here, not the ROS context: the worker finishes and
+    # publishes its frame before the context goes
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         node = PotholeDetectorNode()
     except PotholeError as exc:
@@ -539,8 +544,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         pass
     finally:
         node.destroy_node()
+        executor.shutdown()
         rclpy.try_shutdown()
     return 0
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import math
 import subprocess
+import time
 import sys
 
 import numpy as np
@@ -373,3 +374,19 @@ def test_diagnostics_tell_no_input_and_failures_in_a_row(node_factory, probe, fr
     assert p.spin(15, lambda: T0 + 5 in p.stamps())
     assert p.spin(5, lambda: p.diagnostics().get("failures_in_a_row") == "0")
     assert p.diagnostics()["level"] != 2
+
+
+def test_shutdown_under_load_is_clean(tmp_path, probe, frames):
+    """Ctrl-C while frames keep coming: the worker's frame is published before the context
+    goes (no 'context is invalid'), and the node exits 0 within a few seconds."""
+    node = NodeProcess(tmp_path / "node.log", backend="cpu")
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    for index in range(30):
+        p.publish(frames[index % len(frames)], T0 + index * 33_000_000)
+        p.spin(0.02)
+    started = time.monotonic()
+    assert node.stop() == 0
+    assert time.monotonic() - started < 6.0
+    text = node.text()
+    assert "context is invalid" not in text and "Traceback" not in text, text
