@@ -20,7 +20,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from .errors import InputError, PotholeError
-from .outputs import OUTPUT_TYPES
+from .outputs import OFFLINE_OUTPUTS, OUTPUT_TYPES
 from .transport import large_image_transport
 from .params import Config
 
@@ -393,7 +393,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
         try:
             output = {name: writer.add_connection(f"{namespace}/{name}", msgtype,
                                                   typestore=store)
-                      for name, msgtype in OUTPUT_TYPES.items()}
+                      for name, msgtype in OUTPUT_TYPES.items() if name in OFFLINE_OUTPUTS}
             inputs = {}
             if keep_inputs:
                 for topic in (stereo.left, stereo.right, stereo.left_info, stereo.right_info):
@@ -446,7 +446,8 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
                         failed(stamp, header, outcome)
                         continue
                     result = outcome
-                    made = output_messages(result, left_px, calibration, header)
+                    made = output_messages(result, left_px, calibration, header,
+                                           OFFLINE_OUTPUTS)
                     summary.milliseconds.append((time.perf_counter() - started) * 1e3)
                     summary.frames += 1
                     summary.potholes += len(result.potholes)

@@ -160,6 +160,63 @@ def pothole_points(labels: np.ndarray, disparity: np.ndarray, road: RoadModel,
     return points
 
 
+# the organized road cloud (points2): stereo_image_proc's x, y, z and rgb, then ours
+CLOUD_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", PointField.FLOAT32),
+                ("rgb", PointField.FLOAT32), ("depth_below_road", PointField.FLOAT32),
+                ("label", PointField.UINT32))
+CLOUD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4"),
+                        ("depth_below_road", "<f4"), ("label", "<u4")])
+
+
+def road_cloud(left: np.ndarray, disparity: np.ndarray, labels: np.ndarray, road: RoadModel,
+               calibration: StereoCalibration) -> np.ndarray:
+    """The organized cloud of the left view (structured HxW CLOUD_DTYPE): x, y, z (m, left
+    optical frame; NaN where the disparity is invalid), rgb (0x00RRGGBB as float32, as
+    stereo_image_proc packs it; grey images give r = g = b), depth below the road (m, NaN where
+    not measured) and the pothole label (0 = road)."""
+    height, width = disparity.shape
+    v, u = np.mgrid[0:height, 0:width]
+    d = disparity.astype(np.float64)
+    valid = np.isfinite(d) & (d > 0)
+    cloud = np.empty((height, width), dtype=CLOUD_DTYPE)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y, z = calibration.back_project(u, v, np.where(valid, d, np.nan))
+        depth = depth_below_road(np, u, v, np.where(valid, d, np.nan).astype(np.float32), road,
+                                 calibration)[0]
+    cloud["x"], cloud["y"], cloud["z"] = x, y, z
+    colour = left if left.ndim == 3 else np.repeat(left[..., None], 3, axis=2)
+    colour = colour[..., :3].astype(np.uint32)
+    if left.dtype == np.uint16:
+        colour >>= 8
+    packed = (colour[..., 0] << 16) | (colour[..., 1] << 8) | colour[..., 2]
+    cloud["rgb"] = packed.astype("<u4").view("<f4")
+    cloud["depth_below_road"] = depth
+    cloud["label"] = labels
+    return cloud
+
+
+def organized_cloud_message(cloud: np.ndarray, header: Header) -> PointCloud2:
+    """sensor_msgs/PointCloud2 of a structured HxW CLOUD_DTYPE array: organized (height H,
+    width W), little endian, not dense (NaN points)."""
+    fields = [PointField(name=name, offset=CLOUD_DTYPE.fields[name][1], datatype=kind, count=1)
+              for name, kind in CLOUD_FIELDS]
+    height, width = cloud.shape
+    return PointCloud2(header=header, height=height, width=width, fields=fields,
+                       is_bigendian=False, point_step=CLOUD_DTYPE.itemsize,
+                       row_step=CLOUD_DTYPE.itemsize * width,
+                       data=_bytes(np.ascontiguousarray(cloud).view(np.uint8).reshape(-1)),
+                       is_dense=False)
+
+
+def organized_cloud_to_array(msg: PointCloud2) -> np.ndarray:
+    """The structured HxW CLOUD_DTYPE array of a :func:`organized_cloud_message`."""
+    names = [f.name for f in msg.fields]
+    if names != [name for name, _ in CLOUD_FIELDS] or msg.point_step != CLOUD_DTYPE.itemsize:
+        raise InputError(f"point cloud fields {names} are not the road cloud's")
+    return np.frombuffer(bytes(msg.data), dtype=CLOUD_DTYPE).reshape(msg.height,
+                                                                    msg.width).copy()
+
+
 def pointcloud_message(points: np.ndarray, header: Header) -> PointCloud2:
     """sensor_msgs/PointCloud2 (unorganized, little endian) of a POINT_DTYPE array."""
     fields = [PointField(name=name, offset=POINT_DTYPE.fields[name][1], datatype=kind, count=1)

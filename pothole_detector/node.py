@@ -174,8 +174,8 @@ class Statistics:
 class PotholeDetectorNode(Node):
     """Subscribes ``left/image_rect``, ``right/image_rect``, ``left/camera_info``,
     ``right/camera_info``; publishes ``disparity``, ``disparity_transformed``,
-    ``pothole_labels``, ``pothole_points``, ``potholes``, ``pothole_markers``, ``overlay`` and
-    ``/diagnostics``. Image outputs are computed only while subscribed; a worker thread takes
+    ``pothole_labels``, ``pothole_points``, ``points2``, ``potholes``, ``pothole_markers``,
+    ``overlay`` and ``/diagnostics``. Image outputs are computed only while subscribed; a worker thread takes
     the newest synchronized set, older waiting sets are dropped and counted."""
 
     def __init__(self, **kwargs: Any) -> None:
@@ -279,6 +279,7 @@ class PotholeDetectorNode(Node):
             "disparity_transformed": publish(Image, "disparity_transformed"),
             "pothole_labels": publish(Image, "pothole_labels"),
             "pothole_points": publish(PointCloud2, "pothole_points"),
+            "points2": publish(PointCloud2, "points2"),
             "potholes": publish(PotholeArray, "potholes"),
             "pothole_markers": publish(MarkerArray, "pothole_markers"),
             "overlay": publish(Image, "overlay"),
@@ -512,9 +513,9 @@ USAGE = """usage: pothole_detector_node [--ros-args -r __ns:=NAMESPACE -p NAME:=
 
 The pothole detector as a ROS 2 node. Subscribes to left/image_rect, right/image_rect,
 left/camera_info and right/camera_info (relative to its namespace; remap with -r) and publishes
-potholes, disparity, disparity_transformed, pothole_labels, pothole_points, pothole_markers,
-overlay and /diagnostics. Every parameter, with its range, is in config/pothole_detector.yaml;
-the README lists the topics and their types."""
+potholes, disparity, disparity_transformed, pothole_labels, pothole_points, points2,
+pothole_markers, overlay and /diagnostics. Every parameter, with its range, is in
+config/pothole_detector.yaml; the README lists the topics and their types."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -29,7 +29,7 @@ from pothole_detector_msgs.msg import PotholeArray
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE_DRIVE = REPO / "bags" / "sample_drive"
 OUTPUTS = {"disparity": DisparityImage, "disparity_transformed": Image, "pothole_labels": Image,
-           "pothole_points": PointCloud2, "potholes": PotholeArray,
+           "pothole_points": PointCloud2, "points2": PointCloud2, "potholes": PotholeArray,
            "pothole_markers": MarkerArray, "overlay": Image}
 
 

@@ -130,3 +130,31 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
     assert array.potholes[0].area_m2 == pytest.approx(result.potholes[0].area_m2)
     assert list(array.potholes[0].bbox_px) == list(result.potholes[0].bbox_px)
     assert array.roll_deg == pytest.approx(math.degrees(result.road.roll_rad))
+
+
+def test_the_organized_road_cloud_known_answer():
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.stages.road_model import RoadModel
+    calibration = StereoCalibration.from_focal_baseline(100.0, 0.1, 4, 3, 1.5, 1.0)
+    disparity = np.full((3, 4), 10.0, np.float32)
+    disparity[0, 0] = np.nan
+    labels = np.zeros((3, 4), np.int32)
+    labels[2, 3] = 7
+    left = np.arange(12, dtype=np.uint8).reshape(3, 4) * 20
+    road = RoadModel(np.float64(10.0), np.float64(0.0), 0.0)  # a wall 1 m ahead: depth 0
+    cloud = conversions.road_cloud(left, disparity, labels, road, calibration)
+    assert cloud.shape == (3, 4) and np.isnan(cloud["z"][0, 0]) and np.isnan(cloud["x"][0, 0])
+    assert cloud["z"][1, 1] == pytest.approx(1.0)
+    assert cloud["x"][2, 3] == pytest.approx(0.015) and cloud["y"][2, 3] == pytest.approx(0.01)
+    grey = int(left[2, 3])
+    assert cloud["rgb"][2, 3:4].view("<u4")[0] == (grey << 16) | (grey << 8) | grey
+    assert cloud["label"][2, 3] == 7 and cloud["depth_below_road"][1, 1] == pytest.approx(0.0)
+    msg = conversions.organized_cloud_message(cloud, HEADER)
+    assert (msg.height, msg.width, msg.point_step, msg.is_dense) == (3, 4, 24, False)
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "rgb", "depth_below_road", "label"]
+    back = conversions.organized_cloud_to_array(msg)
+    np.testing.assert_array_equal(back.view(np.uint8), cloud.view(np.uint8))
+    rgb = np.zeros((3, 4, 3), np.uint8)
+    rgb[..., 0] = 255
+    red = conversions.road_cloud(rgb, disparity, labels, road, calibration)
+    assert red["rgb"][1, 1:2].view("<u4")[0] == 0xFF0000

@@ -104,7 +104,7 @@ def test_play_sample_bag_every_output(node_factory, probe):
     assert len(stamps) == processed and stamps == sorted(stamps)
     assert set(stamps) <= set(by_stamp)
     for output in ("disparity", "disparity_transformed", "pothole_labels",
-                   "pothole_points", "pothole_markers", "overlay"):
+                   "pothole_points", "points2", "pothole_markers", "overlay"):
         assert p.stamps(output) == stamps, output
     for msg in p.received["potholes"] + p.received["disparity"] + p.received["overlay"]:
         assert msg.header.frame_id == "stereo_left_optical_frame"
@@ -133,6 +133,11 @@ def test_play_sample_bag_every_output(node_factory, probe):
     for msg, array in zip(p.received["pothole_markers"], p.received["potholes"]):
         assert msg.markers[0].action == Marker.DELETEALL
         assert len(msg.markers) == 1 + 2 * len(array.potholes)
+    for cloud, result in zip(p.received["points2"], expected):
+        road = conversions.organized_cloud_to_array(cloud)
+        assert road.shape == result.disparity.shape and cloud.is_dense is False
+        np.testing.assert_array_equal(np.isnan(road["z"]), np.isnan(result.disparity))
+        np.testing.assert_array_equal(road["label"], result.labels)
     for cloud, array in zip(p.received["pothole_points"], p.received["potholes"]):
         points = conversions.pointcloud_to_array(cloud)
         assert set(np.unique(points["label"])) == {q.label for q in array.potholes}
