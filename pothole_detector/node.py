@@ -39,6 +39,7 @@ from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
+from .tracking import StableIds
 from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
@@ -195,6 +196,7 @@ class PotholeDetectorNode(Node):
         self._infos: dict[str, deque[CameraInfo]] = {"left": deque(maxlen=INFO_HISTORY),
                                                     "right": deque(maxlen=INFO_HISTORY)}
         self._reset_requested = False
+        self._ids = StableIds()
         self._pipeline: Pipeline | None = None
         self._pipeline_key: tuple[Any, ...] | None = None
         self._backend: Backend | None = None
@@ -438,12 +440,14 @@ class PotholeDetectorNode(Node):
         pipeline = self._pipeline_for(config, calibration)
         if reset:
             pipeline.reset()
+            self._ids.reset()
         result = pipeline.run(left, right)
         header = job.left.header
         publishers = self._outputs
         wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
-        for name, message in output_messages(result, left, calibration, header,
-                                             wanted).messages.items():
+        ids = self._ids.assign(result.potholes)
+        for name, message in output_messages(result, left, calibration, header, wanted,
+                                             ids).messages.items():
             publishers[name].publish(message)
         self._stats.done((time.monotonic() - job.received) * 1e3,
                          result.road.inlier_fraction, len(result.potholes))

@@ -4,13 +4,14 @@ output names and types import without ROS; building messages needs it."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Collection
+from typing import TYPE_CHECKING, Any, Collection, Sequence
 
 import numpy as np
 
 from .calibration import StereoCalibration
 from .imageio import overlay
 from .pipeline import PipelineResult
+from .tracking import relabel
 
 if TYPE_CHECKING:
     from std_msgs.msg import Header
@@ -43,10 +44,12 @@ class Outputs:
 
 
 def output_messages(result: PipelineResult, left: np.ndarray, calibration: StereoCalibration,
-                    header: "Header", wanted: Collection[str] = ON_REQUEST) -> Outputs:
+                    header: "Header", wanted: Collection[str] = ON_REQUEST,
+                    ids: Sequence[int] | None = None) -> Outputs:
     """``potholes`` and the outputs named in ``wanted`` for ``result`` of the pair whose left
-    image (host, HxW or HxWx3) is ``left``, each stamped with ``header``. Only the arrays these
-    messages need are copied to the host, each once."""
+    image (host, HxW or HxWx3) is ``left``, each stamped with ``header``; with ``ids``
+    (tracking.StableIds), pothole k is named ``ids[k - 1]`` in every message. Only the arrays
+    these messages need are copied to the host, each once."""
     from . import conversions
 
     unknown = set(wanted) - set(OUTPUT_TYPES)
@@ -59,9 +62,12 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
             host[name] = result.host(name)
         return host[name]
 
+    potholes = result.potholes
+    if ids is not None and potholes:
+        host["labels"], potholes = relabel(result.host("labels"), potholes, ids)
     made = Outputs()
     messages = made.messages
-    messages["potholes"] = conversions.potholes_message(result.potholes, result.road, header,
+    messages["potholes"] = conversions.potholes_message(potholes, result.road, header,
                                                         result.observed_range_m)
     if "disparity" in wanted:
         messages["disparity"] = conversions.disparity_message(
@@ -82,9 +88,9 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
                                    calibration), header)
     if "pothole_markers" in wanted:
         messages["pothole_markers"] = conversions.markers_message(
-            array("labels"), result.potholes, result.road, calibration, header)
+            array("labels"), potholes, result.road, calibration, header)
     if "overlay" in wanted:
-        made.overlay = overlay(left, array("labels"), result.potholes, array("observed"))
+        made.overlay = overlay(left, array("labels"), potholes, array("observed"))
         messages["overlay"] = conversions.array_to_image(made.overlay, "rgb8", header)
     return made
 
