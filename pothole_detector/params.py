@@ -125,10 +125,10 @@ PARAMETERS: tuple[Param, ...] = (
           0.5, 20),
     Param("road_prior_change_deg", float, 1.0,
           "How far the camera may turn about its x axis between frames (deg): a frame's road "
-          "fit starts from the pixels within the disparity such a turn moves the road (plus 3 "
-          "robust sigmas) of the previous frame's road, so cars, walls and trees do not tilt "
-          "it; 0 starts from every valid pixel.", 0, 45),
-    Param("min_road_inlier_fraction", float, 0.3,
+          "fit takes the pixels within the disparity such a turn moves the road (at least 2 "
+          "px) of the previous frame's road, so cars, walls and trees do not tilt it; 0 takes "
+          "every valid pixel.", 0, 45),
+    Param("min_road_inlier_fraction", float, 0.2,
           "Below this fraction of valid pixels on the road, report no road and no potholes.",
           0, 1),
     Param("delta_dt_px", float, 32.0, "delta_DT: value of the road in the transformed map (px).",

@@ -161,5 +161,6 @@ def test_prior_tolerance_follows_the_rig():
     from pothole_detector.stages.road_model import prior_tolerance_px
     calibration = StereoCalibration.from_focal_baseline(1000.0, 0.12, 1280, 720)
     road = RoadModel(10.0, 0.1, 0.0, sigma_px=0.5)
-    expected = 0.1 * 1000.0 * math.tan(math.radians(1.0)) + 1.5
-    assert prior_tolerance_px(road, calibration, 1.0) == pytest.approx(expected)
+    expected = 0.1 * 1000.0 * math.tan(math.radians(2.0))
+    assert prior_tolerance_px(road, calibration, 2.0) == pytest.approx(expected)
+    assert prior_tolerance_px(road, calibration, 0.5) == 2.0  # the narrowest band

@@ -39,6 +39,8 @@ ROAD_PARAMS = PARAM_LAYOUT["ROAD_PARAMS"]
 PRIOR_TOLERANCE = ROAD_PARAMS
 PRIOR_MIN_SHARE = ROAD_PARAMS + 1
 PRIOR_PARAMS = ROAD_PARAMS + 2
+# the narrowest band about the prior (px): the matcher's disparity noise on any rig
+MIN_PRIOR_TOLERANCE_PX = 2.0
 _F = FIT_LAYOUT
 
 
@@ -473,10 +475,11 @@ def prior_params(model: RoadModel | None, tolerance_px: float,
 
 def prior_tolerance_px(model: RoadModel, calibration: Any, change_deg: float) -> float:
     """How far (px) the road may lie from ``model`` in the next frame: the disparity by which a
-    turn of the camera by ``change_deg`` about its x axis moves the road (a1 f tan(change)),
-    plus three of the model's robust sigmas."""
-    return float(abs(model.a1) * calibration.f * math.tan(math.radians(change_deg))
-                 + 3.0 * model.sigma_px)
+    turn of the camera by ``change_deg`` about its x axis moves the road (a1 f tan(change)), at
+    least MIN_PRIOR_TOLERANCE_PX. Not widened by the fit's sigma: measured inside the band, it
+    grows with the band, and the band would grow with it frame after frame."""
+    return float(max(abs(model.a1) * calibration.f * math.tan(math.radians(change_deg)),
+                     MIN_PRIOR_TOLERANCE_PX))
 
 
 @lru_cache(maxsize=4)

@@ -22,7 +22,7 @@ REGION_POINTS = 16384
 REGION_TOLERANCE_PX = 1.0
 # the share of the valid coarse pixels the region must hold, as a fraction of
 # min_road_inlier_fraction (the coarse pass is sparse and noisier than the frame's)
-REGION_MIN_SHARE = 1.0 / 3.0
+REGION_MIN_SHARE = 0.4
 # the largest roll (deg) of the camera about its optical axis against the road
 MAX_ROLL_DEG = 45.0
 
