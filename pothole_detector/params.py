@@ -185,8 +185,9 @@ PARAMETERS: tuple[Param, ...] = (
           "Components whose mean depth below the road is less are dropped (shallow dips, "
           "noise).", 0, 1),
     Param("max_pothole_depth_m", float, 0.5,
-          "Components whose mean depth below the road is more are dropped (mismatched "
-          "disparities, not potholes).", 0, 100),
+          "Components whose mean depth below the road is more, or more than their width (the "
+          "square root of their area), are dropped (mismatched disparities, not potholes).",
+          0, 100),
     # device
     Param("cuda_graph", bool, True,
           "GPU backend: replay each frame's SGM and later stages as CUDA graphs per image "

@@ -120,3 +120,12 @@ def test_depths_above_the_road_count_as_zero_and_reports_need_finite_positive_nu
     sums[2, 4] = np.inf       # a non-finite sum
     sums[3, 1] = 1e-5         # smaller than the area asked for
     assert list(reportable(sums, 1e-4)) == [True, False, False, False]
+
+
+def test_reports_need_a_depth_between_the_bounds_and_no_deeper_than_wide():
+    from pothole_detector.stages.measure import MEASURE_SUMS, reportable
+    sums = np.ones((5, MEASURE_SUMS))
+    sums[:, 1] = 0.04          # 20 cm wide
+    sums[:, 2] = 0.04
+    sums[:, 3] = sums[:, 2] * np.array([0.05, 0.005, 0.15, 0.25, 0.6])  # mean depths (m)
+    assert list(reportable(sums, 1e-4, 0.008, 0.5)) == [True, False, True, False, False]

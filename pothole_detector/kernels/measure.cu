@@ -116,7 +116,8 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
 }
 
 // One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
-// min_area, its mean depth lies in [min_depth, max_depth], and its sums make a report
+// min_area, its mean depth lies in [min_depth, max_depth] and is at most its width (the square
+// root of its area), and its sums make a report
 // (measure.reportable); new_id numbers the ones that stay
 // 1..m in order (0 for the others and for label 0); kept_after[0] = m. The pipeline's area
 // filter; the host repeats the test on the same sums when it reads them back.
@@ -125,7 +126,8 @@ __device__ bool reportable(const double* row, double min_area, double min_depth,
     for (int k = 0; k < SUMS; ++k)
         if (!isfinite(row[k])) return false;
     return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && row[3] > 0.0
-           && row[3] >= min_depth * row[2] && row[3] <= max_depth * row[2];
+           && row[3] >= min_depth * row[2] && row[3] <= max_depth * row[2]
+           && row[3] <= sqrt(row[1]) * row[2];
 }
 
 extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,

@@ -221,11 +221,13 @@ def reportable(sums: np.ndarray, min_area_m2: float, min_depth_m: float = 0.0,
     """Bool (k,) over rows of measure sums (float64 (k, MEASURE_SUMS)): the pothole's sums are
     finite, its area reaches ``min_area_m2`` and is positive, and it has a measured depth
     (valid area and depth x area positive) whose mean lies in [``min_depth_m``,
-    ``max_depth_m``]: a report with finite, positive, possible numbers."""
+    ``max_depth_m``] and is at most its width (the square root of its area: a hole deeper than
+    it is wide is a mismatch): a report with finite, positive, possible numbers."""
     sums = np.asarray(sums)
     return np.isfinite(sums).all(axis=1) & (sums[:, 1] >= min_area_m2) & (sums[:, 1] > 0) \
         & (sums[:, 2] > 0) & (sums[:, 3] > 0) & (sums[:, 3] >= min_depth_m * sums[:, 2]) \
-        & (sums[:, 3] <= max_depth_m * sums[:, 2])
+        & (sums[:, 3] <= max_depth_m * sums[:, 2]) \
+        & (sums[:, 3] <= np.sqrt(np.maximum(sums[:, 1], 0.0)) * sums[:, 2])
 
 
 def keep_large(potholes: list[Pothole], min_area_m2: float, min_depth_m: float = 0.0,
@@ -246,7 +248,7 @@ def _reported(pothole: Pothole, min_area_m2: float, min_depth_m: float,
     numbers = (pothole.area_m2, pothole.mean_depth_m, pothole.volume_m3, *pothole.centroid_cam_m)
     return all(math.isfinite(n) for n in numbers) and pothole.area_m2 >= min_area_m2 \
         and pothole.area_m2 > 0 and pothole.mean_depth_m > 0 \
-        and min_depth_m <= pothole.mean_depth_m <= max_depth_m
+        and min_depth_m <= pothole.mean_depth_m <= min(max_depth_m, math.sqrt(pothole.area_m2))
 
 
 def _kernel(backend: Backend, name: str) -> Any:
