@@ -274,13 +274,16 @@ class Pipeline:
                 config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
                 report.capacity, report.counts[:3])
         with clock.stage("refine"):
+            filled = refine.smooth(backend, frame.disparity, fill=True)
+            smoothed = backend.xp.where(frame.valid, filled, backend.xp.float32(backend.xp.nan))
             region_px = superpixels.region_size(config.slic_region_size_px,
                                                 labels.shape[1])
             labels = refine.refine_labels(
-                backend, labels, frame.transformed, found.labels, frame.drops, frame.observed,
-                config.delta_dt_px, refine.radius(region_px), config.refine_depth_fraction)
+                backend, labels, transform_disparity(backend, filled, road, config.delta_dt_px),
+                found.labels, frame.drops, frame.observed, config.delta_dt_px,
+                refine.radius(region_px), config.refine_depth_fraction)
         with clock.stage("measure"):
-            measure.measure(backend, labels, report.capacity, frame.disparity, road,
+            measure.measure(backend, labels, report.capacity, smoothed, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)
             return measure.area_filter(backend, labels, report.sums, report.counts[1:2],
                                        report.capacity, config.min_pothole_area_m2,

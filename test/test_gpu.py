@@ -996,7 +996,7 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
 
 
 def test_refinement_on_the_gpu_matches_the_reference(gpu):
-    from pothole_detector.stages.refine import refine_labels
+    from pothole_detector.stages.refine import refine_labels, smooth
     rng = np.random.default_rng(8)
     transformed = (32 + rng.normal(0, 0.3, (180, 320))).astype(np.float32)
     transformed[40:120, 60:200] -= 2.0
@@ -1008,9 +1008,12 @@ def test_refinement_on_the_gpu_matches_the_reference(gpu):
                          ).astype(np.int32)
     drops = rng.uniform(1.0, 4.0, 9 * 16)
     observed = rng.random(9 * 16) < 0.8
-    want = refine_labels(CPU, labels, transformed, superpixel_labels, drops, observed, 32.0, 10,
+    smoothed = smooth(CPU, transformed)
+    np.testing.assert_allclose(to_host(smooth(gpu, gpu.upload(transformed))), smoothed,
+                               rtol=1e-5, atol=1e-4)
+    want = refine_labels(CPU, labels, smoothed, superpixel_labels, drops, observed, 32.0, 10,
                          0.25)
-    got = refine_labels(gpu, gpu.upload(labels), gpu.upload(transformed),
+    got = refine_labels(gpu, gpu.upload(labels), gpu.upload(smoothed),
                         gpu.upload(superpixel_labels), gpu.upload(drops), gpu.upload(observed),
                         32.0, 10, 0.25)
     assert (to_host(got) != want).mean() < 1e-3

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.refine import radius, refine_labels
+from pothole_detector.stages.refine import radius, refine_labels, smooth
 
 
 def _scene():
@@ -25,8 +26,8 @@ def test_pixels_below_the_road_within_the_radius_join_the_pothole():
     transformed, labels, superpixel_labels = _scene()
     drops = np.array([2.0, 2.0])
     observed = np.array([True, True])
-    refined = refine_labels(CPU, labels, transformed, superpixel_labels, drops, observed, 32.0,
-                            4, 0.25)
+    refined = refine_labels(CPU, labels, smooth(CPU, transformed), superpixel_labels, drops,
+                            observed, 32.0, 4, 0.25)
     assert refined.dtype == np.int32
     assert np.array_equal(refined[labels > 0], labels[labels > 0])
     grown = (refined == 1) & (labels == 0)
@@ -40,6 +41,7 @@ def test_pixels_below_the_road_within_the_radius_join_the_pothole():
 def test_refinement_keeps_to_observed_road_and_deep_enough_pixels():
     transformed, labels, superpixel_labels = _scene()
     observed = np.array([False, True])
+    transformed = smooth(CPU, transformed)
     unobserved = refine_labels(CPU, labels, transformed, superpixel_labels,
                                np.array([2.0, 2.0]), observed, 32.0, 4, 0.25)
     assert np.array_equal(unobserved, labels)
@@ -50,3 +52,16 @@ def test_refinement_keeps_to_observed_road_and_deep_enough_pixels():
                         np.array([True, True]), 32.0, 4, 0.0)
     assert off is labels
     assert radius(32) == 16 and radius(10) == 5
+
+
+def test_smooth_averages_the_valid_neighbours_and_keeps_invalid_pixels_invalid():
+    values = np.arange(49, dtype=np.float32).reshape(7, 7)
+    values[0, 0] = np.nan
+    smoothed = smooth(CPU, values)
+    assert np.isnan(smoothed[0, 0]) and smoothed.dtype == np.float32
+    assert smoothed[3, 3] == np.float32(24.0)  # a linear ramp keeps its centre value
+    corner = values[:4, :4][np.isfinite(values[:4, :4])].mean()  # the 5x5 square, clipped
+    assert smoothed[1, 1] == pytest.approx(corner, rel=1e-6)
+    filled = smooth(CPU, values, fill=True)
+    assert filled[0, 0] == pytest.approx(values[:3, :3][np.isfinite(values[:3, :3])].mean())
+    assert np.array_equal(filled[1:], smoothed[1:]) and np.isfinite(filled).all()
