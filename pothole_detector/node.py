@@ -176,8 +176,9 @@ class PotholeDetectorNode(Node):
     """Subscribes ``left/image_rect``, ``right/image_rect``, ``left/camera_info``,
     ``right/camera_info``; publishes ``disparity``, ``disparity_transformed``,
     ``pothole_labels``, ``pothole_points``, ``points2``, ``potholes``, ``pothole_markers``,
-    ``overlay`` and ``/diagnostics``. Image outputs are computed only while subscribed; a worker thread takes
-    the newest synchronized set, older waiting sets are dropped and counted."""
+    ``overlay`` and ``/diagnostics``. Image outputs are computed only while subscribed; a
+    worker thread takes the newest synchronized set, older waiting sets are dropped and
+    counted. A pothole keeps its label while it stays in view (tracking.StableIds)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
