@@ -274,14 +274,12 @@ class Pipeline:
                 config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
                 report.capacity, report.counts[:3])
         with clock.stage("refine"):
-            filled = refine.smooth(backend, frame.disparity, fill=True)
-            smoothed = backend.xp.where(frame.valid, filled, backend.xp.float32(backend.xp.nan))
+            filled, smoothed = refine.smooth(backend, frame.disparity)
             region_px = superpixels.region_size(config.slic_region_size_px,
                                                 labels.shape[1])
             labels = refine.refine_labels(
-                backend, labels, transform_disparity(backend, filled, road, config.delta_dt_px),
-                found.labels, frame.drops, frame.observed, config.delta_dt_px,
-                refine.radius(region_px), config.refine_depth_fraction)
+                backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
+                frame.observed, refine.radius(region_px), config.refine_depth_fraction)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, smoothed, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)

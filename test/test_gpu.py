@@ -996,25 +996,33 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
 
 
 def test_refinement_on_the_gpu_matches_the_reference(gpu):
+    from pothole_detector.stages import road_model
     from pothole_detector.stages.refine import refine_labels, smooth
     rng = np.random.default_rng(8)
-    transformed = (32 + rng.normal(0, 0.3, (180, 320))).astype(np.float32)
-    transformed[40:120, 60:200] -= 2.0
-    transformed[rng.random(transformed.shape) < 0.1] = np.nan
-    labels = np.zeros(transformed.shape, np.int32)
+    road = road_model.RoadModel(np.float64(20.0), np.float64(0.1), 0.02,
+                                (0.5, -0.2, 0.3, 0.1, -0.1, 0.2), kind="quadratic")
+    disparity = (road.disparity(np, 180, 320) + rng.normal(0, 0.3, (180, 320))
+                 ).astype(np.float32)
+    disparity[40:120, 60:200] -= 2.0
+    disparity[rng.random(disparity.shape) < 0.1] = np.nan
+    disparity[:8, :8] = np.nan
+    labels = np.zeros(disparity.shape, np.int32)
     labels[60:100, 80:150] = 1
     labels[130:150, 250:300] = 2
     superpixel_labels = (np.arange(180)[:, None] // 20 * 16 + np.arange(320)[None, :] // 20
                          ).astype(np.int32)
     drops = rng.uniform(1.0, 4.0, 9 * 16)
     observed = rng.random(9 * 16) < 0.8
-    smoothed = smooth(CPU, transformed)
-    np.testing.assert_allclose(to_host(smooth(gpu, gpu.upload(transformed))), smoothed,
-                               rtol=1e-5, atol=1e-4)
-    want = refine_labels(CPU, labels, smoothed, superpixel_labels, drops, observed, 32.0, 10,
-                         0.25)
-    got = refine_labels(gpu, gpu.upload(labels), gpu.upload(smoothed),
-                        gpu.upload(superpixel_labels), gpu.upload(drops), gpu.upload(observed),
-                        32.0, 10, 0.25)
-    assert (to_host(got) != want).mean() < 1e-3
+    filled, smoothed = smooth(CPU, disparity)
+    got_filled, got_smoothed = smooth(gpu, gpu.upload(disparity))
+    for got, want in ((got_filled, filled), (got_smoothed, smoothed)):
+        np.testing.assert_allclose(to_host(got), want, rtol=1e-5, atol=1e-4)
+        np.testing.assert_array_equal(np.isnan(to_host(got)), np.isnan(want))
+    want = refine_labels(CPU, labels, filled, road, 32.0, superpixel_labels, drops, observed,
+                         10, 0.25)
+    for params in (road, road_model.device_params(gpu, road)):
+        got = refine_labels(gpu, gpu.upload(labels), gpu.upload(filled), params, 32.0,
+                            gpu.upload(superpixel_labels), gpu.upload(drops),
+                            gpu.upload(observed), 10, 0.25)
+        assert (to_host(got) != want).mean() < 1e-3
     assert (want > labels).sum() > 1000

@@ -7,27 +7,34 @@ import pytest
 
 from pothole_detector.backend import CPU
 from pothole_detector.stages.refine import radius, refine_labels, smooth
+from pothole_detector.stages.road_model import RoadModel
+
+# a road at 32 px everywhere with delta_DT 32: the transformed disparity is the disparity
+FLAT = RoadModel(np.float64(32.0), np.float64(0.0), 0.0)
 
 
 def _scene():
     """Two superpixels (left half 0, right half 1) of a 20x40 map; pothole 1 covers columns
-    8-11 of rows 5-14; the road (D2 32) dips 1 px at columns 12-17 beside it and at 28-33."""
-    transformed = np.full((20, 40), 32.0, np.float32)
-    transformed[:, 12:18] = 31.0
-    transformed[:, 28:34] = 31.0
+    8-11 of rows 5-14; the road (32 px) dips 1 px at columns 12-17 beside it and at 28-33."""
+    disparity = np.full((20, 40), 32.0, np.float32)
+    disparity[:, 12:18] = 31.0
+    disparity[:, 28:34] = 31.0
     labels = np.zeros((20, 40), np.int32)
     labels[5:15, 8:12] = 1
     superpixel_labels = np.zeros((20, 40), np.int32)
     superpixel_labels[:, 20:] = 1
-    return transformed, labels, superpixel_labels
+    return disparity, labels, superpixel_labels
+
+
+def _refine(labels, disparity, superpixel_labels, drops, observed, fraction=0.25):
+    filled, _ = smooth(CPU, disparity)
+    return refine_labels(CPU, labels, filled, FLAT, 32.0, superpixel_labels, np.array(drops),
+                         np.array(observed), 4, fraction)
 
 
 def test_pixels_below_the_road_within_the_radius_join_the_pothole():
-    transformed, labels, superpixel_labels = _scene()
-    drops = np.array([2.0, 2.0])
-    observed = np.array([True, True])
-    refined = refine_labels(CPU, labels, smooth(CPU, transformed), superpixel_labels, drops,
-                            observed, 32.0, 4, 0.25)
+    disparity, labels, superpixel_labels = _scene()
+    refined = _refine(labels, disparity, superpixel_labels, [2.0, 2.0], [True, True])
     assert refined.dtype == np.int32
     assert np.array_equal(refined[labels > 0], labels[labels > 0])
     grown = (refined == 1) & (labels == 0)
@@ -39,29 +46,26 @@ def test_pixels_below_the_road_within_the_radius_join_the_pothole():
 
 
 def test_refinement_keeps_to_observed_road_and_deep_enough_pixels():
-    transformed, labels, superpixel_labels = _scene()
-    observed = np.array([False, True])
-    transformed = smooth(CPU, transformed)
-    unobserved = refine_labels(CPU, labels, transformed, superpixel_labels,
-                               np.array([2.0, 2.0]), observed, 32.0, 4, 0.25)
+    disparity, labels, superpixel_labels = _scene()
+    unobserved = _refine(labels, disparity, superpixel_labels, [2.0, 2.0], [False, True])
     assert np.array_equal(unobserved, labels)
-    shallow = refine_labels(CPU, labels, transformed, superpixel_labels,
-                            np.array([8.0, 8.0]), np.array([True, True]), 32.0, 4, 0.25)
+    shallow = _refine(labels, disparity, superpixel_labels, [8.0, 8.0], [True, True])
     assert np.array_equal(shallow, labels)  # 1 px is less than a quarter of 8
-    off = refine_labels(CPU, labels, transformed, superpixel_labels, np.array([2.0, 2.0]),
-                        np.array([True, True]), 32.0, 4, 0.0)
+    filled, _ = smooth(CPU, disparity)
+    off = refine_labels(CPU, labels, filled, FLAT, 32.0, superpixel_labels,
+                        np.array([2.0, 2.0]), np.array([True, True]), 4, 0.0)
     assert off is labels
     assert radius(32) == 16 and radius(10) == 5
 
 
-def test_smooth_averages_the_valid_neighbours_and_keeps_invalid_pixels_invalid():
+def test_smooth_averages_the_valid_neighbours():
     values = np.arange(49, dtype=np.float32).reshape(7, 7)
     values[0, 0] = np.nan
-    smoothed = smooth(CPU, values)
-    assert np.isnan(smoothed[0, 0]) and smoothed.dtype == np.float32
-    assert smoothed[3, 3] == np.float32(24.0)  # a linear ramp keeps its centre value
+    filled, smoothed = smooth(CPU, values)
+    assert np.isnan(smoothed[0, 0]) and smoothed.dtype == filled.dtype == np.float32
+    assert smoothed[3, 3] == pytest.approx(24.0)  # a linear ramp keeps its centre value
     corner = values[:4, :4][np.isfinite(values[:4, :4])].mean()  # the 5x5 square, clipped
     assert smoothed[1, 1] == pytest.approx(corner, rel=1e-6)
-    filled = smooth(CPU, values, fill=True)
     assert filled[0, 0] == pytest.approx(values[:3, :3][np.isfinite(values[:3, :3])].mean())
     assert np.array_equal(filled[1:], smoothed[1:]) and np.isfinite(filled).all()
+    assert np.isnan(smooth(CPU, np.full((6, 6), np.nan, np.float32))[0]).all()

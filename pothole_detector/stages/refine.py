@@ -7,40 +7,73 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from ..backend import Backend
+from .road_model import PARAM_LAYOUT, RoadModel, device_params
+from .transform import transform_disparity
 
 # side (px) of the square over which a pixel's disparity is averaged
 SMOOTHING_PX = 5
+# kernels/refine.cu: the block of one thread per pixel
+_BLOCK = (32, 8)
 
 
-def smooth(backend: Backend, disparity: Any, fill: bool = False) -> Any:
-    """The mean of the valid values of a float32 HxW map (NaN invalid) over the SMOOTHING_PX x
-    SMOOTHING_PX square about each pixel (float32 HxW): matching noise averaged out, the depth
-    structure of a pothole kept. NaN where the pixel is invalid, or with ``fill`` only where no
-    value of its square is valid (an occluded pothole wall takes its neighbours')."""
+def smooth(backend: Backend, disparity: Any) -> tuple[Any, Any]:
+    """The mean of the valid values of a float32 HxW disparity map (NaN invalid) over the
+    SMOOTHING_PX x SMOOTHING_PX square about each pixel, clipped at the border: matching noise
+    averaged out, the depth structure of a pothole kept. Returns float32 HxW ``filled`` (NaN
+    only where no value of the square is valid: an occluded pothole wall takes its
+    neighbours') and ``smoothed`` (NaN where the pixel itself is invalid). On the GPU one
+    kernel (kernels/refine.cu)."""
     xp, ndimage = backend.xp, backend.ndimage
+    if backend.is_gpu:
+        height, width = disparity.shape
+        filled = xp.empty((height, width), dtype=xp.float32)
+        smoothed = xp.empty((height, width), dtype=xp.float32)
+        _kernel(backend, "refine_smooth")(
+            _grid(height, width), _BLOCK,
+            (xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height),
+             np.int32(width), filled, smoothed))
+        return filled, smoothed
     valid = xp.isfinite(disparity)
     total = ndimage.uniform_filter(xp.where(valid, disparity, 0).astype(xp.float32),
                                    SMOOTHING_PX, mode="constant")
     share = ndimage.uniform_filter(valid.astype(xp.float32), SMOOTHING_PX, mode="constant")
-    return xp.where((share > 0) if fill else valid, total / xp.maximum(share, xp.float32(1e-6)),
-                    xp.float32(xp.nan)).astype(xp.float32)
+    mean = total / xp.maximum(share, xp.float32(1e-6))
+    nan = xp.float32(xp.nan)
+    filled = xp.where(share > 1e-4, mean, nan).astype(xp.float32)
+    return filled, xp.where(valid, filled, nan)
 
 
-def refine_labels(backend: Backend, labels: Any, smoothed_transformed: Any,
-                  superpixel_labels: Any, drops: Any, observed: Any, road_level: float,
+def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | Any,
+                  road_level: float, superpixel_labels: Any, drops: Any, observed: Any,
                   radius_px: int, fraction: float) -> Any:
     """The refinement stage: int32 HxW labels where, besides the pixels of ``labels``, every
     pixel within ``radius_px`` (a square) of pothole k whose superpixel is observed and whose
-    smoothed transformed disparity (``smoothed_transformed``: D2 of the :func:`smooth` D1,
-    float32 HxW, NaN invalid) lies more than ``fraction`` x its superpixel's threshold drop
-    below ``road_level`` (delta_DT) is labelled k (the largest label where two are that close).
+    transformed ``filled`` disparity (of :func:`smooth`, transformed with ``road`` and
+    ``road_level`` = delta_DT) lies more than ``fraction`` x its superpixel's threshold drop
+    below ``road_level`` is labelled k (the largest label where two are that close).
     ``labels``, ``superpixel_labels`` int32 HxW; ``drops`` float64 and ``observed`` bool per
-    superpixel (threshold.observation). ``fraction`` <= 0 returns ``labels``."""
+    superpixel (threshold.observation); ``road`` a RoadModel, or on the GPU also its device
+    parameters. ``fraction`` <= 0 returns ``labels``. On the GPU one kernel
+    (kernels/refine.cu)."""
     if fraction <= 0 or radius_px <= 0:
         return labels
     xp, ndimage = backend.xp, backend.ndimage
-    below = xp.float32(road_level) - smoothed_transformed
+    if backend.is_gpu:
+        height, width = labels.shape
+        out = xp.empty((height, width), dtype=xp.int32)
+        _kernel(backend, "refine_grow")(
+            _grid(height, width), _BLOCK,
+            (xp.ascontiguousarray(labels, dtype=xp.int32), filled,
+             xp.ascontiguousarray(superpixel_labels, dtype=xp.int32),
+             xp.ascontiguousarray(drops, dtype=xp.float64),
+             xp.ascontiguousarray(observed, dtype=xp.bool_), device_params(backend, road),
+             np.float32(road_level), np.float64(fraction), np.int32(radius_px),
+             np.int32(height), np.int32(width), out))
+        return out
+    below = xp.float32(road_level) - transform_disparity(backend, filled, road, road_level)
     deep = (below > fraction * xp.take(drops, superpixel_labels)) \
         & xp.take(observed, superpixel_labels)
     near = ndimage.maximum_filter(labels, size=2 * radius_px + 1, mode="constant")
@@ -50,3 +83,12 @@ def refine_labels(backend: Backend, labels: Any, smoothed_transformed: Any,
 def radius(region_size_px: int) -> int:
     """How far (px) refinement reaches beyond a pothole's superpixels: half a superpixel."""
     return region_size_px // 2
+
+
+def _grid(height: int, width: int) -> tuple[int, int]:
+    return (-(-width // _BLOCK[0]), -(-height // _BLOCK[1]))
+
+
+def _kernel(backend: Backend, name: str) -> Any:
+    """Kernel ``name`` of kernels/refine.cu with the numbers it shares with this module."""
+    return backend.kernel("refine.cu", name, {"SMOOTHING": SMOOTHING_PX, **PARAM_LAYOUT})
