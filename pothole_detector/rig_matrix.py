@@ -82,7 +82,7 @@ def sample_scene(rig: RigClass, index: int, potholes: int = 3, distractors: int 
                  roll_deg=draw((-rig.max_roll_deg, rig.max_roll_deg)),
                  texture_seed=int(rng.integers(1, 1 << 30)),
                  grade_radius_m=(0.0, 1500.0, -1500.0, 0.0)[shape],
-                 crown_per_m=0.015 if shape == 3 else 0.0,
+                 crown_per_m=0.007 if shape == 3 else 0.0,
                  noise_grey=draw((1.0, 2.0)), right_gain=draw((0.95, 1.05)))
     near, far = visible_range_m(base)
     margin = 1.5 * rig.semi_axis_m[1]
