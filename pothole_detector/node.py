@@ -533,8 +533,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     large_image_transport()
     # Ctrl-C and SIGTERM stop the spin here, not the ROS context: the worker finishes and
-    # publishes its frame before the context goes
+    # publishes its frame before the context goes. Both handlers are set explicitly: a node
+    # started in the background of a script inherits SIGINT ignored.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _interrupt)
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         node = PotholeDetectorNode()

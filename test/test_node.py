@@ -400,3 +400,24 @@ def test_shutdown_under_load_is_clean(tmp_path, probe, frames):
     assert time.monotonic() - started < 6.0
     text = node.text()
     assert "context is invalid" not in text and "Traceback" not in text, text
+
+
+def test_a_node_started_with_sigint_ignored_still_stops_on_it(tmp_path):
+    """A script's background job inherits SIGINT ignored (scripts/demo.sh starts the node so
+    and stops it with kill -INT): the node sets its own handler and exits 0."""
+    import signal
+    import subprocess
+
+    log = open(tmp_path / "node.log", "w")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pothole_detector.node", "--ros-args", "-r", "__ns:=/ignored",
+         "-p", "backend:=cpu"], stdout=log, stderr=subprocess.STDOUT,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    time.sleep(3.0)
+    process.send_signal(signal.SIGINT)
+    try:
+        assert process.wait(timeout=10) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+        log.close()
