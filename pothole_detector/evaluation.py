@@ -410,7 +410,6 @@ def _score_scene(tally: RigTally, sample: Any, result: Any) -> None:
     everywhere = np.ones_like(predicted)
     tally.pixels_all.add(predicted, is_pothole, everywhere)
     tally.pixels_observed.add(predicted, is_pothole, observed)
-    tally.roll_errors_deg.append(abs(result.road.roll_deg - truth_roll_deg(sample)))
     near, far = result.observed_range_m
     pairs = match_potholes(labels, truth)
     matched_truths = {t for _, t in pairs}
@@ -477,10 +476,10 @@ def evaluate_synthetic(config: Config, backend: Backend, classes: Iterable[str] 
         except PotholeError:
             tally.failed += 1
             continue
+        tally.roll_errors_deg.append(abs(result.road.roll_deg - truth_roll_deg(sample)))
         if clean:
             tally.clean_scenes += 1
             tally.false_on_clean += len(result.potholes)
-            tally.roll_errors_deg.append(abs(result.road.roll_deg - truth_roll_deg(sample)))
         else:
             tally.scenes += 1
             _score_scene(tally, sample, result)

@@ -341,8 +341,9 @@ class FrameExecutor:
                after_fit: Callable[[_Frame], None]) -> _Frame:
         """The pipeline's stages from SGM on, into a new report."""
         config = self.pipeline.config
-        region_px = superpixels.region_size(config.slic_region_size_px, pair[0].shape[1])
-        n_sp = superpixels.grid_count(pair[0].shape, region_px, config.slic_downsample)
+        n_sp = superpixels.grid_count(pair[0].shape,
+                                      self.pipeline.region_size(pair[0].shape[1]),
+                                      config.slic_downsample)
         frame = _Frame(FrameReport(self.backend.xp, components.device_capacity(n_sp)),
                        pixels=int(pair[0].size))
         frame.arrays = self.pipeline.stages(*pair, levels, frame.report, clock,
@@ -361,8 +362,8 @@ class FrameExecutor:
 
     def _capture(self, key: _GraphKey) -> CapturedGraph:
         """:meth:`_frame` of a (height, width, levels) captured as two CUDA graphs, cut after
-        the road fit; the outputs: the input arrays (left, right, shifts, prior) they read and the
-        frame."""
+        the road fit; the outputs: the input arrays (left, right, shifts, prior) they read and
+        the frame."""
         height, width, levels = key
         xp = self.backend.xp
 
@@ -455,8 +456,6 @@ class FrameExecutor:
         host, arrays, clock = frame.host, frame.arrays, frame.clock
         assert host is not None and arrays is not None and clock is not None
         assert frame.road is not None and frame.shifts is not None
-        t_r, road_mean = thresholding.split_from_result(host.threshold, config.histogram_bin_px,
-                                                        config.delta_dt_px)
         kept = host.components_kept
         potholes, _ = measure.keep_large(
             measure.potholes_from_sums(host.sums[1:kept + 1], host.extremes[1:kept + 1]),
@@ -471,8 +470,9 @@ class FrameExecutor:
             superpixels=arrays.superpixels.labels, observed=arrays.observed,
             observed_range_m=(float(host.observed_range[0]), float(host.observed_range[1])),
             road=frame.road,
-            threshold_px={"split": t_r, "road_mean": road_mean, "road_fit": config.delta_dt_px}[
-                thresholding.reference_for(config.threshold_reference, config.threshold_mode)],
+            threshold_px=thresholding.reference_level(
+                host.threshold, config.histogram_bin_px, config.delta_dt_px,
+                thresholding.reference_for(config.threshold_reference, config.threshold_mode)),
             band=(lowest, int(frame.levels)),
             disparity_range=(float(lowest), float(highest + frame.levels - 1)),
             potholes=potholes, backend=self.backend.name, seeded=frame.seeded,

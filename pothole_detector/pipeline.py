@@ -237,7 +237,7 @@ class Pipeline:
             thresholding.threshold_search(backend, transformed, config.histogram_bin_px,
                                           config.delta_dt_px, result=report.threshold)
         with clock.stage("slic"):
-            region_px = superpixels.region_size(config.slic_region_size_px, transformed.shape[1])
+            region_px = self.region_size(transformed.shape[1])
             found = superpixels.superpixels(backend, transformed, region_px,
                                             config.slic_compactness, config.slic_iterations,
                                             config.slic_downsample)
@@ -275,11 +275,10 @@ class Pipeline:
                 report.capacity, report.counts[:3])
         with clock.stage("refine"):
             filled, smoothed = refine.smooth(backend, frame.disparity)
-            region_px = superpixels.region_size(config.slic_region_size_px,
-                                                labels.shape[1])
             labels = refine.refine_labels(
                 backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
-                frame.observed, refine.radius(region_px), config.refine_depth_fraction)
+                frame.observed, refine.radius(self.region_size(labels.shape[1])),
+                config.refine_depth_fraction)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, smoothed, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)
@@ -339,6 +338,11 @@ class Pipeline:
                                     self.shift_mode())
         self._band_memo = (road, config, shape, band)
         return band
+
+    def region_size(self, width: int) -> int:
+        """The SLIC grid step (full-resolution px) on images ``width`` px wide
+        (superpixels.region_size of ``slic_region_size_px``)."""
+        return superpixels.region_size(self.config.slic_region_size_px, width)
 
     def shift_mode(self) -> str:
         """pixel or row: the GPT shifts ``gpt_shift`` asks for on this backend (auto: pixel

@@ -18,6 +18,15 @@ import numpy as np
 from .calibration import StereoCalibration
 
 
+def _ellipse_frame(shape: "PotholeShape | BumpShape | Paint", x: np.ndarray,
+                   y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points (x, y) m in the frame of a shape's rotated ellipse: the coordinates along
+    its semi-axes (a, b), in units of them (inside where p^2 + q^2 < 1)."""
+    c, s = math.cos(math.radians(shape.angle_deg)), math.sin(math.radians(shape.angle_deg))
+    dx, dy = x - shape.x_m, y - shape.y_m
+    return (c * dx + s * dy) / shape.a_m, (-s * dx + c * dy) / shape.b_m
+
+
 @dataclass(frozen=True)
 class PotholeShape:
     """An elliptic pothole: depth(r) = depth_m (1 - r^n) inside the ellipse of semi-axes
@@ -46,9 +55,8 @@ class PotholeShape:
 
     def depth_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Depth below the road surface (m, >= 0) at world points (x, y) m."""
-        c, s = math.cos(math.radians(self.angle_deg)), math.sin(math.radians(self.angle_deg))
-        dx, dy = x - self.x_m, y - self.y_m
-        r2 = ((c * dx + s * dy) / self.a_m) ** 2 + ((-s * dx + c * dy) / self.b_m) ** 2
+        p, q = _ellipse_frame(self, x, y)
+        r2 = p ** 2 + q ** 2
         wall = r2 if self.wall_power == 2.0 else r2 ** (0.5 * self.wall_power)
         return np.where(r2 < 1.0, self.depth_m * (1.0 - wall), 0.0)
 
@@ -69,9 +77,7 @@ class BumpShape:
 
     def depth_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Depth below the road surface (m, <= 0 on the bump) at world points (x, y) m."""
-        c, s = math.cos(math.radians(self.angle_deg)), math.sin(math.radians(self.angle_deg))
-        dx, dy = x - self.x_m, y - self.y_m
-        p, q = (c * dx + s * dy) / self.a_m, (-s * dx + c * dy) / self.b_m
+        p, q = _ellipse_frame(self, x, y)
         if self.profile == "ridge":
             shape = np.where((np.abs(p) < 1.0) & (np.abs(q) < 1.0),
                              np.cos(0.5 * np.pi * q) ** 2, 0.0)
@@ -100,9 +106,8 @@ class Paint:
     angle_deg: float = 0.0
 
     def mask(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        c, s = math.cos(math.radians(self.angle_deg)), math.sin(math.radians(self.angle_deg))
-        dx, dy = x - self.x_m, y - self.y_m
-        p, q = (c * dx + s * dy) / self.a_m, (-s * dx + c * dy) / self.b_m
+        """Where the paint lies, at world points (x, y) m."""
+        p, q = _ellipse_frame(self, x, y)
         if self.kind == "line":
             return (np.abs(p) < 1.0) & (np.abs(q) < 1.0)
         return p * p + q * q < 1.0

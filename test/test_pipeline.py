@@ -10,7 +10,9 @@ from pothole_detector.errors import InputError, NoRoadError, NoTextureError, Pot
 from pothole_detector.params import Config
 from pothole_detector.execution import FrameGraphs, FrameReport
 from pothole_detector.pipeline import Pipeline
-from pothole_detector.stages.threshold import metric_tolerance_px
+from pothole_detector.stages import road_model
+from pothole_detector.stages.superpixels import cell_centres
+from pothole_detector.stages.threshold import observation
 from pothole_detector.stages import perspective
 from pothole_detector.synthetic import demo_scene, drive_scenes, render
 
@@ -117,11 +119,26 @@ def test_metric_threshold_mode(demo_sample):
     result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
     covered, false = detection_coverage(result, demo_sample)
     assert len(result.potholes) == 3 and false < 0.1
-    u, v = np.array([320.0]), np.array([180.0])
-    drop = metric_tolerance_px(np, u, v, result.road, demo_sample.calibration, 0.006)
-    road = result.road.at(np, u, v)
-    depth = demo_sample.calibration.fb / (road - drop) - demo_sample.calibration.fb / road
-    assert 0.004 < depth[0] < 0.008
+    # the drop of delta_pd_m at the superpixel at the image centre (no noise floor), from the
+    # frame's road fit; the noise floor only raises it
+    shape = demo_sample.left.shape[:2]
+    region = Pipeline(config, demo_sample.calibration).region_size(shape[1])
+    report = road_model.fit_report(np, result.disparity, stride=config.road_fit_stride,
+                                   kind="planar")
+
+    def drops_with(noise_sigmas):
+        return observation(CPU, shape, region, config.slic_downsample,
+                           result.road.kernel_params(), report, demo_sample.calibration, 0.006,
+                           0.0, noise_sigmas, config.max_threshold_m)[1]
+
+    drops, floored = drops_with(0.0), drops_with(config.threshold_noise_sigmas)
+    assert np.all(floored >= drops)
+    u, v = cell_centres(np, shape, region, config.slic_downsample)
+    centre = int(np.argmin((u - 320.0) ** 2 + (v - 180.0) ** 2))
+    road = result.road.at(np, u[centre], v[centre])
+    depth = demo_sample.calibration.fb / (road - drops[centre]) \
+        - demo_sample.calibration.fb / road
+    assert 0.004 < depth < 0.008
 
 
 def test_run_stream_yields_each_result_or_error_in_order_and_goes_on(demo_sample):

@@ -116,10 +116,13 @@ def road_region(coarse: np.ndarray, scale: float, offset: float,
     planes[solvable] = np.linalg.solve(systems[solvable],
                                        values[picks][solvable][..., None])[..., 0]
     alpha, beta, gamma = planes.T
-    normal = np.stack([beta * calibration.f, gamma * calibration.f,
-                       alpha + beta * calibration.cx + gamma * calibration.cy])
-    with np.errstate(divide="ignore"):
-        height_m = calibration.fb / np.linalg.norm(normal, axis=0)
+    slope = np.hypot(beta, gamma)
+    layout = road_model.PARAM_LAYOUT
+    params = np.zeros((road_model.ROAD_PARAMS, planes.shape[0]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        params[[layout["ROAD_A0"], layout["ROAD_A1"], layout["ROAD_COS"], layout["ROAD_SIN"]]] \
+            = alpha, slope, gamma / slope, -beta / slope
+        height_m = road_model.params_height(np, params, calibration)
     roll_deg = np.degrees(np.arctan2(-beta, gamma))
     plausible = solvable & (gamma > 0) & (np.abs(roll_deg) <= MAX_ROLL_DEG) \
         & (height_m <= max_height_m)

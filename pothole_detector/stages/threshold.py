@@ -9,9 +9,7 @@ import numpy as np
 
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
-from .measure import road_normal
 from . import road_model, superpixels
-from .road_model import RoadModel
 
 # D2 values farther than this from the road level (px) are left out of the histogram.
 HISTOGRAM_BELOW_PX = 128.0
@@ -79,6 +77,17 @@ def histogram_threshold(backend: Backend, transformed: Any, bin_px: float,
     clusters cannot be formed."""
     return split_from_result(to_host(threshold_search(backend, transformed, bin_px, road_level)),
                              bin_px, road_level)
+
+
+def reference_level(result: np.ndarray, bin_px: float, road_level: float,
+                    reference: str) -> float:
+    """The level (px of D2) delta_PD is subtracted from, of a host copy of a search
+    ``result``: t_r (split), the road cluster's mean (road_mean; both NaN where the search
+    found no split) or ``road_level`` itself (road_fit)."""
+    if reference == "road_fit":
+        return float(road_level)
+    t_r, road_mean = split_from_result(result, bin_px, road_level)
+    return road_mean if reference == "road_mean" else t_r
 
 
 def split_from_result(result: np.ndarray, bin_px: float, road_level: float
@@ -173,8 +182,7 @@ def select(backend: Backend, result: Any, bin_px: float, road_level: float,
     n = means.shape[0]
     per_superpixel = not isinstance(threshold_drop, (float, int))
     if not backend.is_gpu:
-        t_r, road_mean = split_from_result(result, bin_px, road_level)
-        level = {"split": t_r, "road_mean": road_mean, "road_fit": road_level}[reference]
+        level = reference_level(result, bin_px, road_level, reference)
         if not math.isfinite(level):
             return xp.zeros(n, dtype=bool)
         return select_superpixels(xp, means, valid_fraction, level - threshold_drop,
@@ -198,27 +206,6 @@ def select_superpixels(xp: Any, means: Any, valid_fraction: Any, threshold_px: A
     """Bool (n,): superpixels whose mean D2 is below ``threshold_px`` (a scalar or (n,) array
     of t_s values) with more than ``min_valid_fraction`` valid pixels."""
     return xp.isfinite(means) & (means < threshold_px) & (valid_fraction > min_valid_fraction)
-
-
-def superpixel_centroids(xp: Any, labels: Any, count: int) -> tuple[Any, Any]:
-    """Column and row (px, float64 (count,)) of the centroid of each of the ``count``
-    superpixels of the int32 HxW ``labels``."""
-    height, width = labels.shape
-    flat = labels.ravel()
-    pixels = xp.maximum(xp.bincount(flat, minlength=count), 1)
-    rows = xp.broadcast_to(xp.arange(height, dtype=xp.float64)[:, None], labels.shape)
-    cols = xp.broadcast_to(xp.arange(width, dtype=xp.float64)[None, :], labels.shape)
-    v = xp.bincount(flat, weights=rows.ravel(), minlength=count) / pixels
-    u = xp.bincount(flat, weights=cols.ravel(), minlength=count) / pixels
-    return u, v
-
-
-def metric_drop(xp: Any, labels: Any, count: int, road: RoadModel,
-                calibration: StereoCalibration, depth_m: float) -> Any:
-    """Per-superpixel disparity drop (px, float64 (count,)) of a point ``depth_m`` below the
-    road at the centroid of each of the ``count`` superpixels of the int32 HxW ``labels``."""
-    u, v = superpixel_centroids(xp, labels, count)
-    return metric_tolerance_px(xp, u, v, road, calibration, depth_m)
 
 
 def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
@@ -301,20 +288,10 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
     return observed, drops
 
 
-def metric_tolerance_px(xp: Any, u: Any, v: Any, road: RoadModel,
-                        calibration: StereoCalibration, depth_m: float) -> Any:
-    """Disparity drop (px) of a point ``depth_m`` below the road at pixels (u, v)."""
-    normal = road_normal(road, calibration)
-    f = calibration.f
-    incidence = normal[0] * (u - calibration.cx) / f + normal[1] * (v - calibration.cy) / f \
-        + normal[2]
-    road_d = road.at(xp, u, v)
-    return road_d - calibration.fb / (calibration.fb / road_d + depth_m / incidence)
-
-
 
 _THRESHOLD_DEFINES = {**_THRESHOLD_KERNEL, **road_model.FIT_LAYOUT,
                       **road_model.PARAM_LAYOUT}
+
 
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/threshold.cu with the numbers it shares with this module."""
