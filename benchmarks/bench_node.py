@@ -1,11 +1,20 @@
-"""Node benchmark: feed the node (its own process) 1280x720 stereo over DDS at 10, 20 and
-30 Hz; print processed rate, dropped sets, latency p50/p95, CPU and memory as a Markdown
-table. Run: python benchmarks/bench_node.py [--seconds 15] [--rates 10 20 30]."""
+"""Node benchmark: start the node (its own process, ``--backend``) and feed it stereo pairs
+over DDS from this process, as a camera driver would: for each image size, after a warm-up,
+each rate for ``--seconds``. Prints a Markdown table (for docs/benchmarks.md): processed rate,
+sets the node dropped, sets that never arrived, latency from publishing a set to receiving its
+``potholes`` (p50/p95), and the node's CPU per processed frame: all threads, and the worker
+thread split into message conversion (images in, messages out) and the pipeline.
+
+Run: python benchmarks/bench_node.py [--backend gpu] [--sizes 1280x720 2079x1040]
+     [--rates 30 60] [--seconds 10]
+On the GPU machine: source scripts/gpu_machine/env.sh first (docs/gpu-machine.md)."""
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -18,12 +27,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from pothole_detector_msgs.msg import PotholeArray  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
-from pothole_detector.transport import large_image_transport  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
+from pothole_detector.transport import large_image_transport  # noqa: E402
 from rosgraph import NodeProcess, Probe, header_at, isolate_ros_graph, stamp_ns  # noqa: E402
+
+FIRST_STAMP_NS = 1_900_000_000_000_000_000
 
 
 def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` (all threads)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
@@ -35,76 +47,127 @@ def rss_mib(pid: int) -> float:
     return float("nan")
 
 
-def run(rate: float, seconds: float, frame: dict, log: Path) -> dict:
-    node = NodeProcess(log, backend="cpu")
-    probe = Probe(outputs=("potholes",))
-    try:
-        probe.wait_connected()
-        sent: dict[int, float] = {}
-        arrived: dict[int, float] = {}
+class Feeder:
+    """Publishes one rendered stereo set at a fixed rate with fresh stamps and records when
+    each set went out and when its ``potholes`` came back."""
+
+    def __init__(self, probe: Probe, frame: dict) -> None:
+        self.probe = probe
+        self.frame = frame
+        self.index = 0
+        self.sent: dict[int, float] = {}
+        self.arrived: dict[int, float] = {}
         probe.node.create_subscription(
-            PotholeArray, "/stereo/potholes", lambda m: arrived.setdefault(stamp_ns(m.header),
-                                                            time.monotonic()), 50)
-        pid = node.process.pid
-        cpu0, wall0 = cpu_seconds(pid), time.monotonic()
-        period = 1.0 / rate
-        start = time.monotonic()
-        index = 0
-        rss = []
+            PotholeArray, f"{probe.namespace}/potholes",
+            lambda m: self.arrived.setdefault(stamp_ns(m.header), time.monotonic()), 100)
+
+    def feed(self, rate: float, seconds: float) -> list[int]:
+        """Publish at ``rate`` Hz for ``seconds``; the stamps sent."""
+        period, start, stamps = 1.0 / rate, time.monotonic(), []
         while time.monotonic() - start < seconds:
-            stamp = 1_900_000_000_000_000_000 + index * int(period * 1e9)
-            for role in ("left_info", "right_info", "left", "right"):
-                frame[role].header = header_at(stamp)
-                probe.inputs[role].publish(frame[role])
-            sent[stamp] = time.monotonic()
-            index += 1
-            rss.append(rss_mib(pid))
-            probe.spin(max(0.0, start + index * period - time.monotonic()))
-        probe.spin(3.0)
-        cpu = (cpu_seconds(pid) - cpu0) / (time.monotonic() - wall0)
-        latencies = np.array([(arrived[s] - sent[s]) * 1e3 for s in arrived if s in sent])
-        diagnostics = probe.diagnostics()
-        return {"rate": rate, "sent": len(sent), "processed": len(arrived),
-                "processed_hz": len(arrived) / seconds,
-                "dropped": int(diagnostics.get("dropped_sets", "0")),
-                "p50": float(np.percentile(latencies, 50)) if latencies.size else float("nan"),
-                "p95": float(np.percentile(latencies, 95)) if latencies.size else float("nan"),
-                "cpu": cpu * 100, "rss": max(rss)}
+            stamp = FIRST_STAMP_NS + self.index * 1_000_000
+            self.probe.publish(self.frame, stamp)
+            self.sent[stamp] = time.monotonic()
+            stamps.append(stamp)
+            self.index += 1
+            self.probe.spin(max(0.0, start + len(stamps) * period - time.monotonic()))
+        self.probe.spin(2.0)
+        return stamps
+
+
+def measure(feeder: Feeder, pid: int, rate: float, seconds: float) -> dict:
+    dropped_before = int(feeder.probe.diagnostics().get("dropped_sets", "0"))
+    cpu0 = cpu_seconds(pid)
+    stamps = feeder.feed(rate, seconds)
+    cpu = cpu_seconds(pid) - cpu0
+    diagnostics = feeder.probe.diagnostics()
+    arrived = [s for s in stamps if s in feeder.arrived]
+    latencies = np.array([(feeder.arrived[s] - feeder.sent[s]) * 1e3 for s in arrived])
+    dropped = int(diagnostics.get("dropped_sets", "0")) - dropped_before
+    return {
+        "rate": rate, "sent": len(stamps), "processed": len(arrived),
+        "processed_hz": len(arrived) / seconds, "dropped": dropped,
+        "lost": len(stamps) - len(arrived) - dropped,
+        "p50": float(np.percentile(latencies, 50)) if latencies.size else float("nan"),
+        "p95": float(np.percentile(latencies, 95)) if latencies.size else float("nan"),
+        "cpu_ms": cpu * 1e3 / max(len(arrived), 1),
+        "conversion_ms": float(diagnostics.get("conversion_cpu_ms_per_frame", "nan")),
+        "pipeline_ms": float(diagnostics.get("pipeline_cpu_ms_per_frame", "nan")),
+        "rss": rss_mib(pid), "backend": diagnostics.get("backend", "?"),
+    }
+
+
+def bench_size(width: int, height: int, rates: list[float], seconds: float, backend: str,
+               encoding: str) -> list[dict]:
+    sample = render(demo_scene(width, height))
+    header = header_at(0)
+    images = {side: sample.left if side == "left" else sample.right for side in ("left", "right")}
+    if encoding == "rgb8":
+        images = {side: np.repeat(image[..., None], 3, axis=2) for side, image in images.items()}
+    frame = {
+        "left": conversions.array_to_image(images["left"], encoding, header),
+        "right": conversions.array_to_image(images["right"], encoding, header),
+        "left_info": conversions.camera_info_message(sample.calibration, width, height, header),
+        "right_info": conversions.camera_info_message(sample.calibration, width, height,
+                                                      header, right=True),
+    }
+    node = NodeProcess(Path(f"/tmp/bench_node_{width}x{height}.log"), backend=backend)
+    probe = Probe(outputs=())
+    try:
+        probe.wait_connected(timeout=60.0)
+        feeder = Feeder(probe, frame)
+        feeder.feed(5.0, 4.0)
+        if not feeder.arrived:
+            feeder.feed(2.0, 20.0)
+        if not feeder.arrived:
+            raise SystemExit(f"the node processed no {width}x{height} frame; its log: "
+                             f"{node.log}\n{node.text()[-2000:]}")
+        rows = []
+        for rate in rates:
+            row = measure(feeder, node.process.pid, rate, seconds)
+            rows.append({"size": f"{width}x{height}", **row})
+        return rows
     finally:
         probe.close()
         node.stop()
 
 
+def device_name(backend: str) -> str:
+    if backend == "cpu":
+        return f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores"
+    from pothole_detector.backend import get_backend
+    return f"{get_backend(backend).name}, host {os.cpu_count()} cores"
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--seconds", type=float, default=15.0)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "gpu", "auto"))
+    parser.add_argument("--sizes", nargs="+", default=["1280x720"])
     parser.add_argument("--rates", type=float, nargs="+", default=[10.0, 20.0, 30.0])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--encoding", default="mono8", choices=("mono8", "rgb8"))
     args = parser.parse_args()
     isolate_ros_graph()
     large_image_transport()
     rclpy.init()
-    sample = render(demo_scene(1280, 720))
-    header = header_at(0)
-    height, width = sample.left.shape
-    frame = {
-        "left": conversions.array_to_image(sample.left, "mono8", header),
-        "right": conversions.array_to_image(sample.right, "mono8", header),
-        "left_info": conversions.camera_info_message(sample.calibration, width, height, header),
-        "right_info": conversions.camera_info_message(sample.calibration, width, height,
-                                                      header, right=True),
-    }
-    rows = [run(rate, args.seconds, frame, Path(f"/tmp/bench_node_{int(rate)}.log"))
-            for rate in args.rates]
-    print(f"node, CPU backend, 1280x720 mono8 stereo, {args.seconds:.0f} s per rate, "
-          f"{os.cpu_count()} cores")
-    print("| input Hz | sets sent | processed | processed Hz | dropped (counted) | "
-          "latency p50 ms | latency p95 ms | node CPU % | node RSS MiB |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for r in rows:
-        print(f"| {r['rate']:.0f} | {r['sent']} | {r['processed']} | {r['processed_hz']:.1f} | "
-              f"{r['dropped']} | {r['p50']:.0f} | {r['p95']:.0f} | {r['cpu']:.0f} | "
-              f"{r['rss']:.0f} |")
+    rows = []
+    for size in args.sizes:
+        width, height = (int(v) for v in size.lower().split("x"))
+        rows += bench_size(width, height, args.rates, args.seconds, args.backend, args.encoding)
     rclpy.shutdown()
+    print(f"node benchmark, backend {rows[0]['backend']} ({device_name(args.backend)}), "
+          f"{args.encoding} stereo over DDS from another process, {args.seconds:.0f} s per "
+          f"rate, {datetime.date.today().isoformat()}")
+    print("| size | input Hz | sets sent | processed | processed Hz | dropped by node | "
+          "never arrived | latency p50 ms | latency p95 ms | CPU ms/frame all | conversion | "
+          "pipeline | node RSS MiB |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for r in rows:
+        print(f"| {r['size']} | {r['rate']:.0f} | {r['sent']} | {r['processed']} | "
+              f"{r['processed_hz']:.1f} | {r['dropped']} | {r['lost']} | {r['p50']:.1f} | "
+              f"{r['p95']:.1f} | {r['cpu_ms']:.1f} | {r['conversion_ms']:.1f} | "
+              f"{r['pipeline_ms']:.1f} | {r['rss']:.0f} |")
 
 
 if __name__ == "__main__":

@@ -87,6 +87,7 @@ class Statistics:
         self.inputs: deque[float] = deque()
         self.processed: deque[float] = deque()
         self.latencies_ms: deque[tuple[float, float]] = deque()
+        self.cpu_ms: deque[tuple[float, float, float]] = deque()
         self.dropped = 0
         self.unpaired = 0
         self.errors = 0
@@ -105,8 +106,9 @@ class Statistics:
         for queue in (self.inputs, self.processed):
             while queue and queue[0] < now - self.window:
                 queue.popleft()
-        while self.latencies_ms and self.latencies_ms[0][0] < now - self.window:
-            self.latencies_ms.popleft()
+        for timed in (self.latencies_ms, self.cpu_ms):
+            while timed and timed[0][0] < now - self.window:
+                timed.popleft()
 
     def input_set(self) -> None:
         with self.lock:
@@ -136,11 +138,15 @@ class Statistics:
             self.last_error = message
             self.last_error_time = time.monotonic()
 
-    def done(self, latency_ms: float, inlier_fraction: float, potholes: int) -> None:
+    def done(self, latency_ms: float, inlier_fraction: float, potholes: int,
+             conversion_cpu_ms: float, pipeline_cpu_ms: float) -> None:
+        """A processed set: receipt-to-published latency and the worker thread's CPU time
+        (ms) in message conversion (images in, messages out) and in the pipeline."""
         now = time.monotonic()
         with self.lock:
             self.processed.append(now)
             self.latencies_ms.append((now, latency_ms))
+            self.cpu_ms.append((now, conversion_cpu_ms, pipeline_cpu_ms))
             self.road_inlier_fraction = inlier_fraction
             self.potholes = potholes
             self.frames += 1
@@ -151,6 +157,7 @@ class Statistics:
         with self.lock:
             self._trim(now)
             latencies = np.array([value for _, value in self.latencies_ms])
+            cpu = np.array([timed[1:] for timed in self.cpu_ms]).reshape(-1, 2)
             span = self.window
             return {
                 "input_rate_hz": len(self.inputs) / span,
@@ -159,6 +166,8 @@ class Statistics:
                 "unpaired_images": self.unpaired,
                 "latency_p50_ms": float(np.percentile(latencies, 50)) if latencies.size else 0.0,
                 "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else 0.0,
+                "conversion_cpu_ms_per_frame": float(cpu[:, 0].mean()) if cpu.size else 0.0,
+                "pipeline_cpu_ms_per_frame": float(cpu[:, 1].mean()) if cpu.size else 0.0,
                 "road_inlier_fraction": self.road_inlier_fraction,
                 "potholes_last_frame": self.potholes,
                 "frames_processed": self.frames,
@@ -433,6 +442,7 @@ class PotholeDetectorNode(Node):
         return self._pipeline
 
     def _process(self, job: StereoSet, config: Config, reset: bool) -> None:
+        started = time.thread_time()
         left = conversions.image_to_array(job.left)
         right = conversions.image_to_array(job.right)
         height, width = left.shape[:2]
@@ -442,7 +452,9 @@ class PotholeDetectorNode(Node):
         if reset:
             pipeline.reset()
             self._ids.reset()
+        converted = time.thread_time()
         result = pipeline.run(left, right)
+        ran = time.thread_time()
         header = job.left.header
         publishers = self._outputs
         wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
@@ -450,8 +462,10 @@ class PotholeDetectorNode(Node):
         for name, message in output_messages(result, left, calibration, header, wanted,
                                              ids).messages.items():
             publishers[name].publish(message)
+        published = time.thread_time()
         self._stats.done((time.monotonic() - job.received) * 1e3,
-                         result.road.inlier_fraction, len(result.potholes))
+                         result.road.inlier_fraction, len(result.potholes),
+                         (converted - started + published - ran) * 1e3, (ran - converted) * 1e3)
 
     # --- reporting --------------------------------------------------------------------------
 

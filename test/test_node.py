@@ -21,6 +21,7 @@ from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
+from pothole_detector.backend import gpu_available  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
 from rosgraph import (SAMPLE_DRIVE, NodeProcess, Probe, isolate_ros_graph,  # noqa: E402
@@ -421,3 +422,39 @@ def test_a_node_started_with_sigint_ignored_still_stops_on_it(tmp_path):
         if process.poll() is None:
             process.kill()
         log.close()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+def test_the_gpu_node_gives_what_the_cpu_pipeline_gives(node_factory, probe):
+    """backend:=gpu inside the node: every set of the sample drive processed, the same
+    potholes as the census pipeline on the CPU, and the conversion/pipeline CPU split."""
+    node_factory(backend="gpu", matcher="census")
+    p = probe(outputs=("potholes", "pothole_labels", "disparity"))
+    p.wait_connected(timeout=60.0)
+    drive = sample_frames(16)
+    for frame in drive:
+        p.publish(frame, stamp_ns(frame["left"].header))
+        p.spin(0.5)
+    p.spin(30, lambda: len(p.received["potholes"]) == len(drive))
+    p.spin(1.5)
+    assert len(p.received["potholes"]) == len(drive)
+    diagnostics = p.diagnostics()
+    assert diagnostics["backend"] == "gpu" and diagnostics["dropped_sets"] == "0", diagnostics
+    assert float(diagnostics["pipeline_cpu_ms_per_frame"]) > 0
+    assert float(diagnostics["conversion_cpu_ms_per_frame"]) > 0
+
+    left = conversions.image_to_array(drive[0]["left"])
+    calibration = conversions.calibration_from_camera_info(
+        drive[0]["left_info"], drive[0]["right_info"], left.shape[1], left.shape[0])
+    pipeline = Pipeline(Config({"backend": "cpu", "matcher": "census"}), calibration)
+    by_stamp = {stamp_ns(m.header): m for m in p.received["pothole_labels"]}
+    agreement = []
+    for frame, array in zip(drive, p.received["potholes"]):
+        expected = pipeline.run(conversions.image_to_array(frame["left"]),
+                                conversions.image_to_array(frame["right"]))
+        assert stamp_ns(array.header) == stamp_ns(frame["left"].header)
+        assert len(array.potholes) == len(expected.potholes)
+        labels = labels_of(by_stamp[stamp_ns(array.header)]) > 0
+        agreement.append((labels == (expected.labels > 0)).mean())
+    assert min(agreement) > 0.998, agreement
