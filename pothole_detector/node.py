@@ -201,7 +201,7 @@ class PotholeDetectorNode(Node):
         self._lock = threading.Condition()
         self._stats = Statistics()
         self._log_times: dict[str, float] = {}
-        self._pending: StereoSet | None = None
+        self._pending: deque[StereoSet] = deque()
         self._waiting: StereoSet | None = None
         self._infos: dict[str, deque[CameraInfo]] = {"left": deque(maxlen=INFO_HISTORY),
                                                     "right": deque(maxlen=INFO_HISTORY)}
@@ -378,9 +378,10 @@ class PotholeDetectorNode(Node):
             else:
                 self._waiting = current
             for job in ready:
-                if self._pending is not None:
+                self._pending.append(job)
+                while len(self._pending) > self._config.max_waiting_sets:
+                    self._pending.popleft()
                     self._stats.drop()
-                self._pending = job
             if ready:
                 self._lock.notify()
         if missing:
@@ -406,11 +407,11 @@ class PotholeDetectorNode(Node):
     def _work(self) -> None:
         while True:
             with self._lock:
-                while self._pending is None and not self._stopping:
+                while not self._pending and not self._stopping:
                     self._lock.wait()
                 if self._stopping:
                     return
-                job, self._pending = self._pending, None
+                job = self._pending.popleft()
                 config = self._config
                 reset, self._reset_requested = self._reset_requested, False
             try:

@@ -3,7 +3,7 @@ output names and types import without ROS; building messages needs it."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Collection, Sequence
 
 import numpy as np
@@ -57,14 +57,16 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
         raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUT_TYPES)}")
     host: dict[str, np.ndarray] = {}
 
+    renamed = ids is not None and bool(result.potholes)
+    potholes = ([replace(p, label=given) for p, given in zip(result.potholes, ids)]
+                if renamed else result.potholes)
+
     def array(name: str) -> np.ndarray:
         if name not in host:
             host[name] = result.host(name)
+            if name == "labels" and renamed:
+                host[name] = relabel(host[name], result.potholes, ids)
         return host[name]
-
-    potholes = result.potholes
-    if ids is not None and potholes:
-        host["labels"], potholes = relabel(result.host("labels"), potholes, ids)
     made = Outputs()
     messages = made.messages
     messages["potholes"] = conversions.potholes_message(potholes, result.road, header,

@@ -204,6 +204,11 @@ PARAMETERS: tuple[Param, ...] = (
           group="node"),
     Param("queue_size", int, 10, "Unpaired images kept per side while waiting for a partner.",
           1, 1000, group="node"),
+    Param("max_waiting_sets", int, 2,
+          "Synchronized stereo sets that may wait for the worker; when one more arrives the "
+          "oldest waiting set is dropped (counted in dropped_sets). 1 always processes the "
+          "newest set; 2 or more absorb sets that DDS delivers in a burst.",
+          1, 100, group="node"),
     Param("qos_depth", int, 5,
           "QoS history depth of the inputs (sensor data: best effort) and outputs (reliable); "
           "per topic, the qos_overrides.<topic>.subscription|publisher.depth|history|"

@@ -4,7 +4,6 @@ id of the previous frame's pothole whose footprint on the road overlaps theirs."
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from typing import Sequence
 
 import numpy as np
@@ -54,13 +53,12 @@ class StableIds:
         return final
 
 
-def relabel(labels: np.ndarray, potholes: Sequence[Pothole], ids: Sequence[int]
-            ) -> tuple[np.ndarray, list[Pothole]]:
-    """``labels`` (int HxW, 0 = road, k = pothole k) and ``potholes`` with pothole k renamed
-    ``ids[k - 1]``."""
+def relabel(labels: np.ndarray, potholes: Sequence[Pothole], ids: Sequence[int]) -> np.ndarray:
+    """``labels`` (int HxW, 0 = road, k = the pothole of label k) with each of ``potholes``
+    renamed to its entry of ``ids``."""
     table = np.zeros(max((p.label for p in potholes), default=0) + 1, dtype=np.int64)
     for pothole, given in zip(potholes, ids):
         table[pothole.label] = given
     inside = (labels > 0) & (labels < table.size)
     renamed = np.where(inside, table[np.where(inside, labels, 0)], 0).astype(labels.dtype)
-    return renamed, [replace(p, label=given) for p, given in zip(potholes, ids)]
+    return renamed

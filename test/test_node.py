@@ -427,18 +427,18 @@ def test_a_node_started_with_sigint_ignored_still_stops_on_it(tmp_path):
 @pytest.mark.gpu
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
 def test_the_gpu_node_gives_what_the_cpu_pipeline_gives(node_factory, probe):
-    """backend:=gpu inside the node: every set of the sample drive processed, the same
-    potholes as the census pipeline on the CPU, and the conversion/pipeline CPU split."""
+    """backend:=gpu inside the node: every set of the sample drive processed (one at a time:
+    the first compiles the kernels), the same potholes as the census pipeline on the CPU, and
+    the conversion/pipeline CPU split in /diagnostics."""
     node_factory(backend="gpu", matcher="census")
     p = probe(outputs=("potholes", "pothole_labels", "disparity"))
     p.wait_connected(timeout=60.0)
     drive = sample_frames(16)
-    for frame in drive:
+    for index, frame in enumerate(drive):
         p.publish(frame, stamp_ns(frame["left"].header))
-        p.spin(0.5)
-    p.spin(30, lambda: len(p.received["potholes"]) == len(drive))
+        assert p.spin(90 if index == 0 else 10,
+                      lambda: len(p.received["potholes"]) == index + 1), index
     p.spin(1.5)
-    assert len(p.received["potholes"]) == len(drive)
     diagnostics = p.diagnostics()
     assert diagnostics["backend"] == "gpu" and diagnostics["dropped_sets"] == "0", diagnostics
     assert float(diagnostics["pipeline_cpu_ms_per_frame"]) > 0
@@ -458,3 +458,27 @@ def test_the_gpu_node_gives_what_the_cpu_pipeline_gives(node_factory, probe):
         labels = labels_of(by_stamp[stamp_ns(array.header)]) > 0
         agreement.append((labels == (expected.labels > 0)).mean())
     assert min(agreement) > 0.998, agreement
+
+
+@pytest.mark.parametrize("waiting", [1, 4])
+def test_a_burst_of_sets_waits_up_to_max_waiting_sets(node_factory, probe, frames, waiting):
+    """Four sets at once (reliable inputs, so that DDS loses none): with max_waiting_sets 4
+    all are processed; with 1 the oldest waiting ones are dropped and counted, and the newest
+    is processed."""
+    node_factory(backend="cpu", max_waiting_sets=waiting, **{
+        f"qos_overrides./stereo/{topic}.subscription.reliability": "reliable"
+        for topic in ("left/image_rect", "right/image_rect", "left/camera_info",
+                      "right/camera_info")})
+    p = probe(outputs=("potholes",))
+    p.wait_connected()
+    p.publish(frames[0], T0)
+    assert p.spin(30, lambda: len(p.received["potholes"]) == 1)
+    burst = [T0 + (index + 1) * 100_000_000 for index in range(4)]
+    for index, stamp in enumerate(burst):
+        p.publish(frames[index % len(frames)], stamp)
+    p.spin(20, lambda: p.stamps()[-1] == burst[-1])
+    p.spin(2.5)
+    processed = p.stamps()[1:]
+    dropped = int(p.diagnostics()["dropped_sets"])
+    assert processed[-1] == burst[-1] and len(processed) + dropped == len(burst)
+    assert (processed, dropped) == (burst, 0) if waiting == 4 else dropped >= 1

@@ -20,9 +20,9 @@ _pd_setup() {
         "$base_python" -m venv --without-pip "$venv" || return 1
         "$venv/bin/python" -c 'import site; print(site.getsitepackages()[0])' \
             | xargs -I{} sh -c "echo '$base_site' > {}/gpu_machine_image.pth" || return 1
-        "$base_python" -m pip --python "$venv/bin/python" install --quiet --no-index --no-deps \
-            --no-compile .gpu_machine/wheels/*.whl || return 1
     fi
+    "$base_python" -m pip --python "$venv/bin/python" install --quiet --no-index --no-deps \
+        --no-compile .gpu_machine/wheels/*.whl || return 1
     if [ -f "$archive" ]; then
         tar -xzf "$archive" -C "$venv" || return 1
     else
