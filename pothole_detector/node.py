@@ -88,6 +88,7 @@ class Statistics:
         self.processed: deque[float] = deque()
         self.latencies_ms: deque[tuple[float, float]] = deque()
         self.cpu_ms: deque[tuple[float, float, float]] = deque()
+        self.work_ms: deque[tuple[float, float]] = deque()
         self.dropped = 0
         self.unpaired = 0
         self.errors = 0
@@ -106,7 +107,7 @@ class Statistics:
         for queue in (self.inputs, self.processed):
             while queue and queue[0] < now - self.window:
                 queue.popleft()
-        for timed in (self.latencies_ms, self.cpu_ms):
+        for timed in (self.latencies_ms, self.cpu_ms, self.work_ms):
             while timed and timed[0][0] < now - self.window:
                 timed.popleft()
 
@@ -138,14 +139,16 @@ class Statistics:
             self.last_error = message
             self.last_error_time = time.monotonic()
 
-    def done(self, latency_ms: float, inlier_fraction: float, potholes: int,
+    def done(self, latency_ms: float, work_ms: float, inlier_fraction: float, potholes: int,
              conversion_cpu_ms: float, pipeline_cpu_ms: float) -> None:
-        """A processed set: receipt-to-published latency and the worker thread's CPU time
-        (ms) in message conversion (images in, messages out) and in the pipeline."""
+        """A processed set: receipt-to-published latency, the worker's wall time on it and the
+        worker thread's CPU time (ms) in message conversion (images in, messages out) and in
+        the pipeline."""
         now = time.monotonic()
         with self.lock:
             self.processed.append(now)
             self.latencies_ms.append((now, latency_ms))
+            self.work_ms.append((now, work_ms))
             self.cpu_ms.append((now, conversion_cpu_ms, pipeline_cpu_ms))
             self.road_inlier_fraction = inlier_fraction
             self.potholes = potholes
@@ -158,6 +161,7 @@ class Statistics:
             self._trim(now)
             latencies = np.array([value for _, value in self.latencies_ms])
             cpu = np.array([timed[1:] for timed in self.cpu_ms]).reshape(-1, 2)
+            work = np.array([value for _, value in self.work_ms])
             span = self.window
             return {
                 "input_rate_hz": len(self.inputs) / span,
@@ -166,6 +170,7 @@ class Statistics:
                 "unpaired_images": self.unpaired,
                 "latency_p50_ms": float(np.percentile(latencies, 50)) if latencies.size else 0.0,
                 "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else 0.0,
+                "work_p95_ms": float(np.percentile(work, 95)) if work.size else 0.0,
                 "conversion_cpu_ms_per_frame": float(cpu[:, 0].mean()) if cpu.size else 0.0,
                 "pipeline_cpu_ms_per_frame": float(cpu[:, 1].mean()) if cpu.size else 0.0,
                 "road_inlier_fraction": self.road_inlier_fraction,
@@ -443,6 +448,7 @@ class PotholeDetectorNode(Node):
         return self._pipeline
 
     def _process(self, job: StereoSet, config: Config, reset: bool) -> None:
+        began = time.monotonic()
         started = time.thread_time()
         left = conversions.image_to_array(job.left)
         right = conversions.image_to_array(job.right)
@@ -464,7 +470,8 @@ class PotholeDetectorNode(Node):
                                              ids).messages.items():
             publishers[name].publish(message)
         published = time.thread_time()
-        self._stats.done((time.monotonic() - job.received) * 1e3,
+        finished = time.monotonic()
+        self._stats.done((finished - job.received) * 1e3, (finished - began) * 1e3,
                          result.road.inlier_fraction, len(result.potholes),
                          (converted - started + published - ran) * 1e3, (ran - converted) * 1e3)
 
