@@ -47,6 +47,7 @@ QOS_PARAMETERS = frozenset({"qos_depth"})
 SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
                              "queue_size"})
 INFO_HISTORY = 32
+GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 def descriptor(param: Param) -> ParameterDescriptor:
@@ -554,6 +555,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(USAGE)
         return 0
     large_image_transport()
+    # The executor thread takes each camera message under the GIL while the worker runs
+    # Python between kernels; at the default 5 ms hand-over, sets queue up and arrive in bursts.
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     # Ctrl-C and SIGTERM stop the spin here, not the ROS context: the worker finishes and
     # publishes its frame before the context goes. Both handlers are set explicitly: a node
     # started in the background of a script inherits SIGINT ignored.
