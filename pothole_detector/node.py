@@ -156,6 +156,17 @@ class Statistics:
             self.frames += 1
             self.failures_in_a_row = 0
 
+    def keeping_up(self) -> bool:
+        """Whether the worker's mean time per set (over the window) is shorter than the mean
+        time between arriving sets: then waiting sets are bursts that it works off."""
+        now = time.monotonic()
+        with self.lock:
+            self._trim(now)
+            if not self.work_ms:
+                return True
+            work_s = sum(value for _, value in self.work_ms) / len(self.work_ms) / 1e3
+            return work_s * len(self.inputs) / self.window < 1.0
+
     def snapshot(self) -> dict[str, Any]:
         now = time.monotonic()
         with self.lock:
@@ -417,6 +428,9 @@ class PotholeDetectorNode(Node):
                     self._lock.wait()
                 if self._stopping:
                     return
+                if len(self._pending) > 1 and not self._stats.keeping_up():
+                    self._stats.drop(len(self._pending) - 1)
+                    self._pending = deque([self._pending[-1]])
                 job = self._pending.popleft()
                 config = self._config
                 reset, self._reset_requested = self._reset_requested, False

@@ -204,10 +204,11 @@ PARAMETERS: tuple[Param, ...] = (
           group="node"),
     Param("queue_size", int, 10, "Unpaired images kept per side while waiting for a partner.",
           1, 1000, group="node"),
-    Param("max_waiting_sets", int, 2,
-          "Synchronized stereo sets that may wait for the worker; when one more arrives the "
-          "oldest waiting set is dropped (counted in dropped_sets). 1 always processes the "
-          "newest set; 2 or more absorb sets that DDS delivers in a burst.",
+    Param("max_waiting_sets", int, 3,
+          "Synchronized stereo sets that may wait for the worker, so that sets delivered in a "
+          "burst are all processed; when one more arrives the oldest waiting set is dropped, "
+          "and while the worker is slower than the camera only the newest waiting set is "
+          "kept (drops counted in dropped_sets). 1 always processes the newest set.",
           1, 100, group="node"),
     Param("qos_depth", int, 5,
           "QoS history depth of the inputs (sensor data: best effort) and outputs (reliable); "

@@ -482,3 +482,17 @@ def test_a_burst_of_sets_waits_up_to_max_waiting_sets(node_factory, probe, frame
     dropped = int(p.diagnostics()["dropped_sets"])
     assert processed[-1] == burst[-1] and len(processed) + dropped == len(burst)
     assert (processed, dropped) == (burst, 0) if waiting == 4 else dropped >= 1
+
+
+def test_statistics_tell_whether_the_worker_keeps_up():
+    from pothole_detector.node import Statistics
+
+    stats = Statistics(window_seconds=1.0)
+    assert stats.keeping_up()
+    for _ in range(30):  # 30 sets a second, 20 ms each: keeps up
+        stats.input_set()
+        stats.done(25.0, 20.0, 1.0, 0, 1.0, 10.0)
+    assert stats.keeping_up()
+    for _ in range(30):  # 60 sets a second at 20 ms: 1.2 s of work a second
+        stats.input_set()
+    assert not stats.keeping_up()
