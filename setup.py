@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "pothole_detector"
@@ -12,6 +14,8 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config",
          ["config/pothole_detector.yaml", "config/fastdds_large_images.xml"]),
+        # our message definitions, for reading and writing bags without ROS (rosbags)
+        ("share/" + package_name + "/msg", sorted(glob("msg_schemas/msg/*.msg"))),
     ],
     python_requires=">=3.10",
     install_requires=[
@@ -19,14 +23,17 @@ setup(
         "opencv-python-headless>=4.8",
         "scipy>=1.10",
         "PyYAML>=6.0",
+        "rosbags>=0.10",
     ],
     extras_require={
         "gpu": ["cupy-cuda12x>=13"],  # or cupy-cuda13x on CUDA 13
         "test": ["pytest>=7"],
-        # ROS 2 Jazzy from pip wheels (on a ROS install these come from the distribution)
+        # surveys of many bags as Ray tasks (pothole-detector survey --ray)
+        "fleet": ["ray>=2.9"],
+        # ROS 2 Jazzy from pip wheels, for the node, play and record (on a ROS install these
+        # come from the distribution); process, survey, detect and evaluate need none of it
         "ros": [
             "ros-jazzy-rclpy", "ros-jazzy-common-interfaces", "ros-jazzy-rmw-fastrtps-cpp",
-            "rosbags>=0.10",
         ],
         # what building pothole_detector_msgs (msg_schemas/) with CMake needs
         "msgs": [

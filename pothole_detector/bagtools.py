@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import bisect
-import functools
-import importlib
 import itertools
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,52 +15,15 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from rosbags.typesys.store import Typestore
 
 from .errors import InputError, PotholeError
+from .msgtypes import deserialize, message, serialize, typestore
 from .outputs import OFFLINE_OUTPUTS, OUTPUT_TYPES
 from .transport import large_image_transport
 from .params import Config
 
-MSG_PACKAGE = "pothole_detector_msgs"
-MSG_NAMES = ("Pothole", "PotholeArray")
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-
-
-def msg_directory() -> Path:
-    """Where the .msg files of pothole_detector_msgs are: the source tree's msg_schemas/msg,
-    else the installed package's share directory."""
-    source = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
-    if source.is_dir():
-        return source
-    from ament_index_python.packages import get_package_share_directory
-    return Path(get_package_share_directory(MSG_PACKAGE)) / "msg"
-
-
-@functools.cache
-def typestore() -> Typestore:
-    """The Jazzy typestore with our own message types registered from their .msg text (built
-    once; rosbags only reads it)."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types: dict[str, Any] = {}
-    for name in MSG_NAMES:
-        text = (msg_directory() / f"{name}.msg").read_text()
-        types.update(get_types_from_msg(text, f"{MSG_PACKAGE}/msg/{name}"))
-    store.register(types)
-    return store
-
-
-def message_class(msgtype: str) -> type:
-    """The rclpy class of a type name such as ``sensor_msgs/msg/Image``."""
-    package, _, name = msgtype.rpartition("/")
-    package = package.replace("/", ".")
-    try:
-        return getattr(importlib.import_module(package), name)
-    except (ImportError, AttributeError):
-        raise InputError(f"message type {msgtype} is not installed for rclpy; install its "
-                         "ROS package") from None
 
 
 def open_bag(path: str | Path) -> AnyReader:
@@ -146,7 +108,7 @@ def play(bag: str | Path, rate: float = 1.0, loop: bool = False,
     published = 0
     try:
         publishers = {
-            c.id: node.create_publisher(message_class(c.msgtype),
+            c.id: node.create_publisher(message(c.msgtype),
                                         mapping.get(c.topic, c.topic), qos)
             for c in reader.connections
         }
@@ -225,7 +187,7 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
                     counts[topic] += 1
 
                 subscriptions.append(node.create_subscription(
-                    message_class(msgtype), topic, on_message, qos, raw=True))
+                    message(msgtype), topic, on_message, qos, raw=True))
             if len(connections) < len(topics) and time.monotonic() > deadline:
                 missing = sorted(set(topics) - set(connections))
                 raise InputError(f"no publisher of {', '.join(missing)} appeared within "
@@ -294,13 +256,14 @@ def find_stereo_topics(topics: dict[str, str], left: str | None = None,
 
 
 @dataclass(frozen=True)
-class _BagFrame:
-    """One synchronized stereo set of a bag, converted: images as arrays (HxW or HxWxC)."""
+class BagFrame:
+    """One synchronized stereo set of a bag, converted: images as arrays (HxW or HxWxC); None
+    where the set could not be converted."""
 
     stamp: int
     header: Any
-    left: np.ndarray
-    right: np.ndarray
+    left: np.ndarray | None
+    right: np.ndarray | None
     calibration: Any
 
 
@@ -323,13 +286,10 @@ class ProcessSummary:
 
 def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
                  summary: ProcessSummary) -> Iterator[tuple[int, Any, Any, Any, Any]]:
-    """Synchronized (stamp, left, right, left_info, right_info) rclpy messages of a bag. Each
+    """Synchronized (stamp, left, right, left_info, right_info) messages of a bag. Each
     pair takes the camera_info of its own stamp wherever the bag holds it (before or after the
     images), else the newest one before it; the infos are None for a pair before any. Images
     that found no partner are counted in ``summary``."""
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import CameraInfo, Image
-
     from . import conversions
     from .sync import StereoSynchronizer
 
@@ -337,7 +297,7 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     infos: dict[str, dict[int, Any]] = {"left_info": {}, "right_info": {}}
     for connection, _, rawdata in reader.messages(
             connections=[c for c in reader.connections if c.topic in info_roles]):
-        info = deserialize_message(cdr_bytes(reader, connection, rawdata), CameraInfo)
+        info = deserialize(cdr_bytes(reader, connection, rawdata), INFO_TYPE)
         infos[info_roles[connection.topic]][conversions.stamp_ns(info.header)] = info
     stamps = {role: sorted(by_stamp) for role, by_stamp in infos.items()}
 
@@ -351,7 +311,7 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
     for connection, _, rawdata in reader.messages(
             connections=[c for c in reader.connections if c.topic in image_roles]):
-        msg = deserialize_message(cdr_bytes(reader, connection, rawdata), Image)
+        msg = deserialize(cdr_bytes(reader, connection, rawdata), IMAGE_TYPE)
         outcome = synchronizer.add(image_roles[connection.topic],
                                    conversions.stamp_ns(msg.header), msg)
         summary.unpaired += outcome.dropped
@@ -365,6 +325,57 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     summary.unpaired += synchronizer.reset()
 
 
+def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backend: Any,
+                  summary: ProcessSummary,
+                  progress: Callable[[int, int], None] | None = None,
+                  first: int = 0, stop: int | None = None
+                  ) -> Iterator[tuple[BagFrame, Any]]:
+    """(frame, PipelineResult or the PotholeError that stopped it) for the synchronized sets
+    ``first`` to ``stop`` (indices; None: to the end) of a bag, in order. One pipeline per run
+    of frames with the same calibration; within a run the host prepares the next pair while
+    the device works (Pipeline.run_stream). ``progress(done, total)`` is called per set."""
+    from . import conversions
+    from .pipeline import Pipeline
+
+    image_count = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
+    total = min(image_count, stop) - first if stop is not None else image_count - first
+
+    def prepared() -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
+        sets = _stereo_sets(reader, stereo, config, summary)
+        for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
+                itertools.islice(sets, first, stop)):
+            if progress is not None:
+                progress(index, total)
+            try:
+                if left_cal is None:
+                    raise InputError(f"no camera_info on {stereo.left_info} and "
+                                     f"{stereo.right_info} yet")
+                left_px = conversions.image_to_array(left_msg)
+                right_px = conversions.image_to_array(right_msg)
+                height, width = left_px.shape[:2]
+                calibration = conversions.calibration_from_camera_info(
+                    left_cal, right_cal, width, height)
+            except PotholeError as exc:
+                yield BagFrame(stamp, left_msg.header, None, None, None), exc
+                continue
+            yield BagFrame(stamp, left_msg.header, left_px, right_px, calibration)
+
+    def key(item: BagFrame | tuple[BagFrame, PotholeError]) -> Any:
+        return None if isinstance(item, tuple) else item.calibration
+
+    for calibration, run in itertools.groupby(prepared(), key):
+        if calibration is None:
+            yield from run
+            continue
+        frames, streamed = itertools.tee(run)
+        outcomes = Pipeline(config, calibration, backend).run_stream(
+            (frame.left, frame.right) for frame in streamed)
+        for frame in frames:
+            yield frame, next(outcomes)
+    if progress is not None:
+        progress(total, total)
+
+
 def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mcap",
             keep_inputs: bool = True, left: str | None = None, right: str | None = None,
             left_info: str | None = None, right_info: str | None = None,
@@ -373,13 +384,9 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
     """Run the pipeline on every synchronized stereo set of ``bag`` and write a new bag at
     ``out`` with the inputs (``keep_inputs``) and every output topic of the node, stamped with
     the input stamps, under the input's namespace. ``pictures``: also write overlay PNGs."""
-    from rclpy.serialization import serialize_message
-
-    from . import conversions
     from .backend import get_backend
     from .imageio import write_rgb
     from .outputs import failure_messages, output_messages
-    from .pipeline import Pipeline
 
     reader = open_bag(bag)
     summary = ProcessSummary()
@@ -404,59 +411,30 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
                     writer.write(inputs[connection.topic], timestamp,
                                  cdr_bytes(reader, connection, rawdata))
             backend = get_backend(config.backend)
-            image_count = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
             if pictures is not None:
                 Path(pictures).mkdir(parents=True, exist_ok=True)
-            def failed(stamp: int, header: Any, error: PotholeError) -> None:
-                summary.failed += 1
-                summary.errors.append(f"stamp {stamp}: {error}")
-                for name, message in failure_messages(header, str(error)).items():
-                    writer.write(output[name], stamp, serialize_message(message))
-
-            def prepared() -> Iterator[_BagFrame]:
-                for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
-                        _stereo_sets(reader, stereo, config, summary)):
-                    if progress is not None:
-                        progress(index, image_count)
-                    try:
-                        if left_cal is None:
-                            raise InputError(f"no camera_info on {stereo.left_info} and "
-                                             f"{stereo.right_info} yet")
-                        left_px = conversions.image_to_array(left_msg)
-                        right_px = conversions.image_to_array(right_msg)
-                        height, width = left_px.shape[:2]
-                        calibration = conversions.calibration_from_camera_info(
-                            left_cal, right_cal, width, height)
-                    except PotholeError as exc:
-                        failed(stamp, left_msg.header, exc)
-                        continue
-                    yield _BagFrame(stamp, left_msg.header, left_px, right_px, calibration)
-
-            # one pipeline per run of frames with the same calibration; within a run the host
-            # prepares the next pair while the device works (Pipeline.run_stream)
-            for calibration, run in itertools.groupby(prepared(), lambda f: f.calibration):
-                frames, streamed = itertools.tee(run)
-                outcomes = Pipeline(config, calibration, backend).run_stream(
-                    (frame.left, frame.right) for frame in streamed)
-                for frame in frames:
+            started = time.perf_counter()
+            for frame, outcome in frame_results(reader, stereo, config, backend, summary,
+                                                progress):
+                if isinstance(outcome, PotholeError):
+                    summary.failed += 1
+                    summary.errors.append(f"stamp {frame.stamp}: {outcome}")
+                    for name, made in failure_messages(frame.header, str(outcome)).items():
+                        writer.write(output[name], frame.stamp,
+                                     serialize(made, OUTPUT_TYPES[name]))
                     started = time.perf_counter()
-                    outcome = next(outcomes)
-                    stamp, header, left_px = frame.stamp, frame.header, frame.left
-                    if isinstance(outcome, PotholeError):
-                        failed(stamp, header, outcome)
-                        continue
-                    result = outcome
-                    made = output_messages(result, left_px, calibration, header,
-                                           OFFLINE_OUTPUTS)
-                    summary.milliseconds.append((time.perf_counter() - started) * 1e3)
-                    summary.frames += 1
-                    summary.potholes += len(result.potholes)
-                    for name, message in made.messages.items():
-                        writer.write(output[name], stamp, serialize_message(message))
-                    if pictures is not None:
-                        write_rgb(Path(pictures) / f"overlay_{stamp}.png", made.overlay)
-            if progress is not None:
-                progress(image_count, image_count)
+                    continue
+                result = outcome
+                made = output_messages(result, frame.left, frame.calibration, frame.header,
+                                       OFFLINE_OUTPUTS)
+                summary.frames += 1
+                summary.potholes += len(result.potholes)
+                for name, msg in made.messages.items():
+                    writer.write(output[name], frame.stamp, serialize(msg, OUTPUT_TYPES[name]))
+                if pictures is not None:
+                    write_rgb(Path(pictures) / f"overlay_{frame.stamp}.png", made.overlay)
+                summary.milliseconds.append((time.perf_counter() - started) * 1e3)
+                started = time.perf_counter()
         finally:
             writer.close()
     finally:
@@ -475,32 +453,59 @@ def topics_of(bag: str | Path) -> dict[str, str]:
 
 def read_messages(bag: str | Path, topics: Iterable[str] | None = None
                   ) -> Iterator[tuple[str, int, Any]]:
-    """(topic, bag time ns, rclpy message) of a bag, in time order."""
-    from rclpy.serialization import deserialize_message
+    """(topic, bag time ns, message) of a bag, in time order."""
 
     reader = open_bag(bag)
     try:
         wanted = None if topics is None else set(topics)
         connections = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        classes = {c.id: message_class(c.msgtype) for c in connections}
         for connection, timestamp, rawdata in reader.messages(connections=connections):
-            yield connection.topic, timestamp, deserialize_message(
-                cdr_bytes(reader, connection, rawdata), classes[connection.id])
+            yield connection.topic, timestamp, deserialize(
+                cdr_bytes(reader, connection, rawdata), connection.msgtype)
     finally:
         reader.close()
 
 
 
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+GNSS_TYPE = "sensor_msgs/msg/NavSatFix"
+
+
+def odometry_message(stamp_ns: int, x: float, y: float, yaw: float,
+                     frame_id: str = "odom", child_frame_id: str = "base_link") -> Any:
+    """nav_msgs/Odometry of a planar pose (m, rad)."""
+    from . import conversions
+
+    msg = message(ODOMETRY_TYPE)(header=conversions.header_at(stamp_ns, frame_id),
+                                 child_frame_id=child_frame_id)
+    msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
+    msg.pose.pose.orientation.z = math.sin(yaw / 2)
+    msg.pose.pose.orientation.w = math.cos(yaw / 2)
+    return msg
+
+
+def gnss_message(stamp_ns: int, lat_deg: float, lon_deg: float,
+                 frame_id: str = "gnss") -> Any:
+    """sensor_msgs/NavSatFix of a fix (status FIX, GPS)."""
+    from . import conversions
+
+    msg = message(GNSS_TYPE)(header=conversions.header_at(stamp_ns, frame_id),
+                             latitude=float(lat_deg), longitude=float(lon_deg))
+    msg.status.status, msg.status.service = 0, 1
+    return msg
+
+
 def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
                      namespace: str = "/stereo",
                      frame_id: str = "stereo_left_optical_frame", storage: str = "mcap",
-                     ground_truth: bool = True) -> int:
+                     ground_truth: bool = True,
+                     extras: Callable[[int, int, Any], dict[str, Any]] | None = None) -> int:
     """Write (stamp ns, StereoSample) frames as a stereo bag: ``left/image_rect``,
     ``right/image_rect`` (mono8, or rgb8 for colour samples), both camera_info and, with
-    ``ground_truth``, ``ground_truth/pothole_labels`` (mono16) under ``namespace``. Returns
-    the number of frames written."""
-    from rclpy.serialization import serialize_message
-
+    ``ground_truth``, ``ground_truth/pothole_labels`` (mono16) under ``namespace``.
+    ``extras(index, stamp, sample)`` gives more messages per frame by topic (``/odom``:
+    nav_msgs/Odometry, ``/gnss/fix``: sensor_msgs/NavSatFix). Returns the number of frames
+    written."""
     from . import conversions
 
     store = typestore()
@@ -514,9 +519,16 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
         topics["truth"] = (f"{namespace}/ground_truth/pothole_labels", IMAGE_TYPE)
     connections = {key: writer.add_connection(topic, msgtype, typestore=store)
                    for key, (topic, msgtype) in topics.items()}
+    extra_types = {"/odom": ODOMETRY_TYPE, "/gnss/fix": GNSS_TYPE}
     count = 0
     try:
-        for stamp_ns, sample in frames:
+        for index, (stamp_ns, sample) in enumerate(frames):
+            for topic, extra in (extras(index, stamp_ns, sample) if extras else {}).items():
+                if topic not in connections:
+                    connections[topic] = writer.add_connection(topic, extra_types[topic],
+                                                               typestore=store)
+                writer.write(connections[topic], int(stamp_ns),
+                             serialize(extra, extra_types[topic]))
             header = conversions.header_at(stamp_ns, frame_id)
             height, width = sample.left.shape[:2]
             encoding = "mono8" if sample.left.ndim == 2 else "rgb8"
@@ -534,7 +546,7 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
             for key in ("left_info", "right_info", "left", "right", "truth"):
                 if key in messages:
                     writer.write(connections[key], int(stamp_ns),
-                                 serialize_message(messages[key]))
+                                 serialize(messages[key], topics[key][1]))
             count += 1
     finally:
         writer.close()

@@ -88,6 +88,27 @@ def _parser() -> argparse.ArgumentParser:
                                       "(default: found in the bag)")
     _common(process_cmd)
 
+    survey_cmd = commands.add_parser(
+        "survey", help="survey recorded drives: one entry per physical pothole, with severity, "
+                       "as survey.csv, survey.geojson (with GNSS) and report.html")
+    survey_cmd.add_argument("bags", nargs="+", metavar="BAG", help="ROS 2 bags of drives")
+    survey_cmd.add_argument("--out", required=True, help="output folder")
+    survey_cmd.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
+                            help="run chunks of the bags as Ray tasks, on the cluster at "
+                                 "ADDRESS or a local one")
+    survey_cmd.add_argument("--odometry-topic", help="nav_msgs/Odometry topic (default: the "
+                                                     "bag's only one; else /tf, GNSS or "
+                                                     "visual odometry)")
+    survey_cmd.add_argument("--gnss-topic", help="sensor_msgs/NavSatFix topic (default: the "
+                                                 "bag's only one)")
+    survey_cmd.add_argument("--base-frame", default="base_link",
+                            help="the /tf child frame of the vehicle (default base_link)")
+    for name in ("left", "right", "left-info", "right-info"):
+        survey_cmd.add_argument(f"--{name}-topic",
+                                help=f"{name.replace('-info', ' camera_info')} topic "
+                                     "(default: found in the bag)")
+    _common(survey_cmd)
+
     record_cmd = commands.add_parser("record", help="record live topics into a bag")
     record_cmd.add_argument("out", help="output bag directory (new)")
     record_cmd.add_argument("--topics", nargs="+", required=True, help="topics to record")
@@ -217,6 +238,44 @@ def run_process(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_survey(args: argparse.Namespace) -> int:
+    from .report import write_report
+    from .survey import best_view_picture, drive_topics, survey, write_csv, write_geojson
+
+    config = _config(args.config, args.backend)
+    names = dict(odometry=args.odometry_topic, gnss=args.gnss_topic,
+                 base_frame=args.base_frame, left=args.left_topic, right=args.right_topic,
+                 left_info=args.left_info_topic, right_info=args.right_info_topic)
+    for bag in args.bags:
+        if not Path(bag).exists():
+            raise InputError(f"{bag} does not exist")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    label = "survey (chunks)" if args.ray is not None else "survey"
+    surveys = survey(args.bags, config, ray_address=args.ray, use_ray=args.ray is not None,
+                     progress=lambda index, total: draw_progress(index, total, start, label),
+                     **names)
+    write_csv(surveys, out / "survey.csv")
+    geojson = write_geojson(surveys, out / "survey.geojson")
+    topics = {drive.bag: drive_topics(drive.bag, **names) for drive in surveys}
+    write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(
+        drive.bag, topics[drive.bag], pothole.row["best_stamp_ns"], pothole.bbox_px))
+    potholes = [p for drive in surveys for p in drive.potholes]
+    by_class = ", ".join(f"{sum(p.row['severity'] == s for p in potholes)} {s}"
+                         for s in ("low", "moderate", "high"))
+    frames = sum(d.frames for d in surveys)
+    elapsed = time.perf_counter() - start
+    for drive in surveys:
+        print(f"{drive.bag.name}: {drive.frames} frames ({drive.failed} failed), "
+              f"{len(drive.potholes)} potholes, {drive.observed_length_m:.1f} m of road "
+              f"observed, motion from {drive.motion_source}")
+    print(f"{len(potholes)} potholes ({by_class}) in {frames} frames, "
+          f"{frames / max(elapsed, 1e-9):.1f} frames/s; wrote {out / 'survey.csv'}"
+          + (f", {out / 'survey.geojson'}" if geojson else "") + f", {out / 'report.html'}")
+    return 0
+
+
 def run_record(args: argparse.Namespace) -> int:
     from .bagtools import record
     counts = record(args.out, args.topics, storage=args.storage, duration=args.duration,
@@ -233,7 +292,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         commands = {"detect": run_detect, "evaluate": run_evaluate, "play": run_play,
-                    "process": run_process, "record": run_record}
+                    "process": run_process, "record": run_record, "survey": run_survey}
         return commands[args.command](args)
     except PotholeError as error:
         print(f"pothole-detector: error: {error}", file=sys.stderr)

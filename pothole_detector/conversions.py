@@ -8,20 +8,29 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from builtin_interfaces.msg import Duration, Time
-from geometry_msgs.msg import Point
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField, RegionOfInterest
-from std_msgs.msg import ColorRGBA, Header
-from stereo_msgs.msg import DisparityImage
-from visualization_msgs.msg import Marker, MarkerArray
-
-from pothole_detector_msgs.msg import Pothole as PotholeMsg
-from pothole_detector_msgs.msg import PotholeArray
+from . import msgtypes
+from .msgtypes import message
 
 from .calibration import StereoCalibration
 from .errors import CalibrationError, InputError
 from .stages.measure import Pothole, depth_below_road
 from .stages.road_model import RoadModel
+
+Duration = message("builtin_interfaces/msg/Duration")
+Time = message("builtin_interfaces/msg/Time")
+Point = message("geometry_msgs/msg/Point")
+CameraInfo = message("sensor_msgs/msg/CameraInfo")
+Image = message("sensor_msgs/msg/Image")
+PointCloud2 = message("sensor_msgs/msg/PointCloud2")
+PointField = message("sensor_msgs/msg/PointField")
+RegionOfInterest = message("sensor_msgs/msg/RegionOfInterest")
+ColorRGBA = message("std_msgs/msg/ColorRGBA")
+Header = message("std_msgs/msg/Header")
+DisparityImage = message("stereo_msgs/msg/DisparityImage")
+Marker = message("visualization_msgs/msg/Marker")
+MarkerArray = message("visualization_msgs/msg/MarkerArray")
+PotholeMsg = message("pothole_detector_msgs/msg/Pothole")
+PotholeArray = message("pothole_detector_msgs/msg/PotholeArray")
 
 IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
     "mono8": (np.dtype(np.uint8), 1),
@@ -51,7 +60,10 @@ def header_at(nanoseconds: int, frame_id: str = "") -> Header:
     return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
 
 
-def _bytes(values: np.ndarray) -> array.array:
+def _bytes(values: np.ndarray) -> array.array | np.ndarray:
+    """The bytes of ``values`` as a uint8[] field takes them (rclpy: array.array)."""
+    if not msgtypes.ROS:
+        return np.ascontiguousarray(values).view(np.uint8).reshape(-1).copy()
     data = array.array("B")
     data.frombytes(np.ascontiguousarray(values).tobytes())
     return data

@@ -226,6 +226,25 @@ PARAMETERS: tuple[Param, ...] = (
     Param("log_throttle_seconds", float, 5.0,
           "The same input problem is logged at most once per this many seconds.", 0, 3600,
           group="node"),
+    Param("severity_moderate_depth_m", float, 0.025,
+          "Survey: a pothole deeper than this (m, its largest depth) is of moderate severity "
+          "(FHWA LTPP distress manual: 25 mm).", 0.001, 1.0, group="survey"),
+    Param("severity_high_depth_m", float, 0.05,
+          "Survey: a pothole deeper than this (m) is of high severity (FHWA LTPP: 50 mm).",
+          0.001, 1.0, group="survey"),
+    Param("track_match_distance_m", float, 0.25,
+          "Survey: a sighting joins a tracked pothole whose position on the road (m, after "
+          "ego-motion) is this close, or closer than the sum of their radii.", 0.01, 10.0,
+          group="survey"),
+    Param("min_sightings", int, 2,
+          "Survey: a tracked pothole is reported when it was seen in at least this many "
+          "frames.", 1, 1000, group="survey"),
+    Param("chunk_frames", int, 600,
+          "Survey: stereo frames per task when a bag is split for parallel work (--ray).",
+          2, 1000000, group="survey"),
+    Param("chunk_overlap_frames", int, 2,
+          "Survey: frames that a chunk also processes before its start, so that visual "
+          "odometry runs on across chunk boundaries.", 1, 100, group="survey"),
 )
 
 PARAMETER_BY_NAME: dict[str, Param] = {p.name: p for p in PARAMETERS}
@@ -243,7 +262,8 @@ class Config:
             if name not in merged:
                 raise ConfigError(f"unknown parameter {name!r}; see config/{NODE_NAME}.yaml")
             merged[name] = PARAMETER_BY_NAME[name].validate(value)
-        for low, high in (("sgm_p1", "sgm_p2"), ("census_p1", "census_p2")):
+        for low, high in (("sgm_p1", "sgm_p2"), ("census_p1", "census_p2"),
+                          ("severity_moderate_depth_m", "severity_high_depth_m")):
             if high in merged and merged[high] <= merged[low]:
                 raise ConfigError(f"{high} must be larger than {low}")
         object.__setattr__(self, "_values", merged)

@@ -398,6 +398,26 @@ def drive_scenes(frames: int = 16, width: int = 640, height: int = 360,
             for index in range(frames)]
 
 
+SURVEY_POTHOLES = (
+    PotholeShape(-0.18, 0.60, 0.09, 0.07, 0.080, 20.0, 4.0),
+    PotholeShape(0.20, 1.00, 0.10, 0.08, 0.015, -15.0, 6.0),
+    PotholeShape(-0.05, 1.45, 0.09, 0.07, 0.036, 0.0, 4.0),
+    PotholeShape(0.18, 1.90, 0.10, 0.08, 0.085, 30.0, 4.0),
+    PotholeShape(-0.20, 2.35, 0.09, 0.08, 0.015, -25.0, 6.0),
+    PotholeShape(0.10, 2.80, 0.10, 0.07, 0.038, 10.0, 4.0),
+)
+
+
+def survey_drive(frames: int = 48, width: int = 640, height: int = 360,
+                 speed_mps: float = 0.5, rate_hz: float = 10.0, seed: int = 13) -> list[Scene]:
+    """The demo rig driving 2.4 m (48 frames at 10 Hz) past six potholes, 1.5-8.5 cm deep (two
+    of each severity class, away from its bounds), every one in view for a dozen frames or more."""
+    base = demo_scene(width, height, seed=seed)
+    return [Scene(**{**base.__dict__, "camera_y_m": index * speed_mps / rate_hz,
+                     "potholes": SURVEY_POTHOLES})
+            for index in range(frames)]
+
+
 def vehicle_scene(width: int = 640, height: int = 480, pitch_deg: float = 15.0,
                   camera_y_m: float = 0.0, roll_deg: float = 0.0, seed: int = 3) -> Scene:
     """A vehicle rig (1 m above the road, 0.12 m baseline, focal length 1000 px at 1280 px

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Create .venv (Python 3.11), install pothole_detector with ROS 2 Jazzy from pip wheels and its
-# test tools, and build our messages (pothole_detector_msgs) into the same prefix.
+# Create .venv (Python 3.11), install pothole_detector with ROS 2 Jazzy from pip wheels, Ray and
+# its test tools, and build our messages (pothole_detector_msgs) into the same prefix.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python="${PYTHON:-python3}"
@@ -8,5 +8,5 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".[test,ros,msgs]"
+.venv/bin/python -m pip install --quiet -e ".[test,ros,msgs,fleet]"
 scripts/build_msgs.sh

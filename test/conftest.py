@@ -43,3 +43,42 @@ def shared_data(*parts: str) -> Path:
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = (a | b).sum()
     return float((a & b).sum() / union) if union else 1.0
+
+
+SURVEY_START_NS = 1_700_000_000_000_000_000
+SURVEY_ORIGIN_LATLON = (48.137, 11.575)
+
+
+@pytest.fixture(scope="session")
+def survey_drive_bags(tmp_path_factory):
+    """The survey drive (48 frames, six potholes) at 480x270 without supersampling, as three
+    bags: stereo only, with /odom (nav_msgs/Odometry) and with /gnss/fix (NavSatFix, driving
+    north). Returns (bags by kind, scenes)."""
+    from dataclasses import replace
+
+    from pothole_detector import bagtools
+    from pothole_detector.motion import latlon_of
+    from pothole_detector.synthetic import survey_drive
+
+    scenes = [replace(s, supersample=1) for s in survey_drive(width=480, height=270)]
+    samples = [render(s) for s in scenes]
+    folder = tmp_path_factory.mktemp("survey_drives")
+
+    def extras(kind):
+        def made(index, stamp, sample):
+            forward = scenes[index].camera_y_m - scenes[0].camera_y_m
+            if kind == "odom":
+                return {"/odom": bagtools.odometry_message(stamp, forward, 0.0, 0.0)}
+            if kind == "gnss":
+                lat, lon = latlon_of(np.array([[0.0, forward]]), *SURVEY_ORIGIN_LATLON)[0]
+                return {"/gnss/fix": bagtools.gnss_message(stamp, lat, lon)}
+            return {}
+        return made
+
+    bags = {}
+    for kind in ("none", "odom", "gnss"):
+        bags[kind] = folder / f"drive_{kind}"
+        bagtools.write_stereo_bag(
+            bags[kind], ((SURVEY_START_NS + index * 100_000_000, sample)
+                         for index, sample in enumerate(samples)), extras=extras(kind))
+    return bags, scenes, samples

@@ -1,0 +1,222 @@
+"""Ego-motion on the road plane: each frame's road frame (origin on the road below the left
+camera, x forward along the view, y left, z up), planar poses (x, y, yaw) of that frame in a
+motion frame, and the motion between frames from odometry, /tf, GNSS or our stereo visual
+odometry (features of the left image with their disparities, planar rigid motion by RANSAC).
+No ROS: messages come in as plain series."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .calibration import StereoCalibration
+from .stages.road_model import RoadModel
+
+EARTH_RADIUS_M = 6_378_137.0
+
+
+@dataclass(frozen=True)
+class RoadFrame:
+    """The road frame of one stereo frame: ``origin`` (m, left optical frame) is the road
+    point below the camera; ``axes`` (3x3) has rows x forward, y left, z up (unit vectors in
+    the left optical frame)."""
+
+    origin: np.ndarray
+    axes: np.ndarray
+
+    def from_camera(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) points of the left optical frame (m) in this road frame (m)."""
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
+
+
+def road_frame(road: RoadModel, calibration: StereoCalibration, width: int,
+               height: int) -> RoadFrame:
+    """The road frame of a fitted road: a plane fitted to the road surface that the model
+    gives over the lower half of the image."""
+    u, v = np.meshgrid(np.linspace(0.1 * width, 0.9 * width, 9),
+                       np.linspace(0.5 * height, 0.95 * height, 6))
+    disparity = np.asarray(road.at(np, u, v), dtype=np.float64).ravel()
+    keep = disparity > 0
+    if keep.sum() < 3:
+        raise ValueError("the road model has no disparity in the lower half of the image")
+    points = np.stack(calibration.back_project(u.ravel()[keep], v.ravel()[keep],
+                                               disparity[keep]), axis=-1)
+    centre = points.mean(axis=0)
+    normal = np.linalg.svd(points - centre)[2][2]
+    if normal[1] > 0:  # up is -y in the optical frame
+        normal = -normal
+    offset = -float(normal @ centre)  # plane: normal . p + offset = 0
+    origin = -offset * normal
+    forward = np.array([0.0, 0.0, 1.0]) - normal[2] * normal
+    forward /= np.linalg.norm(forward)
+    left = np.cross(normal, forward)
+    return RoadFrame(origin, np.stack([forward, left, normal]))
+
+
+@dataclass(frozen=True)
+class Pose2:
+    """A planar pose: position (m) and heading (rad) of a road frame in the motion frame."""
+
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) points of the road frame in the motion frame."""
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        return points @ np.array([[c, s], [-s, c]]) + np.array([self.x, self.y])
+
+    def compose(self, step: "Pose2") -> "Pose2":
+        """This pose followed by ``step`` (given in this pose's frame)."""
+        x, y = self.apply(np.array([[step.x, step.y]]))[0]
+        return Pose2(float(x), float(y), _wrap(self.yaw + step.yaw))
+
+    def inverse(self) -> "Pose2":
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return Pose2(-(c * self.x + s * self.y), s * self.x - c * self.y, -self.yaw)
+
+    def between(self, later: "Pose2") -> "Pose2":
+        """The step from this pose to ``later`` (in this pose's frame)."""
+        return self.inverse().compose(later)
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def fit_rigid_2d(source: np.ndarray, target: np.ndarray) -> Pose2:
+    """The rigid motion (least squares, Kabsch) taking (N, 2) ``source`` points to ``target``."""
+    mean_s, mean_t = source.mean(axis=0), target.mean(axis=0)
+    h = (source - mean_s).T @ (target - mean_t)
+    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    c, s = math.cos(yaw), math.sin(yaw)
+    shift = mean_t - np.array([[c, -s], [s, c]]) @ mean_s
+    return Pose2(float(shift[0]), float(shift[1]), yaw)
+
+
+def ransac_rigid_2d(source: np.ndarray, target: np.ndarray, tolerance_m: float,
+                    hypotheses: int = 200, seed: int = 0) -> tuple[Pose2, np.ndarray]:
+    """The planar rigid motion taking ``source`` to ``target`` ((N, 2), m) that most pairs
+    agree with within ``tolerance_m``, refitted on them; and the inlier mask."""
+    count = len(source)
+    rng = np.random.default_rng(seed)
+    pairs = rng.integers(0, count, size=(hypotheses, 2))
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    ds, dt = source[pairs[:, 1]] - source[pairs[:, 0]], target[pairs[:, 1]] - target[pairs[:, 0]]
+    yaw = np.arctan2(ds[:, 0] * dt[:, 1] - ds[:, 1] * dt[:, 0],
+                     ds[:, 0] * dt[:, 0] + ds[:, 1] * dt[:, 1])
+    c, s = np.cos(yaw), np.sin(yaw)
+    anchor_s, anchor_t = source[pairs[:, 0]], target[pairs[:, 0]]
+    tx = anchor_t[:, 0] - (c * anchor_s[:, 0] - s * anchor_s[:, 1])
+    ty = anchor_t[:, 1] - (s * anchor_s[:, 0] + c * anchor_s[:, 1])
+    moved_x = c[:, None] * source[None, :, 0] - s[:, None] * source[None, :, 1] + tx[:, None]
+    moved_y = s[:, None] * source[None, :, 0] + c[:, None] * source[None, :, 1] + ty[:, None]
+    error = np.hypot(moved_x - target[None, :, 0], moved_y - target[None, :, 1])
+    inliers = error < tolerance_m
+    best = inliers[int(np.argmax(inliers.sum(axis=1)))]
+    if best.sum() < 3:
+        best = np.ones(count, dtype=bool)
+    pose = fit_rigid_2d(source[best], target[best])
+    return pose, best
+
+
+class StereoOdometry:
+    """Planar visual odometry of the left camera: corners of the previous left image tracked
+    into the current one (pyramidal Lucas-Kanade, checked backwards), lifted to 3D with each
+    frame's disparity, put into each frame's road frame and matched by a RANSAC planar rigid
+    motion."""
+
+    def __init__(self, max_features: int = 600, tolerance_m: float = 0.02) -> None:
+        self.max_features = max_features
+        self.tolerance_m = tolerance_m
+        self._previous: tuple[np.ndarray, np.ndarray, RoadFrame] | None = None
+
+    def reset(self) -> None:
+        self._previous = None
+
+    def step(self, gray: np.ndarray, disparity: np.ndarray, frame: RoadFrame,
+             calibration: StereoCalibration) -> Pose2 | None:
+        """The motion of the road frame since the previous call's frame (in the previous
+        frame's road frame), or None on the first frame or when too few features agree.
+        ``gray``: HxW uint8 left image; ``disparity``: HxW float px, NaN invalid."""
+        previous, self._previous = self._previous, (gray, disparity, frame)
+        if previous is None:
+            return None
+        gray0, disparity0, frame0 = previous
+        corners = cv2.goodFeaturesToTrack(gray0, self.max_features, 0.01, 7, blockSize=7)
+        if corners is None or len(corners) < 8:
+            return None
+        lk = dict(winSize=(21, 21), maxLevel=3,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        moved, found, _ = cv2.calcOpticalFlowPyrLK(gray0, gray, corners, None, **lk)
+        back, found_back, _ = cv2.calcOpticalFlowPyrLK(gray, gray0, moved, None, **lk)
+        good = (found.ravel() == 1) & (found_back.ravel() == 1) & (
+            np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 0.5)
+        start, end = corners.reshape(-1, 2)[good], moved.reshape(-1, 2)[good]
+        height, width = gray.shape
+        inside = (end[:, 0] >= 0) & (end[:, 0] <= width - 1) & (end[:, 1] >= 0) & (
+            end[:, 1] <= height - 1)
+        start, end = start[inside], end[inside]
+        d0 = _sample(disparity0, start)
+        d1 = _sample(disparity, end)
+        valid = np.isfinite(d0) & np.isfinite(d1) & (d0 > 0) & (d1 > 0)
+        if valid.sum() < 8:
+            return None
+        p0 = np.stack(calibration.back_project(start[valid, 0], start[valid, 1], d0[valid]), -1)
+        p1 = np.stack(calibration.back_project(end[valid, 0], end[valid, 1], d1[valid]), -1)
+        q0, q1 = frame0.from_camera(p0)[:, :2], frame.from_camera(p1)[:, :2]
+        pose, inliers = ransac_rigid_2d(q1, q0, self.tolerance_m)
+        return pose if inliers.sum() >= 8 else None
+
+
+def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Values of ``image`` at the nearest pixels of (N, 2) (u, v) ``points``."""
+    u = np.clip(np.rint(points[:, 0]).astype(int), 0, image.shape[1] - 1)
+    v = np.clip(np.rint(points[:, 1]).astype(int), 0, image.shape[0] - 1)
+    return image[v, u].astype(np.float64)
+
+
+def interpolate_poses(stamps_ns: np.ndarray, poses: list[Pose2],
+                      at_ns: int) -> Pose2 | None:
+    """The pose at ``at_ns`` interpolated linearly between the series' neighbours (None
+    outside the series by more than 0.5 s)."""
+    if not poses:
+        return None
+    index = int(np.searchsorted(stamps_ns, at_ns))
+    if index == 0 or index == len(poses):
+        nearest = 0 if index == 0 else len(poses) - 1
+        if abs(int(stamps_ns[nearest]) - at_ns) > 500_000_000:
+            return None
+        return poses[nearest]
+    t0, t1 = int(stamps_ns[index - 1]), int(stamps_ns[index])
+    w = (at_ns - t0) / max(t1 - t0, 1)
+    a, b = poses[index - 1], poses[index]
+    return Pose2(a.x + w * (b.x - a.x), a.y + w * (b.y - a.y),
+                 _wrap(a.yaw + w * _wrap(b.yaw - a.yaw)))
+
+
+def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """Heading (rad) about z of a quaternion."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def enu_of(lat_deg: np.ndarray, lon_deg: np.ndarray, lat0_deg: float,
+           lon0_deg: float) -> np.ndarray:
+    """(N, 2) east, north (m) of latitudes/longitudes about a reference (local tangent
+    plane; metres-accurate over a few kilometres)."""
+    lat0 = math.radians(lat0_deg)
+    east = np.radians(np.asarray(lon_deg) - lon0_deg) * EARTH_RADIUS_M * math.cos(lat0)
+    north = np.radians(np.asarray(lat_deg) - lat0_deg) * EARTH_RADIUS_M
+    return np.stack([east, north], axis=-1)
+
+
+def latlon_of(enu: np.ndarray, lat0_deg: float, lon0_deg: float) -> np.ndarray:
+    """(N, 2) latitude, longitude (deg) of east, north offsets (m): inverse of :func:`enu_of`."""
+    enu = np.asarray(enu, dtype=np.float64).reshape(-1, 2)
+    lat = lat0_deg + np.degrees(enu[:, 1] / EARTH_RADIUS_M)
+    lon = lon0_deg + np.degrees(enu[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0_deg))))
+    return np.stack([lat, lon], axis=-1)

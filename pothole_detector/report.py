@@ -1,0 +1,189 @@
+"""report.html: one self-contained page for a road inspector: the route with the potholes
+coloured by severity, a sortable table, a picture of each pothole at its best view, the
+distribution of depths and areas and the observed length of road."""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from .survey import SEVERITIES, DriveSurvey, SurveyPothole
+
+SEVERITY_COLOURS = {"low": "#f2c230", "moderate": "#f07d19", "high": "#d7261e"}
+_STYLE = """
+body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1200px}
+h1{margin:0 0 4px}h2{margin-top:28px}.muted{color:#666}
+.cards{display:flex;gap:16px;flex-wrap:wrap}.card{border:1px solid #ddd;border-radius:8px;
+padding:10px 14px}.card b{font-size:1.6em;display:block}
+table{border-collapse:collapse;width:100%;font-size:.9em}th,td{border-bottom:1px solid #e4e4e4;
+padding:4px 8px;text-align:right}th{cursor:pointer;background:#f6f6f6;position:sticky;top:0}
+td.l,th.l{text-align:left}img{border-radius:4px;display:block}
+.sev{display:inline-block;padding:1px 8px;border-radius:10px;color:#fff}
+.gallery{display:flex;flex-wrap:wrap;gap:12px}.gallery figure{margin:0;font-size:.85em}
+svg{background:#fafafa;border:1px solid #e4e4e4;border-radius:6px}
+"""
+_SORT = """
+document.querySelectorAll('th').forEach((th,i)=>th.addEventListener('click',()=>{
+const t=th.closest('table'),b=t.tBodies[0],r=[...b.rows],up=th.dataset.up!=='1';
+r.sort((x,y)=>{const a=x.cells[i].dataset.v??x.cells[i].textContent,
+c=y.cells[i].dataset.v??y.cells[i].textContent,n=parseFloat(a)-parseFloat(c);
+return (isNaN(n)?a.localeCompare(c):n)*(up?1:-1)});
+th.dataset.up=up?'1':'0';r.forEach(x=>b.appendChild(x))}));
+"""
+
+
+def _png(image: np.ndarray) -> str:
+    ok, data = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    return "data:image/png;base64," + base64.b64encode(data.tobytes()).decode() if ok else ""
+
+
+def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
+    """The route (motion frame, or east/north where GNSS aligns it) and the potholes."""
+    use_gnss = drive.route_latlon is not None and all(
+        p.row["lat"] is not None for p in drive.potholes)
+    if use_gnss:
+        lat0 = float(drive.route_latlon[0, 0])
+        scale = np.array([math.cos(math.radians(lat0)), 1.0]) * 111_320.0
+
+        def xy(latlon: np.ndarray) -> np.ndarray:
+            return (latlon[:, ::-1] - drive.route_latlon[0, ::-1]) * scale
+        route = xy(drive.route_latlon)
+        holes = xy(np.array([[p.row["lat"], p.row["lon"]] for p in drive.potholes])
+                   .reshape(-1, 2))
+        axes = "east / north (m, from GNSS)"
+    else:
+        route = drive.route_xy
+        holes = np.array([[p.row["odom_x_m"], p.row["odom_y_m"]] for p in drive.potholes]
+                         ).reshape(-1, 2)
+        axes = f"x / y (m, motion frame: {drive.motion_source})"
+    points = np.concatenate([route, holes]) if len(route) else holes
+    if not len(points):
+        return "<p class=muted>no route</p>"
+    low, high = points.min(axis=0), points.max(axis=0)
+    span = max(float((high - low).max()), 1.0)
+    margin = 30
+
+    def to_svg(p: np.ndarray) -> np.ndarray:
+        q = (p - (low + high) / 2) / span * (min(width, height) - 2 * margin)
+        return np.stack([width / 2 + q[:, 0], height / 2 - q[:, 1]], axis=-1)
+
+    parts = [f'<svg width="{width}" height="{height}" viewBox="0 0 {width} {height}" '
+             f'role="img" aria-label="route">']
+    if len(route):
+        path = " ".join(f"{x:.1f},{y:.1f}" for x, y in to_svg(route))
+        parts.append(f'<polyline points="{path}" fill="none" stroke="#3d6fb6" '
+                     f'stroke-width="3" stroke-linecap="round"/>')
+        sx, sy = to_svg(route[:1])[0]
+        parts.append(f'<circle cx="{sx:.1f}" cy="{sy:.1f}" r="5" fill="#3d6fb6"/>'
+                     f'<text x="{sx + 8:.1f}" y="{sy + 4:.1f}" font-size="11">start</text>')
+    for pothole, (x, y) in zip(drive.potholes, to_svg(holes)):
+        colour = SEVERITY_COLOURS[pothole.row["severity"]]
+        parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="7" fill="{colour}" '
+                     f'stroke="#222"><title>#{pothole.row["pothole_id"]} '
+                     f'{pothole.row["max_depth_m"] * 1000:.0f} mm</title></circle>'
+                     f'<text x="{x + 9:.1f}" y="{y - 7:.1f}" font-size="11">'
+                     f'{pothole.row["pothole_id"]}</text>')
+    parts.append(f'<text x="8" y="{height - 8}" font-size="11" fill="#666">{axes}; '
+                 f'{span:.1f} m across</text></svg>')
+    return "".join(parts)
+
+
+def _histogram_svg(values: Sequence[float], label: str, unit_scale: float, unit: str,
+                   bins: int = 10, width: int = 360, height: int = 200) -> str:
+    if not values:
+        return ""
+    scaled = np.asarray(values, dtype=np.float64) * unit_scale
+    counts, edges = np.histogram(scaled, bins=bins)
+    top = max(int(counts.max()), 1)
+    bar = (width - 40) / bins
+    parts = [f'<svg width="{width}" height="{height}" role="img" aria-label="{label}">']
+    for i, count in enumerate(counts):
+        h = (height - 50) * count / top
+        parts.append(f'<rect x="{30 + i * bar:.1f}" y="{height - 30 - h:.1f}" '
+                     f'width="{bar - 2:.1f}" height="{h:.1f}" fill="#3d6fb6">'
+                     f'<title>{edges[i]:.1f}-{edges[i + 1]:.1f} {unit}: {count}</title></rect>')
+    parts.append(f'<text x="30" y="{height - 14}" font-size="11">{edges[0]:.1f}</text>'
+                 f'<text x="{width - 40}" y="{height - 14}" font-size="11">{edges[-1]:.1f}'
+                 f'</text><text x="30" y="14" font-size="12">{html.escape(label)} ({unit}), '
+                 f'{len(values)} potholes, most in one bin {top}</text></svg>')
+    return "".join(parts)
+
+
+def _row_html(pothole: SurveyPothole) -> str:
+    r = pothole.row
+    colour = SEVERITY_COLOURS[r["severity"]]
+    low, high = pothole.depth_spread_m
+    cells = [
+        (str(r["pothole_id"]), r["pothole_id"], ""), (html.escape(r["bag"]), None, "l"),
+        (f'<span class="sev" style="background:{colour}">{r["severity"]}</span>',
+         SEVERITIES.index(r["severity"]), "l"),
+        (f'{r["max_depth_m"] * 1000:.0f} <span class=muted>({low * 1000:.0f}-'
+         f'{high * 1000:.0f})</span>', r["max_depth_m"], ""),
+        (f'{r["mean_depth_m"] * 1000:.0f}', r["mean_depth_m"], ""),
+        (f'{r["area_m2"] * 1e4:.0f}', r["area_m2"], ""),
+        (f'{r["volume_m3"] * 1e6:.0f}', r["volume_m3"], ""),
+        (str(r["sightings"]), r["sightings"], ""),
+        (f'{r["odom_x_m"]:.2f}, {r["odom_y_m"]:.2f}', r["odom_x_m"], ""),
+        (f'{r["lat"]:.7f}, {r["lon"]:.7f}' if r["lat"] is not None else "-",
+         r["lat"] if r["lat"] is not None else "", ""),
+        (f'{(r["best_stamp_ns"]) / 1e9:.3f}', r["best_stamp_ns"], ""),
+    ]
+    return "<tr>" + "".join(
+        f'<td class="{cls}"' + (f' data-v="{value}"' if value is not None else "") + f">{text}</td>"
+        for text, value, cls in cells) + "</tr>"
+
+
+def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
+                 picture: Callable[[DriveSurvey, SurveyPothole], np.ndarray | None]) -> None:
+    """Write report.html for ``surveys``; ``picture(drive, pothole)`` gives the best-view
+    crop (HxWx3 RGB) of a pothole, or None."""
+    potholes = [p for drive in surveys for p in drive.potholes]
+    counts = {s: sum(p.row["severity"] == s for p in potholes) for s in SEVERITIES}
+    observed = sum(d.observed_length_m for d in surveys)
+    frames = sum(d.frames for d in surveys)
+    cards = [("potholes", str(len(potholes))),
+             *((f"{s} severity", str(counts[s])) for s in SEVERITIES),
+             ("road observed", f"{observed:.1f} m"), ("frames", str(frames)),
+             ("bags", str(len(surveys)))]
+    header = ("<tr><th>id</th><th class=l>bag</th><th class=l>severity</th>"
+              "<th>max depth mm (spread)</th><th>mean depth mm</th><th>area cm²</th>"
+              "<th>volume cm³</th><th>sightings</th><th>position x, y m</th>"
+              "<th>lat, lon</th><th>best view s</th></tr>")
+    gallery = []
+    for drive in surveys:
+        for pothole in drive.potholes:
+            image = picture(drive, pothole)
+            if image is None:
+                continue
+            r = pothole.row
+            gallery.append(f'<figure><img src="{_png(image)}" alt="pothole {r["pothole_id"]}">'
+                           f'<figcaption>#{r["pothole_id"]} {r["severity"]}, '
+                           f'{r["max_depth_m"] * 1000:.0f} mm, {r["area_m2"] * 1e4:.0f} cm²'
+                           f'</figcaption></figure>')
+    routes = "".join(f"<h3>{html.escape(d.bag.name)}</h3>{_route_svg(d)}" for d in surveys)
+    legend = " ".join(f'<span class="sev" style="background:{SEVERITY_COLOURS[s]}">{s}</span>'
+                      for s in SEVERITIES)
+    page = f"""<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>Pothole survey</title>
+<style>{_STYLE}</style></head><body>
+<h1>Pothole survey</h1>
+<p class=muted>{len(surveys)} drive(s); severity by largest depth (FHWA LTPP): {legend}</p>
+<div class=cards>{"".join(f"<div class=card><b>{v}</b>{k}</div>" for k, v in cards)}</div>
+<h2>Route</h2>{routes}
+<h2>Potholes</h2><p class=muted>Click a column to sort.</p>
+<table id=potholes><thead>{header}</thead><tbody>
+{"".join(_row_html(p) for p in potholes)}
+</tbody></table>
+<h2>Best views</h2><div class=gallery>{"".join(gallery)}</div>
+<h2>Depths and sizes</h2>
+{_histogram_svg([p.row["max_depth_m"] for p in potholes], "largest depth", 1000, "mm")}
+{_histogram_svg([p.row["area_m2"] for p in potholes], "area", 1e4, "cm²")}
+<script>{_SORT}</script></body></html>
+"""
+    Path(path).write_text(page, encoding="utf-8")

@@ -1,0 +1,563 @@
+"""The road survey: recorded drives in, one entry per physical pothole out. Each frame's
+potholes are put on the road plane (the frame's road frame), carried into one motion frame
+by the ego-motion (odometry, /tf or GNSS in the bag, else our stereo visual odometry) and
+tracked: a pothole gets one id for as long as it is seen, and its report takes the best view
+(the nearest sighting inside the observed range) with the spread over its sightings. Bags
+split into chunks of frames for parallel work (Ray); the chunks' frames are merged before
+tracking. No ROS: bags are read with rosbags."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import cv2
+import numpy as np
+
+from . import bagtools
+from .errors import InputError, PotholeError
+from .motion import (Pose2, RoadFrame, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses,
+                     latlon_of, road_frame, yaw_of_quaternion)
+from .params import Config
+
+ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+GNSS_TYPE = bagtools.GNSS_TYPE
+SEVERITIES = ("low", "moderate", "high")
+CSV_COLUMNS = ("pothole_id", "bag", "first_stamp_ns", "last_stamp_ns", "sightings",
+               "best_stamp_ns", "x_m", "y_m", "z_m", "odom_x_m", "odom_y_m", "lat", "lon",
+               "max_depth_m", "mean_depth_m", "area_m2", "volume_m3", "severity")
+
+
+def severity(max_depth_m: float, config: Config) -> str:
+    """The severity class of a pothole of largest depth ``max_depth_m`` (m)."""
+    if max_depth_m > config.severity_high_depth_m:
+        return "high"
+    if max_depth_m > config.severity_moderate_depth_m:
+        return "moderate"
+    return "low"
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """One pothole in one frame: its centroid in the left optical frame and on the road
+    (road frame x forward, y left; m), whether it lies inside the observed range, its
+    measurements, its bounding box (x0, y0, x1, y1 px) and whether it lies whole in the
+    image (its box off the image border)."""
+
+    stamp_ns: int
+    camera_xyz: tuple[float, float, float]
+    road_xy: tuple[float, float]
+    observed: bool
+    max_depth_m: float
+    mean_depth_m: float
+    area_m2: float
+    volume_m3: float
+    bbox_px: tuple[int, int, int, int]
+    whole: bool = True
+
+
+@dataclass(frozen=True)
+class FrameObservation:
+    """What the survey keeps of one stereo frame: its potholes, the observed range (near, far,
+    m along the road; NaN when none), the visual-odometry step from the previous frame (None
+    on the first frame or when it failed) and, when the frame failed, why."""
+
+    index: int
+    stamp_ns: int
+    sightings: tuple[Sighting, ...]
+    observed_range_m: tuple[float, float]
+    step: Pose2 | None
+    failure: str = ""
+
+
+@dataclass(frozen=True)
+class DriveTopics:
+    """The topics a survey reads: the stereo camera's and, where the bag has them, motion
+    (odometry or /tf) and GNSS."""
+
+    stereo: bagtools.StereoTopics
+    odometry: str | None = None
+    tf: str | None = None
+    gnss: str | None = None
+    base_frame: str = "base_link"
+
+
+def find_drive_topics(topics: dict[str, str], odometry: str | None = None,
+                      gnss: str | None = None, base_frame: str = "base_link",
+                      **stereo: str | None) -> DriveTopics:
+    """The topics of a drive (``topics``: name -> type): stereo as ``process`` finds them,
+    odometry and GNSS as named or the only topic of their type, /tf when it exists."""
+
+    def only(given: str | None, msgtype: str, option: str) -> str | None:
+        if given is not None:
+            if topics.get(given) != msgtype:
+                raise InputError(f"the bag has no {msgtype} topic {given}")
+            return given
+        found = [t for t, k in topics.items() if k == msgtype]
+        if len(found) > 1:
+            raise InputError(f"the bag has several {msgtype} topics {found}; name one with "
+                             f"{option}")
+        return found[0] if found else None
+
+    return DriveTopics(
+        bagtools.find_stereo_topics(topics, **stereo),
+        only(odometry, ODOMETRY_TYPE, "--odometry-topic"),
+        "/tf" if topics.get("/tf") == TF_TYPE else None,
+        only(gnss, GNSS_TYPE, "--gnss-topic"), base_frame)
+
+
+def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0,
+            stop: int | None = None, progress: Callable[[int, int], None] | None = None
+            ) -> list[FrameObservation]:
+    """Run the pipeline and visual odometry on frames ``first`` to ``stop`` of ``bag``
+    (``config.chunk_overlap_frames`` earlier frames run too, for the odometry, and are not
+    returned)."""
+    from .backend import get_backend
+    from .stages.matching import to_gray8
+
+    start = max(0, first - config.chunk_overlap_frames) if first else 0
+    reader = bagtools.open_bag(bag)
+    odometry = StereoOdometry()
+    observations = []
+    try:
+        summary = bagtools.ProcessSummary()
+        backend = get_backend(config.backend)
+        for offset, (frame, outcome) in enumerate(bagtools.frame_results(
+                reader, topics.stereo, config, backend, summary, progress, start, stop)):
+            index = start + offset
+            if isinstance(outcome, PotholeError):
+                odometry.reset()
+                if index >= first:
+                    observations.append(FrameObservation(index, frame.stamp, (),
+                                                         (math.nan, math.nan), None,
+                                                         str(outcome)))
+                continue
+            result = outcome
+            height, width = frame.left.shape[:2]
+            try:
+                plane = road_frame(result.road, frame.calibration, width, height)
+            except ValueError as exc:
+                odometry.reset()
+                if index >= first:
+                    observations.append(FrameObservation(index, frame.stamp, (),
+                                                         (math.nan, math.nan), None, str(exc)))
+                continue
+            step = odometry.step(to_gray8(frame.left), result.host("disparity"), plane,
+                                 frame.calibration)
+            if index >= first:
+                observations.append(FrameObservation(
+                    index, frame.stamp, _sightings(frame.stamp, result, plane, width, height),
+                    tuple(float(v) for v in result.observed_range_m), step))
+    finally:
+        reader.close()
+    return observations
+
+
+def _sightings(stamp_ns: int, result: Any, plane: RoadFrame, width: int,
+               height: int) -> tuple[Sighting, ...]:
+    near, far = result.observed_range_m
+    made = []
+    for pothole in result.potholes:
+        centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
+        if not np.all(np.isfinite(centre)):
+            continue
+        forward, left, _ = plane.from_camera(centre[None, :])[0]
+        made.append(Sighting(
+            stamp_ns, tuple(float(v) for v in centre), (float(forward), float(left)),
+            bool(near <= forward <= far), float(pothole.max_depth_m),
+            float(pothole.mean_depth_m), float(pothole.area_m2), float(pothole.volume_m3),
+            tuple(int(v) for v in pothole.bbox_px), _off_border(pothole.bbox_px, width, height)))
+    return tuple(made)
+
+
+def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bool:
+    x0, y0, x1, y1 = (int(v) for v in bbox_px)
+    return (x0 >= margin_px and y0 >= margin_px and x1 < width - margin_px
+            and y1 < height - margin_px)
+
+
+@dataclass
+class MotionSeries:
+    """Poses of the road frame from the bag itself: odometry or /tf (planar x, y, yaw of
+    ``base_frame``), and GNSS fixes (lat, lon, deg)."""
+
+    stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    poses: list[Pose2] = field(default_factory=list)
+    source: str = "visual odometry"
+    gnss_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    gnss_latlon: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+def read_motion(bag: str | Path, topics: DriveTopics) -> MotionSeries:
+    """The motion and GNSS series of a bag."""
+    series = MotionSeries()
+    wanted = [t for t in (topics.odometry, topics.tf, topics.gnss) if t]
+    if not wanted:
+        return series
+    stamps, poses, gnss_stamps, gnss = [], [], [], []
+    tf_stamps, tf_poses = [], []
+    for topic, _, msg in bagtools.read_messages(bag, wanted):
+        if topic == topics.odometry:
+            p = msg.pose.pose
+            stamps.append(_stamp(msg.header))
+            poses.append(Pose2(float(p.position.x), float(p.position.y), yaw_of_quaternion(
+                p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)))
+        elif topic == topics.tf:
+            for transform in msg.transforms:
+                if transform.child_frame_id.strip("/") == topics.base_frame:
+                    t, q = transform.transform.translation, transform.transform.rotation
+                    tf_stamps.append(_stamp(transform.header))
+                    tf_poses.append(Pose2(float(t.x), float(t.y),
+                                          yaw_of_quaternion(q.x, q.y, q.z, q.w)))
+        elif topic == topics.gnss and msg.status.status >= 0 and math.isfinite(msg.latitude):
+            gnss_stamps.append(_stamp(msg.header))
+            gnss.append((float(msg.latitude), float(msg.longitude)))
+    if not stamps and tf_stamps:
+        stamps, poses, series.source = tf_stamps, tf_poses, f"/tf ({topics.base_frame})"
+    elif stamps:
+        series.source = f"odometry ({topics.odometry})"
+    if stamps:
+        order = np.argsort(stamps)
+        series.stamps_ns = np.asarray(stamps, dtype=np.int64)[order]
+        series.poses = [poses[i] for i in order]
+    if gnss:
+        order = np.argsort(gnss_stamps)
+        series.gnss_stamps_ns = np.asarray(gnss_stamps, dtype=np.int64)[order]
+        series.gnss_latlon = np.asarray(gnss, dtype=np.float64)[order]
+        if not stamps:
+            series.source = f"GNSS ({topics.gnss})"
+    return series
+
+
+def _stamp(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def frame_poses(observations: Sequence[FrameObservation], motion: MotionSeries
+                ) -> list[Pose2 | None]:
+    """The pose of each frame's road frame in the motion frame: from the bag's odometry or
+    /tf, else from GNSS (heading along the track), else chained visual-odometry steps (a
+    missing step repeats the last one)."""
+    stamps = np.array([o.stamp_ns for o in observations], dtype=np.int64)
+    if motion.poses:
+        return [interpolate_poses(motion.stamps_ns, motion.poses, int(s)) for s in stamps]
+    if len(motion.gnss_latlon) >= 2:
+        enu = enu_of(motion.gnss_latlon[:, 0], motion.gnss_latlon[:, 1],
+                     *motion.gnss_latlon[0])
+        headings = np.arctan2(*np.gradient(enu, axis=0).T[::-1])
+        gnss_poses = [Pose2(float(e), float(n), float(h)) for (e, n), h in zip(enu, headings)]
+        return [interpolate_poses(motion.gnss_stamps_ns, gnss_poses, int(s)) for s in stamps]
+    poses: list[Pose2 | None] = []
+    pose, last_step = Pose2(), Pose2()
+    for index, observation in enumerate(observations):
+        if index:
+            last_step = observation.step or last_step
+            pose = pose.compose(last_step)
+        poses.append(pose)
+    return poses
+
+
+@dataclass
+class Track:
+    """One physical pothole: its sightings and their positions in the motion frame."""
+
+    sightings: list[Sighting] = field(default_factory=list)
+    positions: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.median(np.asarray(self.positions), axis=0)
+
+    @property
+    def radius_m(self) -> float:
+        return math.sqrt(max(float(np.median([s.area_m2 for s in self.sightings])), 0.0)
+                         / math.pi)
+
+    def best(self) -> Sighting:
+        """The nearest sighting that lies whole in the image inside the observed range (else
+        the nearest whole one, else the nearest)."""
+        candidates = ([s for s in self.sightings if s.observed and s.whole]
+                      or [s for s in self.sightings if s.whole] or self.sightings)
+        return min(candidates, key=lambda s: s.road_xy[0])
+
+
+def track(observations: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
+          config: Config) -> list[Track]:
+    """Associate the sightings of consecutive frames on the road plane: a sighting joins the
+    tracked pothole nearest to it within ``track_match_distance_m`` (or the sum of their
+    radii), each pothole at most once per frame; others start new tracks. Tracks seen fewer
+    than ``min_sightings`` times are left out."""
+    tracks: list[Track] = []
+    for observation, pose in zip(observations, poses):
+        if pose is None or not observation.sightings:
+            continue
+        positions = pose.apply(np.array([s.road_xy for s in observation.sightings]))
+        candidates = []
+        for i, (sighting, position) in enumerate(zip(observation.sightings, positions)):
+            radius = math.sqrt(max(sighting.area_m2, 0.0) / math.pi)
+            for j, existing in enumerate(tracks):
+                gap = float(np.linalg.norm(existing.position - position))
+                if gap < max(config.track_match_distance_m, existing.radius_m + radius):
+                    candidates.append((gap, i, j))
+        joined: dict[int, int] = {}
+        taken: set[int] = set()
+        for _, i, j in sorted(candidates):
+            if i not in joined and j not in taken:
+                joined[i] = j
+                taken.add(j)
+        for i, (sighting, position) in enumerate(zip(observation.sightings, positions)):
+            target = tracks[joined[i]] if i in joined else Track()
+            if i not in joined:
+                tracks.append(target)
+            target.sightings.append(sighting)
+            target.positions.append(position)
+    return [t for t in tracks if len(t.sightings) >= config.min_sightings]
+
+
+@dataclass(frozen=True)
+class SurveyPothole:
+    """One row of the survey (CSV_COLUMNS) and the spread of its measurements over its
+    sightings (min, max of the largest depth, m, and of the area, m2)."""
+
+    row: dict[str, Any]
+    depth_spread_m: tuple[float, float]
+    area_spread_m2: tuple[float, float]
+    bbox_px: tuple[int, int, int, int]
+
+
+@dataclass
+class DriveSurvey:
+    """The survey of one bag: its potholes, the route (motion-frame positions of the frames),
+    the GNSS route (lat, lon) where the bag has GNSS, the motion source, the observed length
+    of road (m) and the frame counts."""
+
+    bag: Path
+    potholes: list[SurveyPothole]
+    route_xy: np.ndarray
+    route_latlon: np.ndarray | None
+    motion_source: str
+    observed_length_m: float
+    frames: int
+    failed: int
+
+
+def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: MotionSeries,
+             config: Config, first_id: int = 1) -> DriveSurvey:
+    """Merge chunk observations (a frame processed by two chunks counts once, the one with a
+    visual-odometry step kept), then poses, tracking and the report rows."""
+    by_stamp: dict[int, FrameObservation] = {}
+    for observation in observations:
+        kept = by_stamp.get(observation.stamp_ns)
+        if kept is None or (kept.step is None and observation.step is not None):
+            by_stamp[observation.stamp_ns] = observation
+    frames = [by_stamp[s] for s in sorted(by_stamp)]
+    poses = frame_poses(frames, motion)
+    tracks = sorted(track(frames, poses, config), key=lambda t: t.sightings[0].stamp_ns)
+    to_latlon = _gnss_alignment(frames, poses, motion)
+    route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)
+    rows = []
+    for offset, tracked in enumerate(tracks):
+        best = tracked.best()
+        position = tracked.position
+        latlon = to_latlon(position[None, :])[0] if to_latlon else (math.nan, math.nan)
+        depths = [s.max_depth_m for s in tracked.sightings]
+        areas = [s.area_m2 for s in tracked.sightings]
+        row = {
+            "pothole_id": first_id + offset, "bag": Path(bag).name,
+            "first_stamp_ns": tracked.sightings[0].stamp_ns,
+            "last_stamp_ns": tracked.sightings[-1].stamp_ns,
+            "sightings": len(tracked.sightings), "best_stamp_ns": best.stamp_ns,
+            "x_m": best.camera_xyz[0], "y_m": best.camera_xyz[1], "z_m": best.camera_xyz[2],
+            "odom_x_m": float(position[0]), "odom_y_m": float(position[1]),
+            "lat": float(latlon[0]) if to_latlon else None,
+            "lon": float(latlon[1]) if to_latlon else None,
+            "max_depth_m": best.max_depth_m, "mean_depth_m": best.mean_depth_m,
+            "area_m2": best.area_m2, "volume_m3": best.volume_m3,
+            "severity": severity(best.max_depth_m, config),
+        }
+        rows.append(SurveyPothole(row, (min(depths), max(depths)), (min(areas), max(areas)),
+                                  best.bbox_px))
+    return DriveSurvey(Path(bag), rows, route,
+                       to_latlon(route) if to_latlon and len(route) else None, motion.source,
+                       _observed_length(frames, poses), len(frames),
+                       sum(bool(f.failure) for f in frames))
+
+
+def _gnss_alignment(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
+                    motion: MotionSeries) -> Callable[[np.ndarray], np.ndarray] | None:
+    """A map from motion-frame positions to (lat, lon): the rigid motion between the frames'
+    positions and the GNSS track at their stamps; None without GNSS or with too short a
+    track."""
+    if len(motion.gnss_latlon) < 2:
+        return None
+    origin = motion.gnss_latlon[0]
+    enu = enu_of(motion.gnss_latlon[:, 0], motion.gnss_latlon[:, 1], *origin)
+    times = motion.gnss_stamps_ns.astype(np.float64)
+    pairs = [((pose.x, pose.y), (np.interp(frame.stamp_ns, times, enu[:, 0]),
+                                 np.interp(frame.stamp_ns, times, enu[:, 1])))
+             for frame, pose in zip(frames, poses)
+             if pose is not None and times[0] <= frame.stamp_ns <= times[-1]]
+    if len(pairs) < 2:
+        return None
+    source = np.array([p for p, _ in pairs])
+    target = np.array([q for _, q in pairs])
+    if np.ptp(source, axis=0).max() < 0.5 or np.ptp(target, axis=0).max() < 0.5:
+        return None
+    alignment = fit_rigid_2d(source, target)
+    return lambda xy: latlon_of(alignment.apply(xy), *origin)
+
+
+def _observed_length(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None]
+                     ) -> float:
+    """Length (m) of road inside some frame's observed range, along the route."""
+    travelled, intervals = 0.0, []
+    previous = None
+    for frame, pose in zip(frames, poses):
+        if pose is None:
+            continue
+        if previous is not None:
+            travelled += math.hypot(pose.x - previous.x, pose.y - previous.y)
+        previous = pose
+        near, far = frame.observed_range_m
+        if math.isfinite(near) and math.isfinite(far) and far > near:
+            intervals.append((travelled + near, travelled + far))
+    length, end = 0.0, -math.inf
+    for start, stop in sorted(intervals):
+        if stop > end:
+            length += stop - max(start, end)
+            end = stop
+    return length
+
+
+def chunks(frame_count: int, config: Config) -> list[tuple[int, int]]:
+    """(first, stop) frame ranges of ``chunk_frames`` frames covering ``frame_count``."""
+    size = config.chunk_frames
+    return [(first, min(first + size, frame_count)) for first in range(0, frame_count, size)]
+
+
+def frame_count(bag: str | Path, topics: DriveTopics) -> int:
+    """Left images in ``bag`` (an upper bound of its stereo frames)."""
+    reader = bagtools.open_bag(bag)
+    try:
+        return sum(c.msgcount for c in reader.connections if c.topic == topics.stereo.left)
+    finally:
+        reader.close()
+
+
+def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
+    """The :class:`DriveTopics` of ``bag``; ``names`` as :func:`find_drive_topics` takes."""
+    return find_drive_topics(bagtools.topics_of(bag), **names)
+
+
+def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None = None,
+           use_ray: bool = False, progress: Callable[[int, int], None] | None = None,
+           **names: Any) -> list[DriveSurvey]:
+    """Survey every bag (one id sequence over all of them). With ``use_ray``, every chunk of
+    every bag is a Ray task (one GPU each on GPU nodes, else one CPU), on the cluster at
+    ``ray_address`` or a local one."""
+    plans = []
+    for bag in bags:
+        topics = drive_topics(bag, **names)
+        plans.append((Path(bag), topics, chunks(frame_count(bag, topics), config)))
+    if use_ray:
+        from .fleet import observe_on_ray
+        observed = observe_on_ray(plans, config, ray_address, progress)
+    else:
+        total = sum(stop - first for _, _, ranges in plans for first, stop in ranges)
+        observed, done = [], 0
+        for bag, topics, ranges in plans:
+            per_bag = []
+            for first, stop in ranges:
+                def step(index: int, _: int, base: int = done) -> None:
+                    if progress is not None:
+                        progress(min(base + index, total), total)
+                per_bag += observe(bag, topics, config, first, stop, step)
+                done += stop - first
+            observed.append(per_bag)
+        if progress is not None:
+            progress(total, total)
+    surveys, next_id = [], 1
+    for (bag, topics, _), observations in zip(plans, observed):
+        drive = assemble(bag, observations, read_motion(bag, topics), config, next_id)
+        next_id += len(drive.potholes)
+        surveys.append(drive)
+    return surveys
+
+
+def write_csv(surveys: Sequence[DriveSurvey], path: str | Path) -> None:
+    """survey.csv: one row per physical pothole, the columns of CSV_COLUMNS."""
+    import csv
+
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for drive in surveys:
+            for pothole in drive.potholes:
+                writer.writerow({k: _csv_value(v) for k, v in pothole.row.items()})
+
+
+def _csv_value(value: Any) -> Any:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.9g}"
+    return value
+
+
+def write_geojson(surveys: Sequence[DriveSurvey], path: str | Path) -> bool:
+    """survey.geojson: a point per pothole with GNSS position, the row as its properties;
+    False (nothing written) when no bag has GNSS."""
+    import json
+
+    features = [{"type": "Feature",
+                 "geometry": {"type": "Point",
+                              "coordinates": [pothole.row["lon"], pothole.row["lat"]]},
+                 "properties": pothole.row}
+                for drive in surveys for pothole in drive.potholes
+                if pothole.row["lat"] is not None]
+    if not features:
+        return False
+    Path(path).write_text(json.dumps({"type": "FeatureCollection", "features": features},
+                                     indent=1))
+    return True
+
+
+def best_view_picture(bag: str | Path, topics: DriveTopics, stamp_ns: int,
+                      bbox_px: tuple[int, int, int, int], size_px: int = 240) -> np.ndarray:
+    """The left image at ``stamp_ns`` cropped about ``bbox_px`` (with a margin of half its
+    size), the box drawn, scaled to at most ``size_px``: HxWx3 uint8 RGB."""
+    from .conversions import image_to_array
+
+    reader = bagtools.open_bag(bag)
+    try:
+        connections = [c for c in reader.connections if c.topic == topics.stereo.left]
+        for connection, _, rawdata in reader.messages(connections=connections,
+                                                      start=stamp_ns - 1_000_000_000):
+            msg = bagtools.deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
+                                       bagtools.IMAGE_TYPE)
+            if _stamp(msg.header) == stamp_ns:
+                image = image_to_array(msg)
+                break
+        else:
+            raise InputError(f"{bag} has no left image at {stamp_ns}")
+    finally:
+        reader.close()
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    image = np.ascontiguousarray(image[..., :3]).astype(np.uint8)
+    x0, y0, x1, y1 = bbox_px
+    margin_x, margin_y = max(8, (x1 - x0) // 2), max(8, (y1 - y0) // 2)
+    height, width = image.shape[:2]
+    left, top = max(0, x0 - margin_x), max(0, y0 - margin_y)
+    right, bottom = min(width, x1 + margin_x + 1), min(height, y1 + margin_y + 1)
+    crop = image[top:bottom, left:right].copy()
+    cv2.rectangle(crop, (x0 - left, y0 - top), (x1 - left, y1 - top), (255, 60, 30), 2)
+    scale = size_px / max(crop.shape[:2])
+    if scale < 1:
+        crop = cv2.resize(crop, (max(1, round(crop.shape[1] * scale)),
+                                 max(1, round(crop.shape[0] * scale))),
+                          interpolation=cv2.INTER_AREA)
+    return crop

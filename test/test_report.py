@@ -1,0 +1,74 @@
+"""report.html: self-contained, the route, the sortable table and the pictures; looked at in
+headless Chromium (the screenshot is kept in out/test-artifacts/)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from conftest import REPO
+
+from pothole_detector.params import Config
+from pothole_detector.report import write_report
+from pothole_detector.survey import best_view_picture, drive_topics, survey
+
+CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser",
+                                                "google-chrome") if shutil.which(name)), None)
+
+
+@pytest.fixture(scope="module")
+def report(survey_drive_bags, tmp_path_factory):
+    bags, _, _ = survey_drive_bags
+    surveys = survey([bags["gnss"], REPO / "bags" / "sample_drive"], Config({"backend": "cpu"}))
+    topics = {d.bag: drive_topics(d.bag) for d in surveys}
+    path = tmp_path_factory.mktemp("report") / "report.html"
+    write_report(surveys, path, lambda d, p: best_view_picture(
+        d.bag, topics[d.bag], p.row["best_stamp_ns"], p.bbox_px))
+    return path, surveys
+
+
+def test_the_report_holds_route_table_pictures_and_distributions(report):
+    path, surveys = report
+    text = path.read_text()
+    count = sum(len(d.potholes) for d in surveys)
+    assert count == 11
+    assert text.count('<img src="data:image/png;base64,') == count
+    assert len(re.findall(r"<tr><td", text)) == count
+    assert text.count('aria-label="route"') == 2 and "east / north (m, from GNSS)" in text
+    assert 'aria-label="largest depth"' in text and 'aria-label="area"' in text
+    assert "road observed" in text and "http" not in text.replace("http://www.w3.org", "")
+
+
+def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):
+    bags, _, _ = survey_drive_bags
+    (drive,) = survey([bags["odom"]], Config({"backend": "cpu"}))
+    pothole = drive.potholes[0]
+    crop = best_view_picture(drive.bag, drive_topics(drive.bag), pothole.row["best_stamp_ns"],
+                             pothole.bbox_px)
+    assert crop.ndim == 3 and crop.dtype == np.uint8 and max(crop.shape[:2]) <= 240
+    red = (crop[..., 0] > 200) & (crop[..., 1] < 100)
+    assert red.sum() > 20  # the drawn box
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (apt install chromium)")
+def test_the_report_renders_in_headless_chromium(report):
+    path, _ = report
+    artifacts = REPO / "out" / "test-artifacts"
+    artifacts.mkdir(parents=True, exist_ok=True)
+    screenshot = artifacts / "report.png"
+    screenshot.unlink(missing_ok=True)
+    subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
+                    "--hide-scrollbars", "--window-size=1280,2400",
+                    f"--screenshot={screenshot}", path.as_uri()],
+                   capture_output=True, timeout=120, check=True)
+    import cv2
+    image = cv2.imread(str(screenshot))
+    assert image is not None and image.shape[:2] == (2400, 1280)
+    blue = (image[..., 0] > 150) & (image[..., 1] < 140) & (image[..., 2] < 100)
+    red = (image[..., 2] > 180) & (image[..., 1] < 80) & (image[..., 0] < 80)
+    assert blue.sum() > 500, "no route or histogram drawn"
+    assert red.sum() > 200, "no high-severity pothole or picture box drawn"
+    assert (image.std(axis=2) < 3).mean() < 0.99  # more than a blank page
