@@ -201,3 +201,16 @@ def test_the_best_view_shows_the_pothole_whole():
     poses = [Pose2(1.2 - f, 0.0, 0.0) for f in (1.2, 0.8, 0.3)]
     (tracked,) = track(observations, poses, Config())
     assert tracked.best().stamp_ns == 1
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("pothole_detector.backend").backend.gpu_available(),
+                    reason="needs CuPy and a CUDA device")
+def test_the_survey_on_the_gpu_gives_the_cpu_survey():
+    from conftest import REPO
+
+    drive = REPO / "bags" / "sample_drive"
+    on_gpu = survey([drive], Config({"backend": "gpu", "matcher": "census"}))[0]
+    on_cpu = survey([drive], Config({"backend": "cpu", "matcher": "census"}))[0]
+    assert len(on_gpu.potholes) == 5
+    assert_same_potholes(on_gpu, on_cpu)

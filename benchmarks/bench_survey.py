@@ -1,0 +1,92 @@
+"""Survey throughput: frames per second end to end (bag decoding, pipeline, visual odometry,
+tracking, survey.csv and report.html) on a drive bag of our generator, per image size. Prints
+a Markdown table for docs/benchmarks.md.
+
+    python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
+        [--backend cpu|gpu] [--ray [--chunk-frames 30]]
+
+The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
+frame at these sizes would take longer than the survey)."""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pothole_detector.bagtools import write_stereo_bag  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.report import write_report  # noqa: E402
+from pothole_detector.survey import (best_view_picture, drive_topics, survey,  # noqa: E402
+                                     write_csv)
+from pothole_detector.synthetic import render, survey_drive  # noqa: E402
+
+DISTINCT_FRAMES = 4
+
+
+def make_bag(bag: Path, samples: list, frames: int) -> Path:
+    write_stereo_bag(bag, ((1_700_000_000_000_000_000 + i * 33_333_333,
+                            samples[i % len(samples)]) for i in range(frames)))
+    return bag
+
+
+def bench(bag: Path, config: Config, use_ray: bool, out: Path) -> tuple[float, int]:
+    start = time.perf_counter()
+    surveys = survey([bag], config, use_ray=use_ray)
+    write_csv(surveys, out / "survey.csv")
+    topics = drive_topics(bag)
+    write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
+        d.bag, topics, p.row["best_stamp_ns"], p.bbox_px))
+    return time.perf_counter() - start, surveys[0].frames
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", nargs="+", default=["1280x720", "2079x1040"])
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--backend", default="cpu", choices=("cpu", "gpu", "auto"))
+    parser.add_argument("--ray", action="store_true", help="chunks as tasks on a local Ray")
+    parser.add_argument("--chunk-frames", type=int, default=600)
+    args = parser.parse_args()
+    config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        for size in args.sizes:
+            width, height = (int(v) for v in size.lower().split("x"))
+            scenes = survey_drive(frames=DISTINCT_FRAMES * 4, width=width, height=height)
+            samples = [render(replace(s, supersample=1)) for s in scenes[::4]]
+            bag = make_bag(folder / f"drive_{size}", samples, args.frames)
+            warm = folder / f"warm_{size}"
+            warm.mkdir()
+            bench(make_bag(warm / "drive", samples, 3), config, False, warm)  # compiles kernels
+            out = folder / f"out_{size}"
+            out.mkdir()
+            seconds, frames = bench(bag, config, args.ray, out)
+            rows.append((size, frames, seconds))
+    if args.backend == "cpu":
+        device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
+    else:
+        from pothole_detector.backend import get_backend
+        device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
+    mode = f"Ray, chunks of {args.chunk_frames} frames" if args.ray else "one process"
+    print(f"survey throughput, {device}, {mode}, {args.frames} frames a bag, "
+          f"{datetime.date.today().isoformat()}")
+    print("| size | frames | seconds (decode, pipeline, odometry, tracking, outputs) | "
+          "frames/s |")
+    print("| --- | --- | --- | --- |")
+    for size, frames, seconds in rows:
+        print(f"| {size} | {frames} | {seconds:.1f} | {frames / seconds:.1f} |")
+
+
+if __name__ == "__main__":
+    main()
