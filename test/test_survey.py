@@ -149,15 +149,16 @@ def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags):
 
 
 def assert_same_potholes(split, whole):
-    """A chunk starts with a fresh road fit, so its first frames may differ a little from the
-    same frames in one run: the same potholes, severities and sightings, positions within
-    2 cm and measurements within 10 %."""
+    """A chunk starts with a fresh road fit (and the backends' matchers differ in a few
+    pixels), so frames may differ a little: the same potholes and severities, first seen
+    within two frames, sightings within two, positions within 2 cm and measurements within
+    10 %."""
     assert len(split.potholes) == len(whole.potholes)
     for a, b in zip(split.potholes, whole.potholes):
         a, b = a.row, b.row
-        assert (a["pothole_id"], a["severity"], a["first_stamp_ns"]) == \
-            (b["pothole_id"], b["severity"], b["first_stamp_ns"])
-        assert abs(a["sightings"] - b["sightings"]) <= 1
+        assert (a["pothole_id"], a["severity"]) == (b["pothole_id"], b["severity"])
+        assert abs(a["first_stamp_ns"] - b["first_stamp_ns"]) <= 200_000_000
+        assert abs(a["sightings"] - b["sightings"]) <= 2
         assert math.hypot(a["odom_x_m"] - b["odom_x_m"], a["odom_y_m"] - b["odom_y_m"]) < 0.02
         for key in ("max_depth_m", "area_m2"):
             assert a[key] == pytest.approx(b[key], rel=0.1), key
