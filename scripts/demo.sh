@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Set up, then run the ROS 2 node live on the sample drive bag (play -> node -> record) and
-# process the same bag offline with overlay pictures; also detect on the bundled real pair.
+# process the same bag offline with overlay pictures, survey it (one entry per pothole, report
+# page); also detect on the bundled real pair.
 # Results: out/demo/live_outputs (bag recorded from the live node), out/demo/processed (mcap
-# with every output, opens in Foxglove), out/demo/pictures/*.png, out/sample/.
+# with every output, opens in Foxglove), out/demo/pictures/*.png, out/demo/survey/, out/sample/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
@@ -29,10 +30,12 @@ cat out/demo/record.log
 
 "$bin/pothole-detector" process bags/sample_drive --out out/demo/processed \
     --pictures out/demo/pictures
+"$bin/pothole-detector" survey bags/sample_drive --out out/demo/survey
 "$bin/pothole-detector" detect \
     --left bags/sample_pair/left.png --right bags/sample_pair/right.png \
     --camera-info-left bags/sample_pair/left_camera_info.yaml \
     --camera-info-right bags/sample_pair/right_camera_info.yaml \
     --out out/sample
 echo "live node outputs: out/demo/live_outputs; offline: out/demo/processed;" \
+     "survey: out/demo/survey/report.html and survey.csv;" \
      "pictures: out/demo/pictures/ and out/sample/overlay.png"

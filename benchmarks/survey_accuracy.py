@@ -1,0 +1,96 @@
+"""Survey accuracy on our generator's drive (48 frames, six potholes 1.5-8.5 cm deep, known
+poses): per motion source, potholes reported against the truth, duplicates, false entries,
+position errors, severity classes and the visual odometry's drift. Prints a Markdown table
+for docs/accuracy.md.
+
+    python benchmarks/survey_accuracy.py [--width 480]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pothole_detector import bagtools  # noqa: E402
+from pothole_detector.motion import enu_of, latlon_of  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.survey import severity, survey  # noqa: E402
+from pothole_detector.synthetic import render, survey_drive  # noqa: E402
+
+ORIGIN = (48.137, 11.575)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--width", type=int, default=480)
+    args = parser.parse_args()
+    scenes = [replace(s, supersample=1) for s in survey_drive(width=args.width,
+                                                               height=args.width * 9 // 16)]
+    samples = [render(s) for s in scenes]
+    start = scenes[0].camera_y_m
+    travelled = scenes[-1].camera_y_m - start
+    config = Config({"backend": "cpu"})
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        for kind, label in (("none", "visual odometry"), ("odom", "nav_msgs/Odometry"),
+                            ("gnss", "NavSatFix (GNSS)")):
+            def extras(index, stamp, sample, kind=kind):
+                forward = scenes[index].camera_y_m - start
+                if kind == "odom":
+                    return {"/odom": bagtools.odometry_message(stamp, forward, 0.0, 0.0)}
+                if kind == "gnss":
+                    lat, lon = latlon_of(np.array([[0.0, forward]]), *ORIGIN)[0]
+                    return {"/gnss/fix": bagtools.gnss_message(stamp, lat, lon)}
+                return {}
+            bag = Path(scratch) / kind
+            bagtools.write_stereo_bag(bag, ((1_700_000_000_000_000_000 + i * 100_000_000, s)
+                                            for i, s in enumerate(samples)), extras=extras)
+            (drive,) = survey([bag], config)
+            truths = []
+            for shape in scenes[0].potholes:
+                forward, left = shape.y_m - start, -shape.x_m
+                truths.append((np.array((-left, forward) if kind == "gnss" else (forward, left)),
+                               shape.depth_m))
+            errors, matched, right_class = [], set(), 0
+            for pothole in drive.potholes:
+                position = np.array([pothole.row["odom_x_m"], pothole.row["odom_y_m"]])
+                if kind == "gnss":
+                    position = enu_of(np.array([pothole.row["lat"]]),
+                                      np.array([pothole.row["lon"]]), *ORIGIN)[0]
+                gaps = [np.linalg.norm(position - t) for t, _ in truths]
+                nearest = int(np.argmin(gaps))
+                if gaps[nearest] < 0.2:
+                    matched.add(nearest)
+                    errors.append(gaps[nearest])
+                    right_class += pothole.row["severity"] == severity(truths[nearest][1], config)
+            false = len(drive.potholes) - len(errors)
+            duplicates = len(errors) - len(matched)
+            drift = ""
+            if kind == "none":
+                along, across = drive.route_xy[-1] - [travelled, 0.0]
+                drift = (f"{100 * abs(along) / travelled:.1f} % along, "
+                         f"{100 * abs(across) / travelled:.1f} % across")
+            rows.append((label, len(drive.potholes), len(truths), duplicates, false,
+                         np.median(errors) if errors else np.nan,
+                         max(errors) if errors else np.nan, right_class, drift))
+    print(f"survey accuracy, generator drive {args.width}x{args.width * 9 // 16}, 48 frames, "
+          f"{travelled:.2f} m, six potholes; {datetime.date.today().isoformat()}")
+    print("| motion from | reported / truth | duplicates | false | position error median / "
+          "max (m) | severity right | odometry drift at the end |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for label, found, total, dup, false, median, worst, right, drift in rows:
+        print(f"| {label} | {found} / {total} | {dup} | {false} | {median:.3f} / {worst:.3f} | "
+              f"{right} / {found} | {drift or '-'} |")
+
+
+if __name__ == "__main__":
+    main()
