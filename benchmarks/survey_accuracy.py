@@ -20,7 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pothole_detector import bagtools  # noqa: E402
-from pothole_detector.motion import enu_of, latlon_of  # noqa: E402
+from pothole_detector.motion import enu_of  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.survey import severity, survey  # noqa: E402
 from pothole_detector.synthetic import render, survey_drive  # noqa: E402
@@ -43,17 +43,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         for kind, label in (("none", "visual odometry"), ("odom", "nav_msgs/Odometry"),
                             ("gnss", "NavSatFix (GNSS)")):
-            def extras(index, stamp, sample, kind=kind):
-                forward = scenes[index].camera_y_m - start
-                if kind == "odom":
-                    return {"/odom": bagtools.odometry_message(stamp, forward, 0.0, 0.0)}
-                if kind == "gnss":
-                    lat, lon = latlon_of(np.array([[0.0, forward]]), *ORIGIN)[0]
-                    return {"/gnss/fix": bagtools.gnss_message(stamp, lat, lon)}
-                return {}
             bag = Path(scratch) / kind
-            bagtools.write_stereo_bag(bag, ((1_700_000_000_000_000_000 + i * 100_000_000, s)
-                                            for i, s in enumerate(samples)), extras=extras)
+            bagtools.write_drive_bag(bag, [s.camera_y_m - start for s in scenes], samples,
+                                     kind, ORIGIN)
             (drive,) = survey([bag], config)
             truths = []
             for shape in scenes[0].potholes:

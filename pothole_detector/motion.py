@@ -130,9 +130,13 @@ class StereoOdometry:
     frame's disparity, put into each frame's road frame and matched by a RANSAC planar rigid
     motion."""
 
-    def __init__(self, max_features: int = 600, tolerance_m: float = 0.02) -> None:
+    def __init__(self, max_features: int = 400, tolerance_m: float = 0.02,
+                 track_width_px: int = 720) -> None:
+        """``track_width_px``: wider images are tracked at half size (or smaller) for speed;
+        the disparities are still read at full size."""
         self.max_features = max_features
         self.tolerance_m = tolerance_m
+        self.track_width_px = track_width_px
         self._previous: tuple[np.ndarray, np.ndarray, RoadFrame] | None = None
 
     def reset(self) -> None:
@@ -143,21 +147,29 @@ class StereoOdometry:
         """The motion of the road frame since the previous call's frame (in the previous
         frame's road frame), or None on the first frame or when too few features agree.
         ``gray``: HxW uint8 left image; ``disparity``: HxW float px, NaN invalid."""
-        previous, self._previous = self._previous, (gray, disparity, frame)
+        height, width = gray.shape
+        scale = 1
+        while width // scale > self.track_width_px:
+            scale *= 2
+        small = gray
+        for _ in range(scale.bit_length() - 1):
+            small = cv2.pyrDown(small)
+        previous, self._previous = self._previous, (small, disparity, frame)
         if previous is None:
             return None
         gray0, disparity0, frame0 = previous
+        gray = small
         corners = cv2.goodFeaturesToTrack(gray0, self.max_features, 0.01, 7, blockSize=7)
         if corners is None or len(corners) < 8:
             return None
-        lk = dict(winSize=(21, 21), maxLevel=3,
-                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        lk = dict(winSize=(15, 15), maxLevel=3,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03))
         moved, found, _ = cv2.calcOpticalFlowPyrLK(gray0, gray, corners, None, **lk)
         back, found_back, _ = cv2.calcOpticalFlowPyrLK(gray, gray0, moved, None, **lk)
         good = (found.ravel() == 1) & (found_back.ravel() == 1) & (
             np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 0.5)
-        start, end = corners.reshape(-1, 2)[good], moved.reshape(-1, 2)[good]
-        height, width = gray.shape
+        start = corners.reshape(-1, 2)[good] * scale + (scale - 1) / 2
+        end = moved.reshape(-1, 2)[good] * scale + (scale - 1) / 2
         inside = (end[:, 0] >= 0) & (end[:, 0] <= width - 1) & (end[:, 1] >= 0) & (
             end[:, 1] <= height - 1)
         start, end = start[inside], end[inside]

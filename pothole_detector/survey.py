@@ -63,7 +63,8 @@ class Sighting:
 class FrameObservation:
     """What the survey keeps of one stereo frame: its potholes, the observed range (near, far,
     m along the road; NaN when none), the visual-odometry step from the previous frame (None
-    on the first frame or when it failed) and, when the frame failed, why."""
+    on the first frame or when it failed), its road frame's axes (rows forward, left, up in
+    the left optical frame; None when the frame failed) and, when the frame failed, why."""
 
     index: int
     stamp_ns: int
@@ -71,6 +72,7 @@ class FrameObservation:
     observed_range_m: tuple[float, float]
     step: Pose2 | None
     failure: str = ""
+    axes: tuple[tuple[float, ...], ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -150,7 +152,8 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0
             if index >= first:
                 observations.append(FrameObservation(
                     index, frame.stamp, _sightings(frame.stamp, result, plane, width, height),
-                    tuple(float(v) for v in result.observed_range_m), step))
+                    tuple(float(v) for v in result.observed_range_m), step,
+                    axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
     finally:
         reader.close()
     return observations
@@ -257,7 +260,22 @@ def frame_poses(observations: Sequence[FrameObservation], motion: MotionSeries
             last_step = observation.step or last_step
             pose = pose.compose(last_step)
         poses.append(pose)
-    return poses
+    turn = Pose2(0.0, 0.0, -_heading_error(observations))
+    return [turn.compose(p) for p in poses]
+
+
+def _heading_error(observations: Sequence[FrameObservation]) -> float:
+    """The heading (rad) of the drive's median forward axis in the first road frame: the
+    camera is fixed on the vehicle, so a frame's forward axis in the camera differs from the
+    median by its road fit's error, and visual odometry would carry the first frame's into
+    every position of the drive."""
+    frames = [np.asarray(o.axes) for o in observations if o.axes is not None]
+    if len(frames) < 3 or observations[0].axes is None:
+        return 0.0
+    forward = np.median([f[0] for f in frames], axis=0)
+    first = frames[0]
+    forward -= (forward @ first[2]) * first[2]
+    return math.atan2(float(forward @ first[1]), float(forward @ first[0]))
 
 
 @dataclass

@@ -57,28 +57,15 @@ def survey_drive_bags(tmp_path_factory):
     from dataclasses import replace
 
     from pothole_detector import bagtools
-    from pothole_detector.motion import latlon_of
     from pothole_detector.synthetic import survey_drive
 
     scenes = [replace(s, supersample=1) for s in survey_drive(width=480, height=270)]
     samples = [render(s) for s in scenes]
     folder = tmp_path_factory.mktemp("survey_drives")
-
-    def extras(kind):
-        def made(index, stamp, sample):
-            forward = scenes[index].camera_y_m - scenes[0].camera_y_m
-            if kind == "odom":
-                return {"/odom": bagtools.odometry_message(stamp, forward, 0.0, 0.0)}
-            if kind == "gnss":
-                lat, lon = latlon_of(np.array([[0.0, forward]]), *SURVEY_ORIGIN_LATLON)[0]
-                return {"/gnss/fix": bagtools.gnss_message(stamp, lat, lon)}
-            return {}
-        return made
-
+    forward = [s.camera_y_m - scenes[0].camera_y_m for s in scenes]
     bags = {}
-    for kind in ("none", "odom", "gnss"):
+    for kind in bagtools.DRIVE_MOTIONS:
         bags[kind] = folder / f"drive_{kind}"
-        bagtools.write_stereo_bag(
-            bags[kind], ((SURVEY_START_NS + index * 100_000_000, sample)
-                         for index, sample in enumerate(samples)), extras=extras(kind))
+        bagtools.write_drive_bag(bags[kind], forward, samples, kind, SURVEY_ORIGIN_LATLON,
+                                 SURVEY_START_NS)
     return bags, scenes, samples
