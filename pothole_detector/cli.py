@@ -269,7 +269,9 @@ def run_survey(args: argparse.Namespace) -> int:
     for drive in surveys:
         print(f"{drive.bag.name}: {drive.frames} frames ({drive.failed} failed), "
               f"{len(drive.potholes)} potholes, {drive.observed_length_m:.1f} m of road "
-              f"observed, motion from {drive.motion_source}")
+              f"observed, motion from {drive.motion_source}"
+              + (f"; {drive.left_out} seen in fewer than min_sightings "
+                 f"({config.min_sightings}) frames left out" if drive.left_out else ""))
     print(f"{len(potholes)} potholes ({by_class}) in {frames} frames, "
           f"{frames / max(elapsed, 1e-9):.1f} frames/s; wrote {out / 'survey.csv'}"
           + (f", {out / 'survey.geojson'}" if geojson else "") + f", {out / 'report.html'}")

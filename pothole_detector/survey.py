@@ -306,8 +306,7 @@ def track(observations: Sequence[FrameObservation], poses: Sequence[Pose2 | None
           config: Config) -> list[Track]:
     """Associate the sightings of consecutive frames on the road plane: a sighting joins the
     tracked pothole nearest to it within ``track_match_distance_m`` (or the sum of their
-    radii), each pothole at most once per frame; others start new tracks. Tracks seen fewer
-    than ``min_sightings`` times are left out."""
+    radii), each pothole at most once per frame; others start new tracks."""
     tracks: list[Track] = []
     for observation, pose in zip(observations, poses):
         if pose is None or not observation.sightings:
@@ -332,7 +331,7 @@ def track(observations: Sequence[FrameObservation], poses: Sequence[Pose2 | None
                 tracks.append(target)
             target.sightings.append(sighting)
             target.positions.append(position)
-    return [t for t in tracks if len(t.sightings) >= config.min_sightings]
+    return tracks
 
 
 @dataclass(frozen=True)
@@ -350,7 +349,8 @@ class SurveyPothole:
 class DriveSurvey:
     """The survey of one bag: its potholes, the route (motion-frame positions of the frames),
     the GNSS route (lat, lon) where the bag has GNSS, the motion source, the observed length
-    of road (m) and the frame counts."""
+    of road (m), the frame counts and how many tracked potholes were seen in fewer than
+    ``min_sightings`` frames (left out)."""
 
     bag: Path
     potholes: list[SurveyPothole]
@@ -360,6 +360,7 @@ class DriveSurvey:
     observed_length_m: float
     frames: int
     failed: int
+    left_out: int = 0
 
 
 def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: MotionSeries,
@@ -373,7 +374,9 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
             by_stamp[observation.stamp_ns] = observation
     frames = [by_stamp[s] for s in sorted(by_stamp)]
     poses = frame_poses(frames, motion)
-    tracks = sorted(track(frames, poses, config), key=lambda t: t.sightings[0].stamp_ns)
+    tracked_all = track(frames, poses, config)
+    tracks = sorted((t for t in tracked_all if len(t.sightings) >= config.min_sightings),
+                    key=lambda t: t.sightings[0].stamp_ns)
     to_latlon = _gnss_alignment(frames, poses, motion)
     route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)
     rows = []
@@ -401,7 +404,7 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     return DriveSurvey(Path(bag), rows, route,
                        to_latlon(route) if to_latlon and len(route) else None, motion.source,
                        _observed_length(frames, poses), len(frames),
-                       sum(bool(f.failure) for f in frames))
+                       sum(bool(f.failure) for f in frames), len(tracked_all) - len(tracks))
 
 
 def _gnss_alignment(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
