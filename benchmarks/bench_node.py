@@ -172,7 +172,8 @@ def main() -> None:
     for r in rows:
         print(f"| {r['size']} | {r['rate']:.0f} | {r['sent']} | {r['processed']} | "
               f"{r['processed_hz']:.1f} | {r['dropped']} | {r['lost']} | {r['p50']:.1f} | "
-              f"{r['p95']:.1f} | {r['work_p95']:.1f} | {r['cpu_ms']:.1f} | {r['conversion_ms']:.1f} | "
+              f"{r['p95']:.1f} | {r['work_p95']:.1f} | {r['cpu_ms']:.1f} | "
+              f"{r['conversion_ms']:.1f} | "
               f"{r['pipeline_ms']:.1f} | {r['rss']:.0f} |")
 
 

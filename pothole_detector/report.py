@@ -135,8 +135,8 @@ def _row_html(pothole: SurveyPothole) -> str:
         (f'{(r["best_stamp_ns"]) / 1e9:.3f}', r["best_stamp_ns"], ""),
     ]
     return "<tr>" + "".join(
-        f'<td class="{cls}"' + (f' data-v="{value}"' if value is not None else "") + f">{text}</td>"
-        for text, value, cls in cells) + "</tr>"
+        f'<td class="{cls}"' + (f' data-v="{value}"' if value is not None else "")
+        + f">{text}</td>" for text, value, cls in cells) + "</tr>"
 
 
 def write_report(surveys: Sequence[DriveSurvey], path: str | Path,

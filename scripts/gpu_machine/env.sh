@@ -33,7 +33,9 @@ _pd_setup() {
         echo "built our messages for $("$venv/bin/python" -V); bring $built back into" \
              ".gpu_machine/ so later runs only unpack it" >&2
     fi
-    pwd > "$("$venv/bin/python" -c 'import site; print(site.getsitepackages()[0])')/pothole_detector_repo.pth"
+    local venv_site
+    venv_site="$("$venv/bin/python" -c 'import site; print(site.getsitepackages()[0])')"
+    pwd > "$venv_site/pothole_detector_repo.pth"
     export PATH="$venv/bin:$PATH" VIRTUAL_ENV="$venv" AMENT_PREFIX_PATH="$venv"
     export RMW_IMPLEMENTATION=rmw_fastrtps_cpp
     export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"
