@@ -39,7 +39,8 @@ from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
-from .tracking import StableIds
+from .motion import Pose2, RoadFrame, road_frame
+from .tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
@@ -204,7 +205,8 @@ class PotholeDetectorNode(Node):
     ``pothole_labels``, ``pothole_points``, ``points2``, ``potholes``, ``pothole_markers``,
     ``overlay`` and ``/diagnostics``. Image outputs are computed only while subscribed; a
     worker thread takes the newest synchronized set, older waiting sets are dropped and
-    counted. A pothole keeps its label while it stays in view (tracking.StableIds)."""
+    counted. A pothole keeps its label while it stays in view (tracking.PotholeTracker, as in
+    the survey)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
@@ -223,7 +225,7 @@ class PotholeDetectorNode(Node):
         self._infos: dict[str, deque[CameraInfo]] = {"left": deque(maxlen=INFO_HISTORY),
                                                     "right": deque(maxlen=INFO_HISTORY)}
         self._reset_requested = False
-        self._ids = StableIds()
+        self._ids = self._tracker(self._config)
         self._pipeline: Pipeline | None = None
         self._pipeline_key: tuple[Any, ...] | None = None
         self._backend: Backend | None = None
@@ -260,6 +262,8 @@ class PotholeDetectorNode(Node):
             if changed & SYNC_PARAMETERS:
                 self._stats.unpaired_images(self._synchronizer.reset())
                 self._synchronizer = StereoSynchronizer.from_config(config)
+            self._ids.match_distance_m = config.track_match_distance_m
+            self._ids.forget_frames = config.track_forget_frames
         if changed & QOS_PARAMETERS:
             self._make_io(config)
         if "diagnostics_period_seconds" in changed:
@@ -480,7 +484,7 @@ class PotholeDetectorNode(Node):
         header = job.left.header
         publishers = self._outputs
         wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
-        ids = self._ids.assign(result.potholes)
+        ids = self._pothole_ids(job.stamp_ns, result, calibration, width, height)
         for name, message in output_messages(result, left, calibration, header, wanted,
                                              ids).messages.items():
             publishers[name].publish(message)
@@ -489,6 +493,21 @@ class PotholeDetectorNode(Node):
         self._stats.done((finished - job.received) * 1e3, (finished - began) * 1e3,
                          result.road.inlier_fraction, len(result.potholes),
                          (converted - started + published - ran) * 1e3, (ran - converted) * 1e3)
+
+    @staticmethod
+    def _tracker(config: Config) -> PotholeTracker:
+        return PotholeTracker(config.track_match_distance_m, config.track_forget_frames,
+                              max_id=MAX_ID, keep_history=False)
+
+    def _pothole_ids(self, stamp_ns: int, result: Any, calibration: StereoCalibration,
+                     width: int, height: int) -> list[int]:
+        """Each pothole's id: tracked on the road plane of this frame (no ego-motion in the
+        node: the identity pose), a fresh one where the road gives no road frame."""
+        try:
+            plane = road_frame(result.road, calibration, width, height)
+        except ValueError:
+            plane = RoadFrame(np.full(3, np.nan), np.full((3, 3), np.nan))
+        return self._ids.update(sightings_of(stamp_ns, result, plane, width, height), Pose2())
 
     # --- reporting --------------------------------------------------------------------------
 

@@ -236,6 +236,9 @@ PARAMETERS: tuple[Param, ...] = (
           "Survey: a sighting joins a tracked pothole whose position on the road (m, after "
           "ego-motion) is this close, or closer than the sum of their radii.", 0.01, 10.0,
           group="survey"),
+    Param("track_forget_frames", int, 30,
+          "Survey and node: a tracked pothole not seen for this many frames takes no more "
+          "sightings (it left the view).", 1, 100000, group="survey"),
     Param("min_sightings", int, 2,
           "Survey: a tracked pothole is reported when it was seen in at least this many "
           "frames.", 1, 1000, group="survey"),

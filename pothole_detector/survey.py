@@ -18,9 +18,10 @@ import numpy as np
 
 from . import bagtools
 from .errors import InputError, PotholeError
-from .motion import (Pose2, RoadFrame, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses,
+from .motion import (Pose2, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses,
                      latlon_of, road_frame, yaw_of_quaternion)
 from .params import Config
+from .tracking import PotholeTracker, Sighting, Track, sightings_of
 
 ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -38,25 +39,6 @@ def severity(max_depth_m: float, config: Config) -> str:
     if max_depth_m > config.severity_moderate_depth_m:
         return "moderate"
     return "low"
-
-
-@dataclass(frozen=True)
-class Sighting:
-    """One pothole in one frame: its centroid in the left optical frame and on the road
-    (road frame x forward, y left; m), whether it lies inside the observed range, its
-    measurements, its bounding box (x0, y0, x1, y1 px) and whether it lies whole in the
-    image (its box off the image border)."""
-
-    stamp_ns: int
-    camera_xyz: tuple[float, float, float]
-    road_xy: tuple[float, float]
-    observed: bool
-    max_depth_m: float
-    mean_depth_m: float
-    area_m2: float
-    volume_m3: float
-    bbox_px: tuple[int, int, int, int]
-    whole: bool = True
 
 
 @dataclass(frozen=True)
@@ -151,35 +133,12 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0
                                  frame.calibration)
             if index >= first:
                 observations.append(FrameObservation(
-                    index, frame.stamp, _sightings(frame.stamp, result, plane, width, height),
+                    index, frame.stamp, sightings_of(frame.stamp, result, plane, width, height),
                     tuple(float(v) for v in result.observed_range_m), step,
                     axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
     finally:
         reader.close()
     return observations
-
-
-def _sightings(stamp_ns: int, result: Any, plane: RoadFrame, width: int,
-               height: int) -> tuple[Sighting, ...]:
-    near, far = result.observed_range_m
-    made = []
-    for pothole in result.potholes:
-        centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
-        if not np.all(np.isfinite(centre)):
-            continue
-        forward, left, _ = plane.from_camera(centre[None, :])[0]
-        made.append(Sighting(
-            stamp_ns, tuple(float(v) for v in centre), (float(forward), float(left)),
-            bool(near <= forward <= far), float(pothole.max_depth_m),
-            float(pothole.mean_depth_m), float(pothole.area_m2), float(pothole.volume_m3),
-            tuple(int(v) for v in pothole.bbox_px), _off_border(pothole.bbox_px, width, height)))
-    return tuple(made)
-
-
-def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bool:
-    x0, y0, x1, y1 = (int(v) for v in bbox_px)
-    return (x0 >= margin_px and y0 >= margin_px and x1 < width - margin_px
-            and y1 < height - margin_px)
 
 
 @dataclass
@@ -278,60 +237,16 @@ def _heading_error(observations: Sequence[FrameObservation]) -> float:
     return math.atan2(float(forward @ first[1]), float(forward @ first[0]))
 
 
-@dataclass
-class Track:
-    """One physical pothole: its sightings and their positions in the motion frame."""
-
-    sightings: list[Sighting] = field(default_factory=list)
-    positions: list[np.ndarray] = field(default_factory=list)
-
-    @property
-    def position(self) -> np.ndarray:
-        return np.median(np.asarray(self.positions), axis=0)
-
-    @property
-    def radius_m(self) -> float:
-        return math.sqrt(max(float(np.median([s.area_m2 for s in self.sightings])), 0.0)
-                         / math.pi)
-
-    def best(self) -> Sighting:
-        """The nearest sighting that lies whole in the image inside the observed range (else
-        the nearest whole one, else the nearest)."""
-        candidates = ([s for s in self.sightings if s.observed and s.whole]
-                      or [s for s in self.sightings if s.whole] or self.sightings)
-        return min(candidates, key=lambda s: s.road_xy[0])
-
-
 def track(observations: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
           config: Config) -> list[Track]:
-    """Associate the sightings of consecutive frames on the road plane: a sighting joins the
-    tracked pothole nearest to it within ``track_match_distance_m`` (or the sum of their
-    radii), each pothole at most once per frame; others start new tracks."""
-    tracks: list[Track] = []
+    """Every pothole tracked over the frames (tracking.PotholeTracker), also those seen once."""
+    tracker = PotholeTracker(config.track_match_distance_m, config.track_forget_frames)
     for observation, pose in zip(observations, poses):
-        if pose is None or not observation.sightings:
-            continue
-        positions = pose.apply(np.array([s.road_xy for s in observation.sightings]))
-        candidates = []
-        for i, (sighting, position) in enumerate(zip(observation.sightings, positions)):
-            radius = math.sqrt(max(sighting.area_m2, 0.0) / math.pi)
-            for j, existing in enumerate(tracks):
-                gap = float(np.linalg.norm(existing.position - position))
-                if gap < max(config.track_match_distance_m, existing.radius_m + radius):
-                    candidates.append((gap, i, j))
-        joined: dict[int, int] = {}
-        taken: set[int] = set()
-        for _, i, j in sorted(candidates):
-            if i not in joined and j not in taken:
-                joined[i] = j
-                taken.add(j)
-        for i, (sighting, position) in enumerate(zip(observation.sightings, positions)):
-            target = tracks[joined[i]] if i in joined else Track()
-            if i not in joined:
-                tracks.append(target)
-            target.sightings.append(sighting)
-            target.positions.append(position)
-    return tracks
+        if pose is None:
+            tracker.skip()
+        else:
+            tracker.update(observation.sightings, pose)
+    return tracker.tracks
 
 
 @dataclass(frozen=True)
@@ -375,7 +290,8 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     frames = [by_stamp[s] for s in sorted(by_stamp)]
     poses = frame_poses(frames, motion)
     tracked_all = track(frames, poses, config)
-    tracks = sorted((t for t in tracked_all if len(t.sightings) >= config.min_sightings),
+    tracks = sorted((t for t in tracked_all if len(t.sightings) >= config.min_sightings
+                     and np.all(np.isfinite(t.position))),
                     key=lambda t: t.sightings[0].stamp_ns)
     to_latlon = _gnss_alignment(frames, poses, motion)
     route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)

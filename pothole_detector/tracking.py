@@ -1,59 +1,162 @@
-"""Pothole ids that stay the same while a pothole stays in view: each frame's potholes take the
-id of the previous frame's pothole whose footprint on the road overlaps theirs."""
+"""Pothole ids that stay with a physical pothole: each frame's potholes are put on the road
+plane (the frame's road frame, carried into a motion frame by the ego-motion where it is
+known) and join the tracked pothole nearest to them. The survey and the live node use the
+same tracker."""
 
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Sequence
 
 import numpy as np
 
-from .stages.measure import Pothole
+from .motion import Pose2, RoadFrame
 
-
-# the largest id: the label image (pothole_labels) is mono16
+# the largest id the node publishes: the label image (pothole_labels) is mono16
 MAX_ID = 65535
 
 
-class StableIds:
-    """Gives ids (1, 2, ...) to potholes frame after frame. Two potholes of consecutive frames
-    are the same where their footprints overlap: circles of the pothole's area about its
-    centroid (left optical frame, m) closer than the sum of their radii; the largest overlap
-    pairs first. A pothole that matches none takes the next id; ids count up to MAX_ID (the
-    label image is 16-bit) and then start again at 1."""
+@dataclass(frozen=True)
+class Sighting:
+    """One pothole in one frame: its centroid in the left optical frame and on the road
+    (road frame x forward, y left; m), whether it lies inside the observed range, its
+    measurements, its bounding box (x0, y0, x1, y1 px) and whether it lies whole in the
+    image (its box off the image border)."""
 
-    def __init__(self) -> None:
-        self._previous: list[tuple[int, np.ndarray, float]] = []
+    stamp_ns: int
+    camera_xyz: tuple[float, float, float]
+    road_xy: tuple[float, float]
+    observed: bool
+    max_depth_m: float
+    mean_depth_m: float
+    area_m2: float
+    volume_m3: float
+    bbox_px: tuple[int, int, int, int]
+    whole: bool = True
+
+
+def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int,
+                 height: int) -> tuple[Sighting, ...]:
+    """The sightings of a PipelineResult's potholes, in its order, on the road frame
+    ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
+    position, which matches no track)."""
+    near, far = result.observed_range_m
+    made = []
+    for pothole in result.potholes:
+        centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
+        forward, left, _ = plane.from_camera(centre[None, :])[0]
+        made.append(Sighting(
+            stamp_ns, tuple(float(v) for v in centre), (float(forward), float(left)),
+            bool(near <= forward <= far), float(pothole.max_depth_m),
+            float(pothole.mean_depth_m), float(pothole.area_m2), float(pothole.volume_m3),
+            tuple(int(v) for v in pothole.bbox_px), _off_border(pothole.bbox_px, width, height)))
+    return tuple(made)
+
+
+def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bool:
+    x0, y0, x1, y1 = (int(v) for v in bbox_px)
+    return (x0 >= margin_px and y0 >= margin_px and x1 < width - margin_px
+            and y1 < height - margin_px)
+
+
+@dataclass
+class Track:
+    """One physical pothole: its id, sightings and their positions in the motion frame (m),
+    and the frame it was last seen in."""
+
+    id: int
+    sightings: list[Sighting] = field(default_factory=list)
+    positions: list[np.ndarray] = field(default_factory=list)
+    last_frame: int = 0
+
+    @property
+    def position(self) -> np.ndarray:
+        """Its position (m): the median of its sightings'."""
+        return np.median(np.asarray(self.positions), axis=0)
+
+    @property
+    def radius_m(self) -> float:
+        """The radius (m) of a disc of its median area."""
+        return math.sqrt(max(float(np.median([s.area_m2 for s in self.sightings])), 0.0)
+                         / math.pi)
+
+    def best(self) -> Sighting:
+        """The nearest sighting that lies whole in the image inside the observed range (else
+        the nearest whole one, else the nearest)."""
+        candidates = ([s for s in self.sightings if s.observed and s.whole]
+                      or [s for s in self.sightings if s.whole] or self.sightings)
+        return min(candidates, key=lambda s: s.road_xy[0])
+
+
+class PotholeTracker:
+    """Tracks potholes frame after frame on the road plane. A sighting joins the track whose
+    latest position is nearest, within ``match_distance_m`` or the sum of their radii, each
+    track at most once a frame (nearest pairs first); the others start tracks with the next
+    id (counting to ``max_id``, then from 1 again). Tracks not seen for ``forget_frames``
+    frames take no more sightings. Without ego-motion, give the identity pose: the potholes
+    then move on the road frame by the vehicle's motion between frames. ``tracks`` keeps
+    every track when ``keep_history`` (the survey), else only those in view (the node)."""
+
+    def __init__(self, match_distance_m: float, forget_frames: int,
+                 max_id: int | None = None, keep_history: bool = True) -> None:
+        self.match_distance_m = match_distance_m
+        self.forget_frames = forget_frames
+        self.max_id = max_id
+        self.keep_history = keep_history
+        self.tracks: list[Track] = []
+        self._active: list[Track] = []
+        self._frame = 0
         self._next = 1
 
     def reset(self) -> None:
-        """Forget the previous frame (a gap in the input, a new drive)."""
-        self._previous = []
+        """Forget the tracks in view (a gap in the input, a new drive); ids count on."""
+        self._active = []
 
-    def assign(self, potholes: Sequence[Pothole]) -> list[int]:
-        """The id of each of ``potholes`` (this frame's, in order)."""
-        current = [(np.asarray(p.centroid_cam_m, dtype=np.float64),
-                    math.sqrt(max(p.area_m2, 0.0) / math.pi)) for p in potholes]
-        pairs = sorted(((float(np.linalg.norm(c - pc)) - r - pr, i, j)
-                        for i, (c, r) in enumerate(current)
-                        for j, (_, pc, pr) in enumerate(self._previous)
-                        if np.all(np.isfinite(c)) and np.all(np.isfinite(pc))))
-        ids: list[int | None] = [None] * len(current)
+    def skip(self) -> None:
+        """A frame without a pose or without a road: tracks age by one frame."""
+        self._frame += 1
+
+    def update(self, sightings: Sequence[Sighting], pose: Pose2) -> list[int]:
+        """The id of each of this frame's ``sightings`` (road-frame positions carried into
+        the motion frame by ``pose``)."""
+        self._frame += 1
+        self._active = [t for t in self._active
+                        if self._frame - t.last_frame <= self.forget_frames]
+        if not sightings:
+            return []
+        positions = pose.apply(np.array([s.road_xy for s in sightings]))
+        candidates = []
+        for i, (sighting, position) in enumerate(zip(sightings, positions)):
+            radius = math.sqrt(max(sighting.area_m2, 0.0) / math.pi)
+            for j, existing in enumerate(self._active):
+                gap = float(np.linalg.norm(existing.positions[-1] - position))
+                if gap < max(self.match_distance_m, existing.radius_m + radius):
+                    candidates.append((gap, i, j))
+        joined: dict[int, Track] = {}
         taken: set[int] = set()
-        for gap, i, j in pairs:
-            if gap < 0 and ids[i] is None and j not in taken:
-                ids[i] = self._previous[j][0]
+        for _, i, j in sorted(candidates):
+            if i not in joined and j not in taken:
+                joined[i] = self._active[j]
                 taken.add(j)
-        for i, given in enumerate(ids):
-            if given is None:
-                ids[i] = self._next
-                self._next = self._next % MAX_ID + 1
-        final = [int(i) for i in ids if i is not None]
-        self._previous = [(final[i], c, r) for i, (c, r) in enumerate(current)]
-        return final
+        ids = []
+        for i, (sighting, position) in enumerate(zip(sightings, positions)):
+            target = joined.get(i)
+            if target is None:
+                target = Track(self._next)
+                self._next = self._next + 1 if self.max_id is None else \
+                    self._next % self.max_id + 1
+                if self.keep_history:
+                    self.tracks.append(target)
+                self._active.append(target)
+            target.sightings.append(sighting)
+            target.positions.append(position)
+            target.last_frame = self._frame
+            ids.append(target.id)
+        return ids
 
 
-def relabel(labels: np.ndarray, potholes: Sequence[Pothole], ids: Sequence[int]) -> np.ndarray:
+def relabel(labels: np.ndarray, potholes: Sequence[Any], ids: Sequence[int]) -> np.ndarray:
     """``labels`` (int HxW, 0 = road, k = the pothole of label k) with each of ``potholes``
     renamed to its entry of ``ids``."""
     table = np.zeros(max((p.label for p in potholes), default=0) + 1, dtype=np.int64)
