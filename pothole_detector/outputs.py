@@ -48,8 +48,8 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
                     ids: Sequence[int] | None = None) -> Outputs:
     """``potholes`` and the outputs named in ``wanted`` for ``result`` of the pair whose left
     image (host, HxW or HxWx3) is ``left``, each stamped with ``header``; with ``ids``
-    (tracking.StableIds), pothole k is named ``ids[k - 1]`` in every message. Only the arrays
-    these messages need are copied to the host, each once."""
+    (tracking.PotholeTracker), pothole k is named ``ids[k - 1]`` in every message. Only the
+    arrays these messages need are copied to the host, each once."""
     from . import conversions
 
     unknown = set(wanted) - set(OUTPUT_TYPES)
