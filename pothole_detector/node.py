@@ -13,6 +13,7 @@ from typing import Any, Sequence
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.clock import Clock, ClockType
@@ -39,12 +40,13 @@ from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
-from .motion import Pose2, RoadFrame, road_frame
+from .motion import Pose2, RoadFrame, interpolate_poses, road_frame, yaw_of_quaternion
 from .tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
-QOS_PARAMETERS = frozenset({"qos_depth"})
+QOS_PARAMETERS = frozenset({"qos_depth", "use_odometry"})
+ODOMETRY_HISTORY = 400
 SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
                              "queue_size"})
 INFO_HISTORY = 32
@@ -226,6 +228,7 @@ class PotholeDetectorNode(Node):
                                                     "right": deque(maxlen=INFO_HISTORY)}
         self._reset_requested = False
         self._ids = self._tracker(self._config)
+        self._odometry: deque[tuple[int, Pose2]] = deque(maxlen=ODOMETRY_HISTORY)
         self._pipeline: Pipeline | None = None
         self._pipeline_key: tuple[Any, ...] | None = None
         self._backend: Backend | None = None
@@ -307,6 +310,8 @@ class PotholeDetectorNode(Node):
             subscribe(CameraInfo, "left/camera_info", lambda m: self._on_info("left", m)),
             subscribe(CameraInfo, "right/camera_info", lambda m: self._on_info("right", m)),
         ]
+        if config.use_odometry:
+            self._inputs.append(subscribe(Odometry, "odom", self._on_odometry))
         self._outputs = {
             "disparity": publish(DisparityImage, "disparity"),
             "disparity_transformed": publish(Image, "disparity_transformed"),
@@ -334,6 +339,14 @@ class PotholeDetectorNode(Node):
                       f"a subscriber of {name} asks for QoS the publisher does not offer (DDS "
                       f"names the {policy} policy), so it gets nothing; {offer}subscribe with "
                       f"volatile durability, or set qos_overrides.{name}.publisher.* to match")
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        pose = msg.pose.pose
+        with self._lock:
+            self._odometry.append((conversions.stamp_ns(msg.header), Pose2(
+                float(pose.position.x), float(pose.position.y), yaw_of_quaternion(
+                    pose.orientation.x, pose.orientation.y, pose.orientation.z,
+                    pose.orientation.w))))
 
     def _on_info(self, side: str, msg: CameraInfo) -> None:
         with self._lock:
@@ -501,13 +514,24 @@ class PotholeDetectorNode(Node):
 
     def _pothole_ids(self, stamp_ns: int, result: Any, calibration: StereoCalibration,
                      width: int, height: int) -> list[int]:
-        """Each pothole's id: tracked on the road plane of this frame (no ego-motion in the
-        node: the identity pose), a fresh one where the road gives no road frame."""
+        """Each pothole's id: tracked on the road plane of this frame, carried by the
+        odometry's pose at the frame's stamp (use_odometry; else the identity pose), a fresh
+        one where the road gives no road frame."""
         try:
             plane = road_frame(result.road, calibration, width, height)
         except ValueError:
             plane = RoadFrame(np.full(3, np.nan), np.full((3, 3), np.nan))
-        return self._ids.update(sightings_of(stamp_ns, result, plane, width, height), Pose2())
+        pose = Pose2()
+        if self._config.use_odometry:
+            with self._lock:
+                history = list(self._odometry)
+            found = interpolate_poses(np.array([t for t, _ in history], dtype=np.int64),
+                                      [p for _, p in history], stamp_ns) if history else None
+            if found is None:
+                self._problem("odometry", "no odometry on odom within 0.5 s of the stereo "
+                                          "stamp; tracking potholes without the motion")
+            pose = found or pose
+        return self._ids.update(sightings_of(stamp_ns, result, plane, width, height), pose)
 
     # --- reporting --------------------------------------------------------------------------
 

@@ -196,6 +196,11 @@ PARAMETERS: tuple[Param, ...] = (
     # node
     Param("backend", str, "auto", "Array backend: gpu (CuPy), cpu (NumPy), or auto (gpu when "
           "CuPy sees a device, else cpu).", choices=("auto", "cpu", "gpu"), group="node"),
+    Param("use_odometry", bool, False,
+          "Track potholes with the vehicle's motion from nav_msgs/Odometry on the relative "
+          "topic odom (the planar pose of the road point below the camera); without it ids "
+          "hold while a pothole moves less than track_match_distance_m between frames.",
+          group="node"),
     Param("approximate_sync", bool, False,
           "Pair left and right images whose stamps differ by at most "
           "approximate_sync_tolerance_seconds (false: identical stamps only).", group="node"),

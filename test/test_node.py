@@ -496,3 +496,35 @@ def test_statistics_tell_whether_the_worker_keeps_up():
     for _ in range(30):  # 60 sets a second at 20 ms: 1.2 s of work a second
         stats.input_set()
     assert not stats.keeping_up()
+
+
+@pytest.mark.parametrize("odometry", [False, True])
+def test_pothole_ids_follow_the_odometry(node_factory, probe, odometry):
+    """Every sixth frame of the sample drive (0.3 m apart, more than the match distance and
+    about the potholes' spacing): with use_odometry an id that carries over names the same
+    generated pothole; without it, ids jump to the next pothole."""
+    from nav_msgs.msg import Odometry
+
+    from pothole_detector.bagtools import odometry_message
+
+    node_factory(backend="cpu", use_odometry=odometry)
+    p = probe(outputs=("potholes", "pothole_labels"))
+    odom = p.node.create_publisher(Odometry, "/stereo/odom", 10)
+    p.wait_connected()
+    drive = sample_frames(16)
+    picked = (0, 6, 12)
+    for count, index in enumerate(picked, start=1):
+        stamp = stamp_ns(drive[index]["left"].header)
+        odom.publish(odometry_message(stamp, 0.05 * index, 0.0, 0.0))
+        p.spin(0.2)
+        p.publish(drive[index], stamp)
+        assert p.spin(30, lambda: len(p.received["pothole_labels"]) == count)
+    truth_of = []  # per frame: id -> the generated pothole under most of its pixels
+    for index, msg in zip(picked, p.received["pothole_labels"]):
+        labels, truth = labels_of(msg), labels_of(drive[index]["truth"])
+        truth_of.append({int(i): int(np.bincount(truth[labels == i]).argmax())
+                         for i in np.unique(labels) if i})
+    carried = [(i, a[i], b[i]) for a, b in zip(truth_of, truth_of[1:]) for i in a if i in b]
+    assert carried, truth_of
+    same = [before == after for _, before, after in carried]
+    assert all(same) if odometry else not all(same), truth_of
