@@ -25,8 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pothole_detector.bagtools import write_stereo_bag  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.report import write_report  # noqa: E402
-from pothole_detector.survey import (best_view_picture, drive_topics, survey,  # noqa: E402
-                                     write_csv)
+from pothole_detector.survey import best_view_picture, survey, write_csv  # noqa: E402
 from pothole_detector.synthetic import render, survey_drive  # noqa: E402
 
 DISTINCT_FRAMES = 4
@@ -42,9 +41,8 @@ def bench(bag: Path, config: Config, use_ray: bool, out: Path) -> tuple[float, i
     start = time.perf_counter()
     surveys = survey([bag], config, use_ray=use_ray)
     write_csv(surveys, out / "survey.csv")
-    topics = drive_topics(bag)
     write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
-        d.bag, topics, p.row["best_stamp_ns"], p.bbox_px))
+        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px))
     return time.perf_counter() - start, surveys[0].frames
 
 

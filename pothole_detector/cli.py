@@ -240,7 +240,7 @@ def run_process(args: argparse.Namespace) -> int:
 
 def run_survey(args: argparse.Namespace) -> int:
     from .report import write_report
-    from .survey import best_view_picture, drive_topics, survey, write_csv, write_geojson
+    from .survey import best_view_picture, survey, write_csv, write_geojson
 
     config = _config(args.config, args.backend)
     names = dict(odometry=args.odometry_topic, gnss=args.gnss_topic,
@@ -258,9 +258,8 @@ def run_survey(args: argparse.Namespace) -> int:
                      **names)
     write_csv(surveys, out / "survey.csv")
     geojson = write_geojson(surveys, out / "survey.geojson")
-    topics = {drive.bag: drive_topics(drive.bag, **names) for drive in surveys}
     write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(
-        drive.bag, topics[drive.bag], pothole.row["best_stamp_ns"], pothole.bbox_px))
+        drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px))
     potholes = [p for drive in surveys for p in drive.potholes]
     by_class = ", ".join(f"{sum(p.row['severity'] == s for p in potholes)} {s}"
                          for s in ("low", "moderate", "high"))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -211,9 +212,12 @@ def interpolate_poses(stamps_ns: np.ndarray, poses: list[Pose2],
                  _wrap(a.yaw + w * _wrap(b.yaw - a.yaw)))
 
 
-def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """Heading (rad) about z of a quaternion."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+def planar_pose(position: Any, orientation: Any) -> Pose2:
+    """The planar pose of a geometry_msgs Point/Vector3 ``position`` (m; x, y kept) and
+    Quaternion ``orientation`` (its heading about z)."""
+    q = orientation
+    yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    return Pose2(float(position.x), float(position.y), yaw)
 
 
 def enu_of(lat_deg: np.ndarray, lon_deg: np.ndarray, lat0_deg: float,

@@ -40,7 +40,7 @@ from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .sync import StereoSynchronizer
-from .motion import Pose2, RoadFrame, interpolate_poses, road_frame, yaw_of_quaternion
+from .motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
 from .tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
@@ -89,10 +89,8 @@ class Statistics:
         self.lock = threading.Lock()
         self.window = window_seconds
         self.inputs: deque[float] = deque()
-        self.processed: deque[float] = deque()
-        self.latencies_ms: deque[tuple[float, float]] = deque()
-        self.cpu_ms: deque[tuple[float, float, float]] = deque()
-        self.work_ms: deque[tuple[float, float]] = deque()
+        # per processed set: (when, latency, work, conversion CPU, pipeline CPU), ms
+        self.processed: deque[tuple[float, float, float, float, float]] = deque()
         self.dropped = 0
         self.unpaired = 0
         self.errors = 0
@@ -108,12 +106,10 @@ class Statistics:
         self.last_failure = ""
 
     def _trim(self, now: float) -> None:
-        for queue in (self.inputs, self.processed):
-            while queue and queue[0] < now - self.window:
-                queue.popleft()
-        for timed in (self.latencies_ms, self.cpu_ms, self.work_ms):
-            while timed and timed[0][0] < now - self.window:
-                timed.popleft()
+        while self.inputs and self.inputs[0] < now - self.window:
+            self.inputs.popleft()
+        while self.processed and self.processed[0][0] < now - self.window:
+            self.processed.popleft()
 
     def input_set(self) -> None:
         with self.lock:
@@ -150,10 +146,8 @@ class Statistics:
         the pipeline."""
         now = time.monotonic()
         with self.lock:
-            self.processed.append(now)
-            self.latencies_ms.append((now, latency_ms))
-            self.work_ms.append((now, work_ms))
-            self.cpu_ms.append((now, conversion_cpu_ms, pipeline_cpu_ms))
+            self.processed.append((now, latency_ms, work_ms, conversion_cpu_ms,
+                                   pipeline_cpu_ms))
             self.road_inlier_fraction = inlier_fraction
             self.potholes = potholes
             self.frames += 1
@@ -165,29 +159,29 @@ class Statistics:
         now = time.monotonic()
         with self.lock:
             self._trim(now)
-            if not self.work_ms:
+            if not self.processed:
                 return True
-            work_s = sum(value for _, value in self.work_ms) / len(self.work_ms) / 1e3
+            work_s = sum(timed[2] for timed in self.processed) / len(self.processed) / 1e3
             return work_s * len(self.inputs) / self.window < 1.0
 
     def snapshot(self) -> dict[str, Any]:
         now = time.monotonic()
         with self.lock:
             self._trim(now)
-            latencies = np.array([value for _, value in self.latencies_ms])
-            cpu = np.array([timed[1:] for timed in self.cpu_ms]).reshape(-1, 2)
-            work = np.array([value for _, value in self.work_ms])
+            timed = np.array(self.processed, dtype=np.float64).reshape(-1, 5)
+            latencies, work, conversion, pipeline = timed[:, 1:].T
+            some = len(timed) > 0
             span = self.window
             return {
                 "input_rate_hz": len(self.inputs) / span,
                 "processed_rate_hz": len(self.processed) / span,
                 "dropped_sets": self.dropped,
                 "unpaired_images": self.unpaired,
-                "latency_p50_ms": float(np.percentile(latencies, 50)) if latencies.size else 0.0,
-                "latency_p95_ms": float(np.percentile(latencies, 95)) if latencies.size else 0.0,
-                "work_p95_ms": float(np.percentile(work, 95)) if work.size else 0.0,
-                "conversion_cpu_ms_per_frame": float(cpu[:, 0].mean()) if cpu.size else 0.0,
-                "pipeline_cpu_ms_per_frame": float(cpu[:, 1].mean()) if cpu.size else 0.0,
+                "latency_p50_ms": float(np.percentile(latencies, 50)) if some else 0.0,
+                "latency_p95_ms": float(np.percentile(latencies, 95)) if some else 0.0,
+                "work_p95_ms": float(np.percentile(work, 95)) if some else 0.0,
+                "conversion_cpu_ms_per_frame": float(conversion.mean()) if some else 0.0,
+                "pipeline_cpu_ms_per_frame": float(pipeline.mean()) if some else 0.0,
                 "road_inlier_fraction": self.road_inlier_fraction,
                 "potholes_last_frame": self.potholes,
                 "frames_processed": self.frames,
@@ -341,12 +335,9 @@ class PotholeDetectorNode(Node):
                       f"volatile durability, or set qos_overrides.{name}.publisher.* to match")
 
     def _on_odometry(self, msg: Odometry) -> None:
-        pose = msg.pose.pose
+        pose = planar_pose(msg.pose.pose.position, msg.pose.pose.orientation)
         with self._lock:
-            self._odometry.append((conversions.stamp_ns(msg.header), Pose2(
-                float(pose.position.x), float(pose.position.y), yaw_of_quaternion(
-                    pose.orientation.x, pose.orientation.y, pose.orientation.z,
-                    pose.orientation.w))))
+            self._odometry.append((conversions.stamp_ns(msg.header), pose))
 
     def _on_info(self, side: str, msg: CameraInfo) -> None:
         with self._lock:

@@ -18,8 +18,9 @@ import numpy as np
 
 from . import bagtools
 from .errors import InputError, PotholeError
+from .conversions import stamp_ns
 from .motion import (Pose2, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses,
-                     latlon_of, road_frame, yaw_of_quaternion)
+                     latlon_of, planar_pose, road_frame)
 from .params import Config
 from .tracking import PotholeTracker, Sighting, Track, sightings_of
 
@@ -102,7 +103,7 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0
     from .backend import get_backend
     from .stages.matching import to_gray8
 
-    start = max(0, first - config.chunk_overlap_frames) if first else 0
+    start = max(0, first - config.chunk_overlap_frames)
     reader = bagtools.open_bag(bag)
     odometry = StereoOdometry()
     observations = []
@@ -112,29 +113,23 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0
         for offset, (frame, outcome) in enumerate(bagtools.frame_results(
                 reader, topics.stereo, config, backend, summary, progress, start, stop)):
             index = start + offset
-            if isinstance(outcome, PotholeError):
-                odometry.reset()
-                if index >= first:
-                    observations.append(FrameObservation(index, frame.stamp, (),
-                                                         (math.nan, math.nan), None,
-                                                         str(outcome)))
-                continue
-            result = outcome
-            height, width = frame.left.shape[:2]
             try:
-                plane = road_frame(result.road, frame.calibration, width, height)
-            except ValueError as exc:
+                if isinstance(outcome, PotholeError):
+                    raise outcome
+                height, width = frame.left.shape[:2]
+                plane = road_frame(outcome.road, frame.calibration, width, height)
+            except (PotholeError, ValueError) as exc:
                 odometry.reset()
                 if index >= first:
                     observations.append(FrameObservation(index, frame.stamp, (),
                                                          (math.nan, math.nan), None, str(exc)))
                 continue
-            step = odometry.step(to_gray8(frame.left), result.host("disparity"), plane,
+            step = odometry.step(to_gray8(frame.left), outcome.host("disparity"), plane,
                                  frame.calibration)
             if index >= first:
                 observations.append(FrameObservation(
-                    index, frame.stamp, sightings_of(frame.stamp, result, plane, width, height),
-                    tuple(float(v) for v in result.observed_range_m), step,
+                    index, frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height),
+                    tuple(float(v) for v in outcome.observed_range_m), step,
                     axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
     finally:
         reader.close()
@@ -163,19 +158,16 @@ def read_motion(bag: str | Path, topics: DriveTopics) -> MotionSeries:
     tf_stamps, tf_poses = [], []
     for topic, _, msg in bagtools.read_messages(bag, wanted):
         if topic == topics.odometry:
-            p = msg.pose.pose
-            stamps.append(_stamp(msg.header))
-            poses.append(Pose2(float(p.position.x), float(p.position.y), yaw_of_quaternion(
-                p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)))
+            stamps.append(stamp_ns(msg.header))
+            poses.append(planar_pose(msg.pose.pose.position, msg.pose.pose.orientation))
         elif topic == topics.tf:
             for transform in msg.transforms:
                 if transform.child_frame_id.strip("/") == topics.base_frame:
-                    t, q = transform.transform.translation, transform.transform.rotation
-                    tf_stamps.append(_stamp(transform.header))
-                    tf_poses.append(Pose2(float(t.x), float(t.y),
-                                          yaw_of_quaternion(q.x, q.y, q.z, q.w)))
+                    tf_stamps.append(stamp_ns(transform.header))
+                    tf_poses.append(planar_pose(transform.transform.translation,
+                                                transform.transform.rotation))
         elif topic == topics.gnss and msg.status.status >= 0 and math.isfinite(msg.latitude):
-            gnss_stamps.append(_stamp(msg.header))
+            gnss_stamps.append(stamp_ns(msg.header))
             gnss.append((float(msg.latitude), float(msg.longitude)))
     if not stamps and tf_stamps:
         stamps, poses, series.source = tf_stamps, tf_poses, f"/tf ({topics.base_frame})"
@@ -192,10 +184,6 @@ def read_motion(bag: str | Path, topics: DriveTopics) -> MotionSeries:
         if not stamps:
             series.source = f"GNSS ({topics.gnss})"
     return series
-
-
-def _stamp(header: Any) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 def frame_poses(observations: Sequence[FrameObservation], motion: MotionSeries
@@ -264,8 +252,8 @@ class SurveyPothole:
 class DriveSurvey:
     """The survey of one bag: its potholes, the route (motion-frame positions of the frames),
     the GNSS route (lat, lon) where the bag has GNSS, the motion source, the observed length
-    of road (m), the frame counts and how many tracked potholes were seen in fewer than
-    ``min_sightings`` frames (left out)."""
+    of road (m), the frame counts, how many tracked potholes were seen in fewer than
+    ``min_sightings`` frames (left out) and the topics it was read from."""
 
     bag: Path
     potholes: list[SurveyPothole]
@@ -276,10 +264,12 @@ class DriveSurvey:
     frames: int
     failed: int
     left_out: int = 0
+    topics: DriveTopics | None = None
 
 
 def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: MotionSeries,
-             config: Config, first_id: int = 1) -> DriveSurvey:
+             config: Config, first_id: int = 1, topics: DriveTopics | None = None
+             ) -> DriveSurvey:
     """Merge chunk observations (a frame processed by two chunks counts once, the one with a
     visual-odometry step kept), then poses, tracking and the report rows."""
     by_stamp: dict[int, FrameObservation] = {}
@@ -320,7 +310,8 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     return DriveSurvey(Path(bag), rows, route,
                        to_latlon(route) if to_latlon and len(route) else None, motion.source,
                        _observed_length(frames, poses), len(frames),
-                       sum(bool(f.failure) for f in frames), len(tracked_all) - len(tracks))
+                       sum(bool(f.failure) for f in frames), len(tracked_all) - len(tracks),
+                       topics)
 
 
 def _gnss_alignment(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
@@ -418,7 +409,7 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
             progress(total, total)
     surveys, next_id = [], 1
     for (bag, topics, _), observations in zip(plans, observed):
-        drive = assemble(bag, observations, read_motion(bag, topics), config, next_id)
+        drive = assemble(bag, observations, read_motion(bag, topics), config, next_id, topics)
         next_id += len(drive.potholes)
         surveys.append(drive)
     return surveys
@@ -462,9 +453,9 @@ def write_geojson(surveys: Sequence[DriveSurvey], path: str | Path) -> bool:
     return True
 
 
-def best_view_picture(bag: str | Path, topics: DriveTopics, stamp_ns: int,
+def best_view_picture(bag: str | Path, topics: DriveTopics, stamp: int,
                       bbox_px: tuple[int, int, int, int], size_px: int = 240) -> np.ndarray:
-    """The left image at ``stamp_ns`` cropped about ``bbox_px`` (with a margin of half its
+    """The left image at ``stamp`` (ns) cropped about ``bbox_px`` (with a margin of half its
     size), the box drawn, scaled to at most ``size_px``: HxWx3 uint8 RGB."""
     from .conversions import image_to_array
 
@@ -472,14 +463,14 @@ def best_view_picture(bag: str | Path, topics: DriveTopics, stamp_ns: int,
     try:
         connections = [c for c in reader.connections if c.topic == topics.stereo.left]
         for connection, _, rawdata in reader.messages(connections=connections,
-                                                      start=stamp_ns - 1_000_000_000):
+                                                      start=stamp - 1_000_000_000):
             msg = bagtools.deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
                                        bagtools.IMAGE_TYPE)
-            if _stamp(msg.header) == stamp_ns:
+            if stamp_ns(msg.header) == stamp:
                 image = image_to_array(msg)
                 break
         else:
-            raise InputError(f"{bag} has no left image at {stamp_ns}")
+            raise InputError(f"{bag} has no left image at {stamp}")
     finally:
         reader.close()
     if image.ndim == 2:

@@ -163,5 +163,4 @@ def relabel(labels: np.ndarray, potholes: Sequence[Any], ids: Sequence[int]) -> 
     for pothole, given in zip(potholes, ids):
         table[pothole.label] = given
     inside = (labels > 0) & (labels < table.size)
-    renamed = np.where(inside, table[np.where(inside, labels, 0)], 0).astype(labels.dtype)
-    return renamed
+    return np.where(inside, table[np.where(inside, labels, 0)], 0).astype(labels.dtype)

@@ -13,7 +13,7 @@ from conftest import REPO
 
 from pothole_detector.params import Config
 from pothole_detector.report import write_report
-from pothole_detector.survey import best_view_picture, drive_topics, survey
+from pothole_detector.survey import best_view_picture, survey
 
 CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser",
                                                 "google-chrome") if shutil.which(name)), None)
@@ -23,10 +23,9 @@ CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser",
 def report(survey_drive_bags, tmp_path_factory):
     bags, _, _ = survey_drive_bags
     surveys = survey([bags["gnss"], REPO / "bags" / "sample_drive"], Config({"backend": "cpu"}))
-    topics = {d.bag: drive_topics(d.bag) for d in surveys}
     path = tmp_path_factory.mktemp("report") / "report.html"
     write_report(surveys, path, lambda d, p: best_view_picture(
-        d.bag, topics[d.bag], p.row["best_stamp_ns"], p.bbox_px))
+        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px))
     return path, surveys
 
 
@@ -46,7 +45,7 @@ def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):
     bags, _, _ = survey_drive_bags
     (drive,) = survey([bags["odom"]], Config({"backend": "cpu"}))
     pothole = drive.potholes[0]
-    crop = best_view_picture(drive.bag, drive_topics(drive.bag), pothole.row["best_stamp_ns"],
+    crop = best_view_picture(drive.bag, drive.topics, pothole.row["best_stamp_ns"],
                              pothole.bbox_px)
     assert crop.ndim == 3 and crop.dtype == np.uint8 and max(crop.shape[:2]) <= 240
     red = (crop[..., 0] > 200) & (crop[..., 1] < 100)
