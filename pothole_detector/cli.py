@@ -59,6 +59,8 @@ def _parser() -> argparse.ArgumentParser:
     evaluate_cmd.add_argument("--seed", type=int, default=0,
                               help="with --synthetic: which draw of scenes")
     evaluate_cmd.add_argument("--cache", help="with --synthetic: keep renders in this folder")
+    evaluate_cmd.add_argument("--jobs", type=int, default=1,
+                              help="with --synthetic: render scenes in this many processes")
     evaluate_cmd.add_argument("--out", help="also write the report (Markdown) here")
     _common(evaluate_cmd)
 
@@ -205,7 +207,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             raise InputError("--scenes and --clean-scenes must be >= 0, one of them > 0")
         text = synthetic_markdown(evaluate_synthetic(
             config, get_backend(config.backend), args.rig_class, args.scenes,
-            args.clean_scenes, args.seed, args.cache))
+            args.clean_scenes, args.seed, args.cache, jobs=max(args.jobs, 1)))
     else:
         text = evaluate(args.directory, config, get_backend(config.backend)).markdown()
     print(text)

@@ -251,13 +251,16 @@ def draw_progress(index: int, total: int, start: float, label: str,
     stream.flush()
 
 
-def progress(items: list, stream: TextIO = sys.stderr, label: str = "evaluate") -> Iterator:
-    """Yield ``items`` while drawing a one-line progress bar on ``stream``."""
+def progress(items: Iterable, stream: TextIO = sys.stderr, label: str = "evaluate",
+             total: int | None = None) -> Iterator:
+    """Yield ``items`` (``total`` of them: by default their len) while drawing a one-line
+    progress bar on ``stream``."""
+    count = len(items) if total is None else total  # type: ignore[arg-type]
     start = time.perf_counter()
     for index, item in enumerate(items):
-        draw_progress(index, len(items), start, label, stream)
+        draw_progress(index, count, start, label, stream)
         yield item
-    draw_progress(len(items), len(items), start, label, stream)
+    draw_progress(count, count, start, label, stream)
 
 
 def evaluate(root: str | Path, config: Config, backend: Backend,
@@ -454,21 +457,26 @@ def _rendered(scene: Any, cache: Path | None) -> Any:
 def evaluate_synthetic(config: Config, backend: Backend, classes: Iterable[str] | None = None,
                        scenes: int = 3, clean_scenes: int = 1, seed: int = 0,
                        cache: str | Path | None = None, stream: TextIO = sys.stderr,
-                       ) -> dict[str, RigTally]:
+                       jobs: int = 1) -> dict[str, RigTally]:
     """Render ``scenes`` scenes with potholes and distractors and ``clean_scenes`` scenes with
     distractors only per rig class (rig_matrix.RIG_CLASSES, or those named), run the pipeline
-    on each (a fresh pipeline per scene, so each is seeded) and tally them per class."""
+    on each (a fresh pipeline per scene, so each is seeded) and tally them per class. With
+    ``jobs`` > 1 the scenes are rendered ahead in that many worker processes."""
+    from concurrent.futures import ProcessPoolExecutor
+
     from .rig_matrix import RIG_CLASS_BY_NAME, RIG_CLASSES, sample_scene
 
     rigs = [RIG_CLASS_BY_NAME[name] for name in classes] if classes else list(RIG_CLASSES)
-    jobs = [(rig, index, index >= scenes) for rig in rigs
-            for index in range(scenes + clean_scenes)]
+    jobs_list = [(rig, index, index >= scenes) for rig in rigs
+                 for index in range(scenes + clean_scenes)]
     tallies = {rig.name: RigTally() for rig in rigs}
     cache_dir = Path(cache) if cache else None
-    for rig, index, clean in progress(jobs, stream, label="evaluate --synthetic"):
-        scene = sample_scene(rig, index, potholes=0 if clean else 3,
-                             distractors=6 if clean else 4, seed=seed)
-        sample = _rendered(scene, cache_dir)
+    drawn = [sample_scene(rig, index, potholes=0 if clean else 3,
+                          distractors=6 if clean else 4, seed=seed)
+             for rig, index, clean in jobs_list]
+    samples = _render_all(drawn, cache_dir, jobs)
+    for (rig, _, clean), sample in progress(zip(jobs_list, samples), stream,
+                                            "evaluate --synthetic", len(jobs_list)):
         tally = tallies[rig.name]
         try:
             result = Pipeline(config, sample.calibration, backend).run(sample.left,
@@ -484,6 +492,25 @@ def evaluate_synthetic(config: Config, backend: Backend, classes: Iterable[str] 
             tally.scenes += 1
             _score_scene(tally, sample, result)
     return tallies
+
+
+def _render_all(scenes: list, cache: Path | None, jobs: int) -> Iterator[Any]:
+    """The rendered ``scenes`` in order (through ``cache``); with ``jobs`` > 1 rendered in
+    that many worker processes, at most 2 ``jobs`` ahead of the one asked for."""
+    if jobs <= 1:
+        yield from (_rendered(scene, cache) for scene in scenes)
+        return
+    from collections import deque
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(jobs) as pool:
+        waiting: deque = deque()
+        for scene in scenes:
+            waiting.append(pool.submit(_rendered, scene, cache))
+            if len(waiting) > 2 * jobs:
+                yield waiting.popleft().result()
+        while waiting:
+            yield waiting.popleft().result()
 
 
 def synthetic_markdown(tallies: dict[str, RigTally]) -> str:

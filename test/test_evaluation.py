@@ -89,3 +89,13 @@ def test_synthetic_evaluation_scores_a_rendered_scene(tmp_path):
     assert tally.matched >= 2 and max(tally.roll_errors_deg) < 0.5
     assert len(list(tmp_path.glob("*.pkl"))) == 2
     assert "| robot | 1 + 1 clean |" in synthetic_markdown(tallies)
+
+
+def test_synthetic_evaluation_renders_in_worker_processes_with_the_same_result():
+    from pothole_detector.backend import CPU
+    from pothole_detector.evaluation import evaluate_synthetic, synthetic_markdown
+    from pothole_detector.params import Config
+    alone = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1)
+    pooled = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1, jobs=2)
+    assert synthetic_markdown(pooled) == synthetic_markdown(alone)
+    assert pooled["robot"].volume_errors == alone["robot"].volume_errors

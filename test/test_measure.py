@@ -53,7 +53,7 @@ def test_keep_large_drops_small_potholes_and_renumbers(demo_sample):
 
 
 def test_potholes_from_sums_decode_the_device_table():
-    sums = np.array([[10.0, 0.02, 0.01, 0.0005, 0.1, 0.2, 1.5]])
+    sums = np.array([[10.0, 0.02, 0.01, 0.008, 0.0004, 0.1, 0.2, 1.5]])
     depth_bits = np.array([0.07], np.float32).view(np.int32)
     extremes = np.array([[depth_bits[0], 3, 4, 9, 12]], np.int32)
     (pothole,) = potholes_from_sums(sums, extremes)
@@ -116,8 +116,8 @@ def test_depths_above_the_road_count_as_zero_and_reports_need_finite_positive_nu
     assert keep_large(measure_potholes(CPU, labels, 1, raised, road, sample.calibration),
                       0.0)[0] == []
     sums = np.ones((4, MEASURE_SUMS))
-    sums[1, 3] = 0.0          # no depth below the road
-    sums[2, 4] = np.inf       # a non-finite sum
+    sums[1, 4] = 0.0          # no depth below the road
+    sums[2, 5] = np.inf       # a non-finite sum
     sums[3, 1] = 1e-5         # smaller than the area asked for
     assert list(reportable(sums, 1e-4)) == [True, False, False, False]
 
@@ -126,6 +126,43 @@ def test_reports_need_a_depth_between_the_bounds_and_no_deeper_than_wide():
     from pothole_detector.stages.measure import MEASURE_SUMS, reportable
     sums = np.ones((5, MEASURE_SUMS))
     sums[:, 1] = 0.04          # 20 cm wide
-    sums[:, 2] = 0.04
-    sums[:, 3] = sums[:, 2] * np.array([0.05, 0.005, 0.15, 0.25, 0.6])  # mean depths (m)
+    sums[:, 3] = 0.04          # floor area
+    sums[:, 4] = sums[:, 3] * np.array([0.05, 0.005, 0.15, 0.25, 0.6])  # mean depths (m)
     assert list(reportable(sums, 1e-4, 0.008, 0.5)) == [True, False, True, False, False]
+
+
+def test_floor_area_is_the_footprint_on_the_road_and_nothing_at_the_border():
+    from pothole_detector.stages.measure import floor_area
+    hole, sample, disparity, labels, road = _grazing(15.0, 3.0)
+    height, width = disparity.shape
+    v, u = np.mgrid[0:height, 0:width]
+    from scipy import ndimage
+    # the road away from the pothole, nearer than about 25 m
+    road_pixels = ~ndimage.binary_dilation(labels > 0) & (np.nan_to_num(disparity) > 2.5)
+    normal = road_normal(road, sample.calibration)
+    floor = floor_area(np, u[road_pixels], v[road_pixels], disparity, normal,
+                       sample.calibration)
+    _, footprint = depth_below_road(np, u[road_pixels], v[road_pixels],
+                                    disparity[road_pixels], road, sample.calibration)
+    inner = floor > 0
+    assert inner.mean() > 0.99
+    np.testing.assert_allclose(floor[inner], footprint[inner], rtol=0.02)
+    border = floor_area(np, np.array([0, width - 1, 5]), np.array([5, 5, 0]), disparity,
+                        normal, sample.calibration)
+    assert (border == 0).all()
+
+
+def test_a_flat_floored_pothole_at_a_grazing_angle_has_its_floor_depth():
+    """Steep walls, 5 m ahead of a camera 1 m up pitched 12 deg: the far wall is seen face on
+    and the near part of the floor is hidden, yet the mean depth over the floor the camera
+    sees, and so the volume, come out within 5 % of the shape's."""
+    from pothole_detector.synthetic import PotholeShape, Scene, render
+    hole = PotholeShape(0.1, 5.0, 0.4, 0.3, 0.08, 15.0, wall_power=12.0)
+    sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
+                          camera_height_m=1.0, pitch_deg=12.0, potholes=(hole,)))
+    disparity = sample.disparity.astype(np.float32)
+    labels = sample.labels.astype(np.int32)
+    road = fit_road(np, np.where(labels > 0, np.nan, disparity), rounds=2)
+    (pothole,) = measure_potholes(CPU, labels, 1, disparity, road, sample.calibration)
+    assert pothole.mean_depth_m == pytest.approx(hole.mean_depth_m, rel=0.05)
+    assert pothole.volume_m3 == pytest.approx(hole.volume_m3, rel=0.05)

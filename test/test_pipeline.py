@@ -11,6 +11,7 @@ from pothole_detector.params import Config
 from pothole_detector.execution import FrameGraphs, FrameReport
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import road_model
+from pothole_detector.stages.measure import MEASURE_SUMS
 from pothole_detector.stages.superpixels import cell_centres
 from pothole_detector.stages.threshold import observation
 from pothole_detector.stages import perspective
@@ -225,7 +226,7 @@ def test_frame_report_views_share_one_buffer_and_read_back_whole():
     report.threshold[:] = (1.0, 7.0, 32.5)
     report.valid_count[...] = 1234
     report.counts[:] = (9, 3, 1, 2)
-    report.sums[:] = np.arange(42).reshape(6, 7)
+    report.sums[:] = np.arange(6 * MEASURE_SUMS).reshape(6, MEASURE_SUMS)
     report.extremes[:] = np.arange(30).reshape(6, 5)
     readback = Readback(CPU, report.buffer.nbytes + 64)
     readback.send(report.buffer)
@@ -238,7 +239,7 @@ def test_frame_report_views_share_one_buffer_and_read_back_whole():
     assert list(report.read_header()[15:26]) == [2.0] * 11
     assert list(host.threshold) == [1.0, 7.0, 32.5]
     assert (host.components_kept, host.overflow) == (3, True)
-    np.testing.assert_array_equal(host.sums, np.arange(42).reshape(6, 7))
+    np.testing.assert_array_equal(host.sums, np.arange(6 * MEASURE_SUMS).reshape(6, MEASURE_SUMS))
     np.testing.assert_array_equal(host.extremes, np.arange(30).reshape(6, 5))
 
 

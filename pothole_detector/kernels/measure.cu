@@ -1,6 +1,6 @@
 // Per-pothole sums in one pass over the label image. Reference: stages/measure.py
-// (measure_potholes, depth_below_road). sums: float64 [count + 1][7] = pixels, footprint
-// area, valid area, depth x area, x, y, z x area (valid pixels); extremes: int32
+// (measure, depth_below_road, floor_area). sums: float64 [count + 1][8] = pixels, footprint
+// area, valid area, floor area, depth x floor area, x, y, z x area (valid pixels); extremes: int32
 // [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
 // Warps whose labelled pixels share one label add once per warp.
 // Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS and the road
@@ -15,6 +15,38 @@ __device__ __forceinline__ int ordered_bits(float value) {
 
 __device__ __forceinline__ bool finite(float x) {
     return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
+}
+
+// The 3D point of pixel (u, v) with disparity d (z = f B / d; NaN where d <= 0 or NaN).
+__device__ __forceinline__ void point_at(int u, int v, float d, double f, double cx, double cy,
+                                         double fb, double* point) {
+    const double z = d > 0.0f ? fb / (double)d : __longlong_as_double(0x7ff8000000000000ll);
+    point[0] = (u - cx) * z / f;
+    point[1] = (v - cy) * z / f;
+    point[2] = z;
+}
+
+// measure.floor_area: n . (dQ/du x dQ/dv) by central differences, 0 where it is not positive,
+// a neighbour lies off the image or has no disparity.
+__device__ double floor_area(const float* disparity, int u, int v, int height, int width,
+                             double f, double cx, double cy, double fb, double nx, double ny,
+                             double nz) {
+    if (u <= 0 || u >= width - 1 || v <= 0 || v >= height - 1) return 0.0;
+    const long long at = (long long)v * width + u;
+    double right[3], left[3], below[3], above[3];
+    point_at(u + 1, v, disparity[at + 1], f, cx, cy, fb, right);
+    point_at(u - 1, v, disparity[at - 1], f, cx, cy, fb, left);
+    point_at(u, v + 1, disparity[at + width], f, cx, cy, fb, below);
+    point_at(u, v - 1, disparity[at - width], f, cx, cy, fb, above);
+    double du[3], dv[3];
+    for (int k = 0; k < 3; ++k) {
+        du[k] = 0.5 * (right[k] - left[k]);
+        dv[k] = 0.5 * (below[k] - above[k]);
+    }
+    const double area = nx * (du[1] * dv[2] - du[2] * dv[1])
+                        + ny * (du[2] * dv[0] - du[0] * dv[2])
+                        + nz * (du[0] * dv[1] - du[1] * dv[0]);
+    return isfinite(area) && area > 0.0 ? area : 0.0;
 }
 
 extern "C" __global__ void measure_reset(double* sums, int* extremes, int count) {
@@ -41,7 +73,7 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
     const unsigned labelled = __ballot_sync(FULL_MASK, label > 0);
     if (labelled == 0) return;
     const int u = (int)(index % width), v = (int)(index / width);
-    double values[SUMS] = {0, 0, 0, 0, 0, 0, 0};
+    double values[SUMS] = {0, 0, 0, 0, 0, 0, 0, 0};
     float depth_value = __int_as_float(0xff800000);
     if (label > 0) {
         const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
@@ -70,11 +102,14 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         values[0] = 1.0;
         values[1] = footprint;
         if (on_road && d > 0.0f && finite(depth)) {
+            const double floor = floor_area(disparity, u, v, height, width, f, cx, cy, fb,
+                                            normal_x, normal_y, normal_z);
             values[2] = footprint;
-            values[3] = (double)depth * footprint;
-            values[4] = (uu - cx) * z / f * footprint;
-            values[5] = (vv - cy) * z / f * footprint;
-            values[6] = z * footprint;
+            values[3] = floor;
+            values[4] = (double)depth * floor;
+            values[5] = (uu - cx) * z / f * footprint;
+            values[6] = (vv - cy) * z / f * footprint;
+            values[7] = z * footprint;
             depth_value = depth;
         }
     }
@@ -116,8 +151,8 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
 }
 
 // One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
-// min_area, its mean depth lies in [min_depth, max_depth] and is at most its width (the square
-// root of its area), and its sums make a report
+// min_area, its mean depth (over its floor area) lies in [min_depth, max_depth] and is at most
+// its width (the square root of its area), and its sums make a report
 // (measure.reportable); new_id numbers the ones that stay
 // 1..m in order (0 for the others and for label 0); kept_after[0] = m. The pipeline's area
 // filter; the host repeats the test on the same sums when it reads them back.
@@ -125,9 +160,10 @@ __device__ bool reportable(const double* row, double min_area, double min_depth,
                            double max_depth) {
     for (int k = 0; k < SUMS; ++k)
         if (!isfinite(row[k])) return false;
-    return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && row[3] > 0.0
-           && row[3] >= min_depth * row[2] && row[3] <= max_depth * row[2]
-           && row[3] <= sqrt(row[1]) * row[2];
+    const double floor = row[3], depth_floor = row[4];
+    return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && floor > 0.0
+           && depth_floor > 0.0 && depth_floor >= min_depth * floor
+           && depth_floor <= max_depth * floor && depth_floor <= sqrt(row[1]) * floor;
 }
 
 extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,

@@ -69,15 +69,47 @@ def depth_below_road(xp: Any, u: Any, v: Any, disparity: Any, model: RoadModel,
     return depth, xp.where(on_road, footprint, xp.float32(0))
 
 
+def floor_area(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
+               calibration: StereoCalibration) -> Any:
+    """The area (m^2, float64) that the surface seen by pixels at columns ``u``, rows ``v``
+    (int arrays of one shape) covers on the road plane: n . (dQ/du x dQ/dv) of the 3D points Q
+    of the HxW float32 ``disparity`` (px, NaN invalid), central differences, ``normal`` the
+    road's unit normal (road_normal). A floor parallel to the road covers what the road
+    would; a wall seen edge-on covers little; a fold (an occlusion edge) and a pixel with a
+    neighbour off the image or without a disparity cover nothing (0)."""
+    height, width = disparity.shape
+    f, fb = calibration.f, calibration.fb
+    inside = (u > 0) & (u < width - 1) & (v > 0) & (v < height - 1)
+    cu, cv = xp.clip(u, 1, width - 2), xp.clip(v, 1, height - 2)
+
+    def point(du: int, dv: int) -> tuple[Any, Any, Any, Any]:
+        d = disparity[cv + dv, cu + du].astype(xp.float64)
+        z = fb / xp.where(d > 0, d, xp.nan)
+        return (cu + du - calibration.cx) * z / f, (cv + dv - calibration.cy) * z / f, z
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        right, left, below, above = point(1, 0), point(-1, 0), point(0, 1), point(0, -1)
+        along_u = [0.5 * (a - b) for a, b in zip(right, left)]
+        along_v = [0.5 * (a - b) for a, b in zip(below, above)]
+        cross = (along_u[1] * along_v[2] - along_u[2] * along_v[1],
+                 along_u[2] * along_v[0] - along_u[0] * along_v[2],
+                 along_u[0] * along_v[1] - along_u[1] * along_v[0])
+        area = normal[0] * cross[0] + normal[1] * cross[1] + normal[2] * cross[2]
+    return xp.where(inside & xp.isfinite(area) & (area > 0), area, 0.0)
+
+
 def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
             road: RoadModel | Any, calibration: StereoCalibration, sums: Any = None,
             extremes: Any = None) -> tuple[Any, Any]:
     """The measure stage: per-label sums of labels 1..capacity of the int32 HxW ``labels``
     with the HxW float32 disparity D1 (px, NaN invalid), nothing read back: backend float64
-    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, depth x area, x, y, z x area and
-    int32 (capacity + 1, MEASURE_EXTREMES) largest depth (order-preserving float32 bits), u min,
-    v min, u max, v max; row 0 unused; written into ``sums`` and ``extremes`` where given.
-    ``road``: a RoadModel, or on the GPU also road_model.device_params. On the GPU one pass of
+    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, floor area (:func:`floor_area`),
+    depth x floor area, x, y, z x valid area and int32 (capacity + 1, MEASURE_EXTREMES)
+    largest depth (order-preserving float32 bits), u min, v min, u max, v max; row 0 unused;
+    written into ``sums`` and ``extremes`` where given. The mean depth is taken over the
+    floor that the camera sees, each point weighted by the area it covers on the road, so
+    that a far wall seen at grazing angles does not make a pothole shallow. ``road``: a
+    RoadModel, or on the GPU also road_model.device_params. On the GPU one pass of
     kernels/measure.cu over the label image (per-warp sums, atomics per label)."""
     if backend.is_gpu:
         return _measure_on_device(backend, labels, capacity, disparity,
@@ -91,12 +123,14 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
         return sums, extremes
     label = labels[rows, cols]
     count = int(label.max())
-    disparity = disparity[rows, cols]
-    depth, footprint = depth_below_road(xp, cols, rows, disparity, road, calibration)
+    pixel_disparity = disparity[rows, cols]
+    depth, footprint = depth_below_road(xp, cols, rows, pixel_disparity, road, calibration)
     valid = xp.isfinite(depth)
+    floor = xp.where(valid, floor_area(xp, cols, rows, disparity,
+                                       road_normal(road, calibration), calibration), 0.0)
     index = xp.arange(1, count + 1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x, y, z = calibration.back_project(cols, rows, disparity)
+        x, y, z = calibration.back_project(cols, rows, pixel_disparity)
 
     def total(weights: Any) -> Any:
         return xp.bincount(label, weights=weights.astype(xp.float64), minlength=count + 1)[1:]
@@ -106,8 +140,9 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
 
     sums[1:count + 1] = xp.stack([
         total(xp.ones_like(footprint)), total(footprint), total(xp.where(valid, footprint, 0)),
-        total(xp.where(valid, depth * footprint, 0)), total(xp.where(valid, x * footprint, 0)),
-        total(xp.where(valid, y * footprint, 0)), total(xp.where(valid, z * footprint, 0)),
+        total(floor), total(xp.where(valid, depth, 0) * floor),
+        total(xp.where(valid, x * footprint, 0)), total(xp.where(valid, y * footprint, 0)),
+        total(xp.where(valid, z * footprint, 0)),
     ], axis=1)
     largest = extreme(ndimage.maximum, xp.where(valid, depth, -xp.inf)).astype(xp.float32)
     extremes[1:count + 1, 0] = _ordered_bits(largest.view(xp.int32))
@@ -132,35 +167,35 @@ def measure_potholes(backend: Backend, labels: Any, count: int, disparity: Any, 
 
 
 def _potholes_from_table(table: np.ndarray) -> list[Pothole]:
-    """Potholes from the (count, 12) table: pixels, area, valid area, depth x area, largest
-    depth, x, y, z x area, u min, v min, u max, v max."""
+    """Potholes from the (count, 13) table: pixels, area, valid area, floor area, depth x
+    floor area, largest depth, x, y, z x valid area, u min, v min, u max, v max."""
     potholes = []
     for label_id, row in enumerate(table, start=1):
-        pixels, area, area_valid, depth_area, max_depth = row[:5]
-        mean_depth = depth_area / area_valid if area_valid > 0 else float("nan")
+        pixels, area, area_valid, floor, depth_floor, max_depth = row[:6]
+        mean_depth = depth_floor / floor if floor > 0 else float("nan")
         centroid = tuple(float(c / area_valid) if area_valid > 0 else float("nan")
-                         for c in row[5:8])
+                         for c in row[6:9])
         potholes.append(Pothole(
             label=label_id, pixels=int(pixels), area_m2=float(area),
             max_depth_m=float(max_depth) if np.isfinite(max_depth) else float("nan"),
             mean_depth_m=float(mean_depth), volume_m3=float(mean_depth * area),
             centroid_cam_m=centroid,  # type: ignore[arg-type]
-            bbox_px=tuple(int(c) for c in row[8:12]),  # type: ignore[arg-type]
+            bbox_px=tuple(int(c) for c in row[9:13]),  # type: ignore[arg-type]
         ))
     return potholes
 
 
 def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
-    """Potholes 1..k from host copies of rows 1..k of :func:`measure_on_device`'s sums
-    (float64 (k, 7)) and extremes (int32 (k, 5))."""
+    """Potholes 1..k from host copies of rows 1..k of :func:`measure`'s sums
+    (float64 (k, MEASURE_SUMS)) and extremes (int32 (k, MEASURE_EXTREMES))."""
     largest = _ordered_bits(extremes[:, 0]).astype(np.int32).view(np.float32)
     return _potholes_from_table(np.column_stack(
-        [sums[:, :4], largest.astype(np.float64), sums[:, 4:7],
+        [sums[:, :5], largest.astype(np.float64), sums[:, 5:8],
          extremes[:, 1:].astype(np.float64)]))
 
 
 # per-label float64 sums and int32 extremes of measure (kernels/measure.cu), its block size
-MEASURE_SUMS = 7
+MEASURE_SUMS = 8
 MEASURE_EXTREMES = 5
 MEASURE_THREADS = 256
 _MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
@@ -219,15 +254,17 @@ def area_filter(backend: Backend, labels: Any, sums: Any, kept: Any, capacity: i
 def reportable(sums: np.ndarray, min_area_m2: float, min_depth_m: float = 0.0,
                max_depth_m: float = math.inf) -> np.ndarray:
     """Bool (k,) over rows of measure sums (float64 (k, MEASURE_SUMS)): the pothole's sums are
-    finite, its area reaches ``min_area_m2`` and is positive, and it has a measured depth
-    (valid area and depth x area positive) whose mean lies in [``min_depth_m``,
-    ``max_depth_m``] and is at most its width (the square root of its area: a hole deeper than
-    it is wide is a mismatch): a report with finite, positive, possible numbers."""
+    finite, its area reaches ``min_area_m2`` and is positive, it has measured points (valid
+    area positive) and a measured depth (floor area and depth x floor area positive) whose
+    mean lies in [``min_depth_m``, ``max_depth_m``] and is at most its width (the square root
+    of its area: a hole deeper than it is wide is a mismatch): a report with finite, positive,
+    possible numbers."""
     sums = np.asarray(sums)
+    floor, depth_floor = sums[:, 3], sums[:, 4]
     return np.isfinite(sums).all(axis=1) & (sums[:, 1] >= min_area_m2) & (sums[:, 1] > 0) \
-        & (sums[:, 2] > 0) & (sums[:, 3] > 0) & (sums[:, 3] >= min_depth_m * sums[:, 2]) \
-        & (sums[:, 3] <= max_depth_m * sums[:, 2]) \
-        & (sums[:, 3] <= np.sqrt(np.maximum(sums[:, 1], 0.0)) * sums[:, 2])
+        & (sums[:, 2] > 0) & (floor > 0) & (depth_floor > 0) \
+        & (depth_floor >= min_depth_m * floor) & (depth_floor <= max_depth_m * floor) \
+        & (depth_floor <= np.sqrt(np.maximum(sums[:, 1], 0.0)) * floor)
 
 
 def keep_large(potholes: list[Pothole], min_area_m2: float, min_depth_m: float = 0.0,
