@@ -233,3 +233,18 @@ def test_process_pairs_camera_info_written_after_the_images(tmp_path, drive_fram
         reader.close()
     summary = bagtools.process(late, tmp_path / "out", Config({"backend": "cpu"}))
     assert (summary.frames, summary.failed) == (2, 0), summary.errors
+
+
+def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_drive(tmp_path):
+    """A vehicle rig (1 m up, pitched 15 deg, 0.12 m baseline) at 640x480, half a metre a frame:
+    the shipped parameter file processes every frame, none refused."""
+    from pothole_detector.params import load_yaml
+    from pothole_detector.synthetic import vehicle_scene
+    frames = [(START + i * 100_000_000, render(vehicle_scene(640, 480, camera_y_m=0.5 * i)))
+              for i in range(6)]
+    assert bagtools.write_stereo_bag(tmp_path / "vehicle", frames, namespace="/cam") == 6
+    config = Config(load_yaml(REPO / "config" / "pothole_detector.yaml"))
+    summary = bagtools.process(tmp_path / "vehicle", tmp_path / "out", config)
+    assert (summary.frames, summary.failed) == (6, 0)
+    messages = [msg for _, _, msg in bagtools.read_messages(tmp_path / "out", ["/cam/potholes"])]
+    assert len(messages) == 6 and all(msg.status != msg.FAILED for msg in messages)
