@@ -462,8 +462,6 @@ def evaluate_synthetic(config: Config, backend: Backend, classes: Iterable[str] 
     distractors only per rig class (rig_matrix.RIG_CLASSES, or those named), run the pipeline
     on each (a fresh pipeline per scene, so each is seeded) and tally them per class. With
     ``jobs`` > 1 the scenes are rendered ahead in that many worker processes."""
-    from concurrent.futures import ProcessPoolExecutor
-
     from .rig_matrix import RIG_CLASS_BY_NAME, RIG_CLASSES, sample_scene
 
     rigs = [RIG_CLASS_BY_NAME[name] for name in classes] if classes else list(RIG_CLASSES)

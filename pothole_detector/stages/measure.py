@@ -78,14 +78,12 @@ def floor_area(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
     would; a wall seen edge-on covers little; a fold (an occlusion edge) and a pixel with a
     neighbour off the image or without a disparity cover nothing (0)."""
     height, width = disparity.shape
-    f, fb = calibration.f, calibration.fb
     inside = (u > 0) & (u < width - 1) & (v > 0) & (v < height - 1)
     cu, cv = xp.clip(u, 1, width - 2), xp.clip(v, 1, height - 2)
 
-    def point(du: int, dv: int) -> tuple[Any, Any, Any, Any]:
+    def point(du: int, dv: int) -> tuple[Any, Any, Any]:
         d = disparity[cv + dv, cu + du].astype(xp.float64)
-        z = fb / xp.where(d > 0, d, xp.nan)
-        return (cu + du - calibration.cx) * z / f, (cv + dv - calibration.cy) * z / f, z
+        return calibration.back_project(cu + du, cv + dv, xp.where(d > 0, d, xp.nan))
 
     with np.errstate(divide="ignore", invalid="ignore"):
         right, left, below, above = point(1, 0), point(-1, 0), point(0, 1), point(0, -1)
