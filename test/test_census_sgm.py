@@ -138,7 +138,7 @@ def test_textureless_patches_are_invalid_and_textured_ones_are_not():
     disparity = reference_disparity(left, right, no_shifts(40), 16, 3, 20, 5, 1, True)
     # windows (9x7) that lie inside the flat patch, and their 3x3 neighbourhoods
     assert not np.isfinite(disparity[15:25, 46:64]).any()
-    textured = disparity[5:35, 10:30]
+    textured = disparity[5:35, 16:36]
     assert np.isfinite(textured).mean() > 0.9
     assert np.nanmedian(textured) == 6
 
@@ -217,3 +217,14 @@ def test_lanes_double_while_the_lines_leave_the_device_underfilled():
     assert census_sgm.lanes_for(16, 10, resident) == 8       # 2 levels a lane, not 1
     assert census_sgm.lanes_for(128, 10, resident) == 32     # at most 32
     assert census_sgm.lanes_for(64, lines_720p, 0) == 16
+
+
+def test_pixels_whose_band_reaches_left_of_the_image_are_invalid():
+    """Left of column levels - 1 a pixel's true match may lie off the image while the levels
+    left to it are the shallow ones: such pixels are invalid, the rest match the truth."""
+    left, right = textured_pair(40, 90, np.full(40, 12), seed=5)
+    disparity = reference_disparity(left, right, no_shifts(40), 32, 3, 20, 5, 1, True)
+    assert not np.isfinite(disparity[:, :31]).any()
+    valid = np.isfinite(disparity)
+    assert valid[5:35, 31:85].mean() > 0.9
+    assert np.all(np.abs(disparity[valid] - 12) <= 1)

@@ -74,6 +74,18 @@ def test_auto_picks_quadratic_for_a_crowned_road_only():
     assert errors[0] < 0.5 * errors[1]
 
 
+def test_quadratic_model_follows_a_cambered_road_seen_from_a_vehicle():
+    """A camber's drop grows like u^2 / p towards the horizon (road_model's docstring): the
+    quadratic model follows it to 0.03 px 5 m ahead of a camera 1.2 m up."""
+    disparity = render(Scene(width=640, height=360, focal_px=500.0, baseline_m=0.2,
+                             camera_height_m=1.2, pitch_deg=10.0, crown_per_m=0.007,
+                             supersample=1)).disparity
+    seen = disparity >= 20.0  # up to 5 m ahead, where the road is 3.2 m either side
+    errors = [np.abs(disparity - fit_road(np, disparity, kind=kind).disparity(
+        np, *disparity.shape))[seen].max() for kind in ("quadratic", "planar")]
+    assert errors[0] < 0.03 and errors[1] > 0.5
+
+
 def test_row_extremes_match_brute_force():
     model = RoadModel(50.0, 0.2, math.radians(3.0), (1.0, -2.0, 0.5, 3.0, -1.0, 0.7),
                       kind="quadratic")

@@ -4,7 +4,9 @@
 // [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
 // Warps whose labelled pixels share one label add once per warp.
 // Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS and the road
-// parameters' layout (ROAD_*).
+// parameters' layout and constants (ROAD_*, stages/road_model.ROAD_DEFINES).
+
+#include "road_disparity.cuh"
 
 #define FULL_MASK 0xffffffffu
 
@@ -60,8 +62,7 @@ extern "C" __global__ void measure_reset(double* sums, int* extremes, int count)
 }
 
 // road: a0, a1, cos(phi), sin(phi), c0..c5, curved (stages/road_model.RoadModel
-// .kernel_params). Road disparity a0 + a1 (v cos - u sin) + c0 + x (c1 + c3 x + c4 y)
-// + y (c2 + c5 y) with x = u / 1000, y = v / 1000; the unit normal of its linear part as
+// .kernel_params). Road disparity as road_disparity.cuh; the unit normal of its linear part as
 // measure.road_normal computes it.
 extern "C" __global__ void __launch_bounds__(THREADS)
 measure_potholes(const int* labels, const float* disparity, int height, int width,
@@ -85,11 +86,7 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         normal_y /= norm;
         normal_z /= norm;
         const double uu = u, vv = v;
-        const double x = uu / 1000.0, y = vv / 1000.0;
-        const double road_d = a0 + a1 * (vv * cos_phi - uu * sin_phi) + road[ROAD_C0]
-                              + x * (road[ROAD_C0 + 1] + road[ROAD_C0 + 3] * x
-                                     + road[ROAD_C0 + 4] * y)
-                              + y * (road[ROAD_C0 + 2] + road[ROAD_C0 + 5] * y);
+        const double road_d = road_disparity(road, uu, vv);
         const double incidence = normal_x * (uu - cx) / f + normal_y * (vv - cy) / f + normal_z;
         // measured only where the pixel's ray meets the road plane in front of the camera
         const bool on_road = road_d > 0.0 && incidence > 0.0;

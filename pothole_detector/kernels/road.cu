@@ -23,6 +23,7 @@
 // report's layout (FIT_*), the road parameters' (ROAD_*) and PRIOR_*.
 
 #include "block_scan.cuh"
+#include "road_disparity.cuh"
 
 #define WARPS (THREADS / 32)
 #define PER_THREAD_BINS (BINS / THREADS)
@@ -96,19 +97,11 @@ __device__ __forceinline__ double planar_at(const RoadState& s, double u, double
                                                     __dmul_rn(u, s.sin_phi))));
 }
 
-// c0 + x (c1 + c3 x + c4 y) + y (c2 + c5 y), in the reference's order, without FMA.
-__device__ __forceinline__ double curvature_at(const double* c, double x, double y) {
-    const double inner_x = __dadd_rn(__dadd_rn(c[1], __dmul_rn(c[3], x)), __dmul_rn(c[4], y));
-    const double inner_y = __dadd_rn(c[2], __dmul_rn(c[5], y));
-    return __dadd_rn(__dadd_rn(c[0], __dmul_rn(x, inner_x)), __dmul_rn(y, inner_y));
-}
-
 // The road disparity of a model in the kernel parameters' layout, as road_model.params_at.
 __device__ __forceinline__ double params_at(const double* p, double u, double v, double x,
                                             double y) {
-    const double planar = __dadd_rn(p[ROAD_A0], __dmul_rn(p[ROAD_A1], __dsub_rn(
-        __dmul_rn(v, p[ROAD_COS]), __dmul_rn(u, p[ROAD_SIN]))));
-    return __dadd_rn(planar, __dmul_rn(p[ROAD_CURVED], curvature_at(p + ROAD_C0, x, y)));
+    const double planar = road_planar(p, u, v);
+    return __dadd_rn(planar, __dmul_rn(p[ROAD_CURVED], curvature_at(p + ROAD_C0, x, y, planar)));
 }
 
 // Sum of COUNT per-thread values over the grid in a fixed order (warps, then blocks); result
@@ -448,8 +441,9 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
     }
     __syncthreads();
     for (int phase = 0; phase < (quadratic ? 2 : 1); ++phase) {
-        if (prior_tolerance > 0.0) {
-            // the first fit's mask: valid pixels within prior_tolerance of the prior
+        if (prior_tolerance > 0.0 && phase == 0) {
+            // the first fit's mask: valid pixels within prior_tolerance of the prior (the
+            // quadratic rounds start from the planar model's inliers, which lie there)
             double counts[2] = {0.0, 0.0};
             for_each_element(height, width, [&](int i, int row, int col, int local) {
                 const float raw = sub[i];
@@ -506,7 +500,11 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                         return;
                     const double d = (double)raw * scale;
                     const double x = column_x[col], y = row_y[row];
-                    const double design[6] = {1.0, x, y, x * x, x * y, y * y};
+                    const double inverse = __ddiv_rn((double)INVERSE_SCALE_PX,
+                                                     fmax(planar[i],
+                                                          (double)MIN_ROAD_DISPARITY_PX));
+                    const double design[6] = {1.0, x, y, x * x * inverse, x * inverse,
+                                              inverse};
                     const double target = d - planar[i];
                     int k = 0;
 #pragma unroll
@@ -542,7 +540,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                     model = planar_at(state, column_u[col], row_v[row]);
                 } else {
                     model = __dadd_rn(planar[i], curvature_at(state.curvature, column_x[col],
-                                                              row_y[row]));
+                                                              row_y[row], planar[i]));
                 }
                 const double r = d - model;
                 residual[i] = r;
@@ -581,10 +579,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                 out[FIT_QUADRATIC_INLIERS] = state.sums[0];
             }
         }
-        if (threadIdx.x == 0) {
-            state.use_mask = 0;
-            state.threshold = 0.0;
-        }
+        // the quadratic rounds start from this mask: the planar model's inliers
         __syncthreads();
     }
     if (threadIdx.x == 0 && leader) {

@@ -1,21 +1,30 @@
-// The road's disparity f(u, v) of a model in the kernel parameters' layout (ROAD_*, defined by
-// the including kernel's launcher; stages/road_model.RoadModel.kernel_params), in float64 in
-// stages/road_model.RoadModel.at's operation order without FMA.
+// The road's disparity f(u, v) of a model in the kernel parameters' layout (ROAD_*, with
+// CURVATURE_SCALE_PX, INVERSE_SCALE_PX and MIN_ROAD_DISPARITY_PX:
+// stages/road_model.ROAD_DEFINES), in float64 in stages/road_model's operation order without
+// FMA.
 #pragma once
 
+// The quadratic correction q = c0 + c1 x + c2 y + w (c5 + x (c4 + x c3)), x = u / 1000,
+// y = v / 1000, w = INVERSE_SCALE_PX / max(planar, MIN_ROAD_DISPARITY_PX) (road_model._poly).
+__device__ __forceinline__ double curvature_at(const double* c, double x, double y,
+                                              double planar) {
+    const double inverse = __ddiv_rn((double)INVERSE_SCALE_PX,
+                                     fmax(planar, (double)MIN_ROAD_DISPARITY_PX));
+    const double inner = __dadd_rn(c[5], __dmul_rn(x, __dadd_rn(c[4], __dmul_rn(x, c[3]))));
+    return __dadd_rn(__dadd_rn(__dadd_rn(c[0], __dmul_rn(x, c[1])), __dmul_rn(y, c[2])),
+                     __dmul_rn(inverse, inner));
+}
+
+__device__ __forceinline__ double road_planar(const double* road, double u, double v) {
+    return __dadd_rn(road[ROAD_A0], __dmul_rn(road[ROAD_A1],
+                                              __dsub_rn(__dmul_rn(v, road[ROAD_COS]),
+                                                        __dmul_rn(u, road[ROAD_SIN]))));
+}
+
 __device__ __forceinline__ double road_disparity(const double* road, double u, double v) {
-    const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
-                 sin_phi = road[ROAD_SIN];
-    double value = __dadd_rn(a0, __dmul_rn(a1, __dsub_rn(__dmul_rn(v, cos_phi),
-                                                         __dmul_rn(u, sin_phi))));
-    if (road[ROAD_CURVED] != 0.0) {
-        const double c0 = road[ROAD_C0], c1 = road[ROAD_C0 + 1], c2 = road[ROAD_C0 + 2],
-                     c3 = road[ROAD_C0 + 3], c4 = road[ROAD_C0 + 4], c5 = road[ROAD_C0 + 5];
-        const double x = __ddiv_rn(u, 1000.0), y = __ddiv_rn(v, 1000.0);
-        const double inner_x = __dadd_rn(__dadd_rn(c1, __dmul_rn(c3, x)), __dmul_rn(c4, y));
-        const double inner_y = __dadd_rn(c2, __dmul_rn(c5, y));
-        value = __dadd_rn(value, __dadd_rn(__dadd_rn(c0, __dmul_rn(x, inner_x)),
-                                           __dmul_rn(y, inner_y)));
-    }
-    return value;
+    const double planar = road_planar(road, u, v);
+    if (road[ROAD_CURVED] == 0.0) return planar;
+    const double x = __ddiv_rn(u, (double)CURVATURE_SCALE_PX);
+    const double y = __ddiv_rn(v, (double)CURVATURE_SCALE_PX);
+    return __dadd_rn(planar, curvature_at(road + ROAD_C0, x, y, planar));
 }

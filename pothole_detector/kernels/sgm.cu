@@ -1058,7 +1058,8 @@ sgm_select(const unsigned char* paths, float* raw, int height, int width, int un
 // 3x3 median (edge-replicated; -1 = invalid takes part), census border, the GPT shift added
 // back (kappa(u - D0, v), interpolated between the columns beside u - D0, as
 // perspective.add_shifts: the product is exact, so a fused multiply-add rounds alike),
-// matches left of the image dropped, and textureless pixels: a zero left census word here and
+// matches left of the image dropped, pixels whose band reaches left of the right image (u -
+// (LEVELS - 1) < first(v)) dropped, and textureless pixels: a zero left census word here and
 // at the 8 neighbours (edge-replicated).
 // out: D1, NaN invalid.
 extern "C" __global__ void sgm_finish(const float* raw, const unsigned* census_left,
@@ -1104,6 +1105,8 @@ extern "C" __global__ void sgm_finish(const float* raw, const unsigned* census_l
             textureless = textureless
                           && census_left[clamp_index(v + a, height) * width
                                          + clamp_index(u + b, width)] == 0u;
-    const bool invalid = value < 0.0f || (float)u - disparity < 0.0f || border || textureless;
+    const bool band_outside = u - (LEVELS - 1) < shifts[v];
+    const bool invalid = value < 0.0f || (float)u - disparity < 0.0f || border || textureless
+                         || band_outside;
     out[v * width + u] = invalid ? __int_as_float(0x7fc00000) : disparity;
 }

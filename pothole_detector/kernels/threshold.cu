@@ -5,6 +5,7 @@
 // the road fit report's layout (FIT_*) and the road parameters' (ROAD_*).
 
 #include "block_scan.cuh"
+#include "road_disparity.cuh"
 
 #define POSITIVE_INFINITY __longlong_as_double(0x7ff0000000000000LL)
 
@@ -235,10 +236,10 @@ threshold_observation(const double* road, const double* fit, int count, int cell
     for (int k = threadIdx.x; k < count; k += blockDim.x) {
         const double u = fmin((k % cells_x + 0.5) * step, width - 0.5) * downsample;
         const double v = fmin((k / cells_x + 0.5) * step, height - 0.5) * downsample;
-        const double x = u / 1000.0, y = v / 1000.0;
-        const double d = a0 + a1 * (v * cos_phi - u * sin_phi)
-                         + curved * (c[0] + x * (c[1] + c[3] * x + c[4] * y)
-                                     + y * (c[2] + c[5] * y));
+        const double planar = road_planar(road, u, v);
+        const double d = __dadd_rn(planar, __dmul_rn(curved, curvature_at(
+            c, __ddiv_rn(u, (double)CURVATURE_SCALE_PX), __ddiv_rn(v, (double)CURVATURE_SCALE_PX),
+            planar)));
         const double incidence = raw_x / norm * (u - cx) / f + raw_y / norm * (v - cy) / f
                                  + raw_z / norm;
         bool seen;

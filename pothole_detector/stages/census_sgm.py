@@ -21,7 +21,9 @@ The algorithm, the same on both backends to the integer disparity:
    d* + (S(d*-1) - S(d*+1)) / (2 max(S(d*-1) + S(d*+1) - 2 S(d*), 1)) inside the band.
 5. 3x3 median (edge-replicated, invalid = -1 takes part), then the census border is invalid,
    the shift is added back (D1 = D0 + kappa(u - D0, v), perspective.add_shifts) and pixels
-   whose match falls left of the image are invalid.
+   whose match falls left of the image are invalid, as are pixels whose band reaches left of
+   the right image (u - (D - 1) < first(v)): their true match may lie off the image, where
+   the in-image levels left to them are the shallow, pothole-like ones.
 
 Disparities are float32 px, NaN where invalid.
 """
@@ -168,19 +170,22 @@ def textureless(census_left: np.ndarray) -> np.ndarray:
 
 
 def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
-           census_left: np.ndarray) -> np.ndarray:
+           census_left: np.ndarray, levels: int) -> np.ndarray:
     """D1 (float32 HxW px, NaN invalid) from the raw D0 (-1 invalid): median, census border,
     the GPT ``shifts`` added back (perspective.add_shifts), matches left of the image dropped,
-    and textureless pixels dropped: those whose left census word is 0 together with their 8
-    neighbours' (edge-replicated), i.e. no pair of the window differs upwards anywhere in 3x3
-    windows (NumPy reference)."""
+    pixels whose band of ``levels`` reaches left of the right image dropped, and textureless
+    pixels dropped: those whose left census word is 0 together with their 8 neighbours'
+    (edge-replicated), i.e. no pair of the window differs upwards anywhere in 3x3 windows
+    (NumPy reference)."""
     height, width = raw.shape
     if median:
         padded = np.pad(raw, 1, mode="edge")
         stack = np.stack([padded[a:a + height, b:b + width] for a in range(3) for b in range(3)])
         raw = np.sort(stack, axis=0)[4]
     disparity = perspective.add_shifts(np, raw, shifts)
-    invalid = (raw < 0) | (np.arange(width, dtype=np.float32)[None, :] - disparity < 0) \
+    columns = np.arange(width)[None, :]
+    band_outside = columns - (levels - 1) < shifts[perspective.SHIFT_FIRST][:, None]
+    invalid = (raw < 0) | (columns.astype(np.float32) - disparity < 0) | band_outside \
         | textureless(census_left)
     invalid[:BORDER_Y] = invalid[height - BORDER_Y:] = True
     invalid[:, :BORDER_X] = invalid[:, width - BORDER_X:] = True
@@ -196,7 +201,7 @@ def reference_disparity(left: np.ndarray, right: np.ndarray, shifts: np.ndarray,
     census_left = census_transform(left)
     cost = matching_cost(census_left, census_transform(right), shifts, levels)
     raw = select_disparities(aggregate(cost, p1, p2), uniqueness_percent, lr_max_diff_px)
-    return finish(raw, shifts, median, census_left)
+    return finish(raw, shifts, median, census_left, levels)
 
 
 def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> None:

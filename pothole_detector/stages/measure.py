@@ -11,7 +11,7 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
 from .components import relabel
-from .road_model import PARAM_LAYOUT, RoadModel, device_params, road_plane
+from .road_model import ROAD_DEFINES, RoadModel, device_params, road_plane
 
 
 @dataclass(frozen=True)
@@ -197,7 +197,7 @@ MEASURE_SUMS = 8
 MEASURE_EXTREMES = 5
 MEASURE_THREADS = 256
 _MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
-                    "THREADS": MEASURE_THREADS, **PARAM_LAYOUT}
+                    "THREADS": MEASURE_THREADS, **ROAD_DEFINES}
 
 
 def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,

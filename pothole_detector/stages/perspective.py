@@ -124,9 +124,10 @@ def band(xp: Any, model: RoadModel, height: int, width: int, margin_below_px: fl
 
     ``mode`` row: kappa(v) = floor(min_u f(u, v) - delta_PT) clipped at 0, the paper's row
     shifts. pixel: per row the line through the road's disparity at the row's two ends,
-    lowered until it lies delta_PT below the road at every column (a curved road bulges
-    below the chord); kappa clipped at 0. Levels: the road's greatest disparity above kappa
-    over the image plus the margin above, rounded up to a multiple of 16 and capped at
+    lowered until it lies delta_PT below the road at every sampled column
+    (RoadModel.row_samples; a curved road bulges below the chord); kappa clipped at 0. Levels:
+    the road's greatest disparity above kappa over the image plus the margin above, rounded up
+    to a multiple of 16 and capped at
     ``max_levels``. ``xp`` must be NumPy (a host table; upload it)."""
     if mode == "row":
         row_min, row_max = model.row_extremes(np, height, width)
@@ -134,19 +135,11 @@ def band(xp: Any, model: RoadModel, height: int, width: int, margin_below_px: fl
         shifts = shifts_table(base, np.zeros(height, dtype=np.int64))
         needed = float((row_max - np.maximum(base >> SHIFT_BITS, 0)).max())
     else:
-        v = np.arange(height, dtype=np.float64)
-        last = float(width - 1)
-        ends = model.at(np, 0.0, v), model.at(np, last, v)
-        slope = (ends[1] - ends[0]) / max(last, 1.0)
+        columns, values = model.row_samples(height, width)
+        slope = (values[:, -1] - values[:, 0]) / max(columns[-1], 1.0)
         step = np.clip(np.rint(slope * SHIFT_ONE), -MAX_STEP, MAX_STEP).astype(np.int64)
-        # f(x) - step x / 2^16 is quadratic along the row: its extremes are at the ends or
-        # the vertex
-        tilt = step / SHIFT_ONE
-        gaps = [ends[0], ends[1] - tilt * last]
-        vertex = model.row_vertex(np, v, width, tilt)
-        if vertex is not None:
-            gaps.append(model.at(np, vertex, v) - tilt * vertex)
-        lowest, highest = np.minimum.reduce(gaps), np.maximum.reduce(gaps)
+        gaps = values - (step / SHIFT_ONE)[:, None] * columns[None, :]
+        lowest, highest = gaps.min(axis=1), gaps.max(axis=1)
         base = np.floor((lowest - margin_below_px) * SHIFT_ONE).astype(np.int64)
         shifts = shifts_table(base, step)
         # kappa >= floor((base + step x) / 2^16) > (base + step x) / 2^16 - 1

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend
-from .road_model import PARAM_LAYOUT, RoadModel, device_params
+from .road_model import ROAD_DEFINES, RoadModel, device_params
 from .transform import transform_disparity
 
 # side (px) of the square over which a pixel's disparity is averaged
@@ -91,4 +91,4 @@ def _grid(height: int, width: int) -> tuple[int, int]:
 
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/refine.cu with the numbers it shares with this module."""
-    return backend.kernel("refine.cu", name, {"SMOOTHING": SMOOTHING_PX, **PARAM_LAYOUT})
+    return backend.kernel("refine.cu", name, {"SMOOTHING": SMOOTHING_PX, **ROAD_DEFINES})

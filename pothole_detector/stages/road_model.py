@@ -1,9 +1,16 @@
 """Road model: v-disparity with roll, fitted from nine moments with robust refit rounds.
 
-Road disparity is ``f(u, v) = a0 + a1 t + q(u, v)`` with the rotated row
-``t = v cos(phi) - u sin(phi)``. The paper's planar model has ``q = 0``; the quadratic model
-adds a second-order correction ``q`` in (u, v) (road crown, camber, a change of grade), fitted to
-the planar model's inliers.
+Road disparity is ``f(u, v) = p(u, v) + q(u, v)``: the plane ``p = a0 + a1 t`` with the
+rotated row ``t = v cos(phi) - u sin(phi)`` and a correction ``q``. The paper's planar model has
+``q = 0``. The quadratic model is the disparity of a road whose height off the plane is any
+quadratic in road coordinates (camber, a crown, a crest or sag, a twist), fitted to the planar
+model's inliers: a point h below the plane has disparity p (1 - h / H) (H: the camera's
+height), and road coordinates are (u, 1) / p up to an affine map, so the quadratic part of h
+adds multiples of u^2 / p, u / p and 1 / p, and its linear part re-tilts the plane:
+``q = c0 + c1 x + c2 y + w (c5 + x (c4 + x c3))`` with x = u / 1000, y = v / 1000 and
+``w = 100 / max(p, 8)``: a camber's drop grows like u^2 / p towards the horizon. w stops growing
+at 8 px of road disparity, where 0.2 px of matching noise is 1/40 of the disparity and no
+pothole is resolved on any rig; beyond it the model would chase walls and trees.
 """
 
 from __future__ import annotations
@@ -18,8 +25,16 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..errors import NoRoadError
 
-# Coordinates of the quadratic correction are divided by this (px), for conditioning.
-CURVATURE_SCALE_PX = 1000.0
+# The quadratic correction's coordinates are u and v divided by CURVATURE_SCALE_PX and its
+# inverse disparity is INVERSE_SCALE_PX / max(p, MIN_ROAD_DISPARITY_PX) (px), for conditioning
+# and to stay finite at the horizon; the kernels take them as defines (ROAD_DEFINES).
+ROAD_CONSTANTS = {"CURVATURE_SCALE_PX": 1000, "INVERSE_SCALE_PX": 100,
+                  "MIN_ROAD_DISPARITY_PX": 8}
+CURVATURE_SCALE_PX = float(ROAD_CONSTANTS["CURVATURE_SCALE_PX"])
+INVERSE_SCALE_PX = float(ROAD_CONSTANTS["INVERSE_SCALE_PX"])
+MIN_ROAD_DISPARITY_PX = float(ROAD_CONSTANTS["MIN_ROAD_DISPARITY_PX"])
+# Columns per row at which the band and the row extremes evaluate the road.
+ROW_SAMPLES = 9
 
 # The road fit report (float64 (ROAD_REPORT,)): status (0 fitted, else a key of FIT_FAILURES),
 # valid count, planar a0, a1, roll (rad), planar inliers and sigma (px), curvature c0..c5,
@@ -33,6 +48,7 @@ ROAD_REPORT = FIT_LAYOUT["ROAD_REPORT"]
 PARAM_LAYOUT = {"ROAD_A0": 0, "ROAD_A1": 1, "ROAD_COS": 2, "ROAD_SIN": 3, "ROAD_C0": 4,
                 "ROAD_CURVED": 10, "ROAD_PARAMS": 11}
 ROAD_PARAMS = PARAM_LAYOUT["ROAD_PARAMS"]
+ROAD_DEFINES = {**PARAM_LAYOUT, **ROAD_CONSTANTS}
 # A prior for the fit (float64 (PRIOR_PARAMS,)): a road model's kernel parameters, the distance
 # (px) from it within which the fit looks for the road (0: no prior), and the share of the valid
 # pixels that must lie that close for the prior to be used (else it is stale: every valid pixel).
@@ -49,7 +65,8 @@ class RoadModel:
     """Road disparity model in full-resolution pixel coordinates of the left image.
 
     ``curvature`` holds (c0, c1, c2, c3, c4, c5) of
-    ``q = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2`` with x = u / 1000, y = v / 1000.
+    ``q = c0 + c1 x + c2 y + w (c5 + x (c4 + x c3))`` with x = u / 1000, y = v / 1000 and
+    w = 100 / max(p(u, v), 8) (the module's docstring).
     """
 
     a0: float
@@ -73,7 +90,8 @@ class RoadModel:
         planar = self.a0 + self.a1 * self.rotated_row(xp, u, v)
         if self.kind == "planar":
             return planar
-        return planar + _poly(self.curvature, u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX)
+        return planar + _poly(xp, self.curvature, u / CURVATURE_SCALE_PX,
+                              v / CURVATURE_SCALE_PX, planar)
 
     def disparity(self, xp: Any, height: int, width: int, dtype: Any = np.float32) -> Any:
         """Road disparity f(u, v) over an HxW grid (px), as ``dtype``."""
@@ -82,29 +100,29 @@ class RoadModel:
         return self.at(xp, u, v).astype(dtype)
 
     def row_extremes(self, xp: Any, height: int, width: int) -> tuple[Any, Any]:
-        """Per-row minimum and maximum of f over u in [0, width-1]; two float64 arrays (H,).
+        """Per-row minimum and maximum of f over u in [0, width-1]; two float64 arrays (H,),
+        from f at ROW_SAMPLES columns (exact for a planar model: the ends)."""
+        values = self.row_samples(height, width)[1]
+        return xp.asarray(values.min(axis=1)), xp.asarray(values.max(axis=1))
 
-        Along a row f is quadratic in u, so the extremes lie at the ends or the vertex."""
-        v = xp.arange(height, dtype=xp.float64)
-        ends = [self.at(xp, 0.0, v), self.at(xp, float(width - 1), v)]
-        vertex = self.row_vertex(xp, v, width)
-        if vertex is not None:
-            ends.append(self.at(xp, vertex, v))
-        stacked = xp.stack(ends)
-        return stacked.min(axis=0), stacked.max(axis=0)
-
-    def row_vertex(self, xp: Any, v: Any, width: int, tilt: Any = 0.0) -> Any:
-        """Per row v (array, px), the column (px, clipped to [0, width - 1]) where
-        f(u, v) - tilt u has its vertex (along a row f is quadratic in u); None where f has no
-        u^2 term (a planar model), so that the row's ends hold its extremes. ``tilt``: px of
-        disparity per px, a number or one per row."""
-        c3 = self.curvature[3] if self.kind != "planar" else 0.0
-        if c3 == 0.0:
-            return None
-        c1, c4 = self.curvature[1], self.curvature[4]
-        slope = (-self.a1 * math.sin(self.roll_rad) - tilt) * CURVATURE_SCALE_PX + c1
-        x_vertex = -(slope + c4 * v / CURVATURE_SCALE_PX) / (2.0 * c3)
-        return xp.clip(x_vertex * CURVATURE_SCALE_PX, 0.0, float(width - 1))
+    def row_samples(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """(columns (S,), f there per row (H, S)) on the host: both ends and, for a curved
+        model, ROW_SAMPLES columns evenly spread (px). f as :meth:`at`, arranged for speed
+        (the band is worked out from it once per frame)."""
+        samples = ROW_SAMPLES if self.kind != "planar" else 2
+        columns = np.linspace(0.0, float(max(width - 1, 0)), samples)
+        rows = np.arange(height, dtype=np.float64)
+        planar = (self.a0 + self.a1 * math.cos(self.roll_rad) * rows)[:, None] \
+            - (self.a1 * math.sin(self.roll_rad) * columns)[None, :]
+        if self.kind == "planar":
+            return columns, planar
+        c0, c1, c2, c3, c4, c5 = self.curvature
+        x = columns / CURVATURE_SCALE_PX
+        across = c0 + c1 * x
+        along = c2 * rows / CURVATURE_SCALE_PX
+        inverse = INVERSE_SCALE_PX / np.maximum(planar, MIN_ROAD_DISPARITY_PX)
+        return columns, planar + (along[:, None] + across[None, :]) \
+            + inverse * (c5 + x * (c4 + x * c3))[None, :]
 
     def kernel_params(self) -> np.ndarray:
         """The model as the GPU kernels read it (float64 (ROAD_PARAMS,)): a0, a1, cos(roll),
@@ -125,8 +143,11 @@ class RoadModel:
                 "model": self.kind, "curvature": list(self.curvature)}
 
 
-def _poly(c: tuple[float, ...], x: Any, y: Any) -> Any:
-    return c[0] + x * (c[1] + c[3] * x + c[4] * y) + y * (c[2] + c[5] * y)
+def _poly(xp: Any, c: Any, x: Any, y: Any, planar: Any) -> Any:
+    """The correction q at x = u / 1000, y = v / 1000 where the plane's disparity is
+    ``planar`` (px)."""
+    inverse = INVERSE_SCALE_PX / xp.maximum(planar, MIN_ROAD_DISPARITY_PX)
+    return c[0] + x * c[1] + y * c[2] + inverse * (c[5] + x * (c[4] + x * c[3]))
 
 
 def moments(xp: Any, disparity: Any, mask: Any, u: Any, v: Any) -> np.ndarray:
@@ -188,11 +209,13 @@ def solve_roll(m: np.ndarray) -> tuple[float, float, float, float]:
     return best
 
 
-def _curvature_design(xp: Any, shape: tuple[int, int], u: Any, v: Any) -> Any:
-    """(N, 6) float64 columns 1, x, y, x^2, xy, y^2 with x = u / 1000, y = v / 1000."""
+def _curvature_design(xp: Any, shape: tuple[int, int], u: Any, v: Any, planar: Any) -> Any:
+    """(N, 6) float64 columns 1, x, y, x^2 w, x w, w of q (RoadModel) with x = u / 1000,
+    y = v / 1000 and w from the HxW plane disparity ``planar`` (px)."""
     x = xp.broadcast_to(u / CURVATURE_SCALE_PX, shape).reshape(-1)
     y = xp.broadcast_to(v / CURVATURE_SCALE_PX, shape).reshape(-1)
-    return xp.stack([xp.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    inverse = (INVERSE_SCALE_PX / xp.maximum(planar, MIN_ROAD_DISPARITY_PX)).reshape(-1)
+    return xp.stack([xp.ones_like(x), x, y, x * x * inverse, x * inverse, inverse], axis=1)
 
 
 def _fit_curvature(xp: Any, design: Any, residual: Any, mask: Any) -> tuple[float, ...]:
@@ -261,8 +284,8 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
         if float(near.sum()) >= float(prior[PRIOR_MIN_SHARE]) * float(valid.sum()):
             first = near
 
-    def robust_rounds(model: RoadModel, refit: Any) -> tuple[RoadModel, float, float]:
-        mask = first
+    def robust_rounds(model: RoadModel, refit: Any, mask: Any
+                      ) -> tuple[RoadModel, float, float, Any]:
         for round_index in range(rounds + 1):
             model = refit(model, mask)
             residual = d - model.at(xp, u, v)
@@ -270,15 +293,15 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
             mask = first & (xp.abs(residual) <= outlier_k * xp.maximum(sigma, 1e-3))
         inliers, sigma_px, report[_F["FIT_VALID"]] = to_host(xp.stack(
             [mask.sum(), sigma, valid.sum()]).astype(xp.float64))
-        return model, inliers, sigma_px
+        return model, inliers, sigma_px, mask
 
     def refit_planar(model: RoadModel, mask: Any) -> RoadModel:
         a0, a1, phi, _ = solve_roll(_moments_of(xp, basis, mask))
         return RoadModel(a0, a1, phi)
 
     try:
-        planar, report[_F["FIT_PLANAR_INLIERS"]], report[_F["FIT_PLANAR_SIGMA"]] = \
-            robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar)
+        planar, report[_F["FIT_PLANAR_INLIERS"]], report[_F["FIT_PLANAR_SIGMA"]], \
+            planar_inliers = robust_rounds(RoadModel(0.0, 0.0, 0.0), refit_planar, first)
     except RoadFitFailed as failure:
         report[_F["FIT_STATUS"]] = failure.status
         return report
@@ -286,15 +309,16 @@ def fit_report(xp: Any, disparity: Any, *, stride: int = 1, rounds: int = 3,
     report[[_F["FIT_A0"], _F["FIT_A1"], _F["FIT_ROLL"]]] = planar.a0, planar.a1, planar.roll_rad
     if kind == "planar":
         return report
-    design = _curvature_design(xp, d.shape, u, v)
-    planar_residual = d - planar.at(xp, u, v)
+    plane = planar.at(xp, u, v)
+    design = _curvature_design(xp, d.shape, u, v, plane)
+    planar_residual = d - plane
 
     def refit_quadratic(model: RoadModel, mask: Any) -> RoadModel:
         return replace(planar, curvature=_fit_curvature(xp, design, planar_residual, mask),
                        kind="quadratic")
 
-    quadratic, report[_F["FIT_QUADRATIC_INLIERS"]], report[_F["FIT_QUADRATIC_SIGMA"]] = \
-        robust_rounds(planar, refit_quadratic)
+    quadratic, report[_F["FIT_QUADRATIC_INLIERS"]], report[_F["FIT_QUADRATIC_SIGMA"]], _ = \
+        robust_rounds(planar, refit_quadratic, planar_inliers)
     report[_F["FIT_CURVATURE"]:_F["FIT_CURVATURE"] + 6] = quadratic.curvature
     return report
 
@@ -425,7 +449,7 @@ def params_at(xp: Any, params: Any, u: Any, v: Any) -> Any:
     planar = params[layout["ROAD_A0"]] + params[layout["ROAD_A1"]] * (
         v * params[layout["ROAD_COS"]] - u * params[layout["ROAD_SIN"]])
     return planar + params[layout["ROAD_CURVED"]] * _poly(
-        tuple(c), u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX)
+        xp, tuple(c), u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX, planar)
 
 
 def road_plane(xp: Any, params: Any, calibration: Any) -> tuple[tuple[Any, Any, Any], Any]:
@@ -508,7 +532,7 @@ MAX_SHARED_KEY_BYTES = 160 * 1024
 
 _ROAD_DEFINES = {"THREADS": 32 * ROAD_WARPS, "BINS": ROAD_BINS, "MAX_SUMS": ROAD_MAX_SUMS,
                  "PRIOR_TOLERANCE": PRIOR_TOLERANCE, "PRIOR_MIN_SHARE": PRIOR_MIN_SHARE,
-                 **FIT_LAYOUT, **PARAM_LAYOUT}
+                 **FIT_LAYOUT, **ROAD_DEFINES}
 
 @lru_cache(maxsize=4)
 def _coordinate_tables(backend: Backend, height: int, width: int, step: float,

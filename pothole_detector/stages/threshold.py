@@ -290,7 +290,7 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
 
 
 _THRESHOLD_DEFINES = {**_THRESHOLD_KERNEL, **road_model.FIT_LAYOUT,
-                      **road_model.PARAM_LAYOUT}
+                      **road_model.ROAD_DEFINES}
 
 
 def _kernel(backend: Backend, name: str) -> Any:

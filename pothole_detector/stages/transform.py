@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend
-from .road_model import PARAM_LAYOUT, RoadModel, device_params
+from .road_model import ROAD_DEFINES, RoadModel, device_params
 
 
 def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any,
@@ -33,5 +33,5 @@ def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any
 
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/transform.cu with the road parameters' layout."""
-    return backend.kernel("transform.cu", name, PARAM_LAYOUT)
+    return backend.kernel("transform.cu", name, ROAD_DEFINES)
 
