@@ -24,6 +24,7 @@ from visualization_msgs.msg import MarkerArray
 
 from pothole_detector import bagtools, conversions
 from pothole_detector.conversions import stamp_ns
+from pothole_detector.transport import large_image_transport
 from pothole_detector_msgs.msg import PotholeArray
 
 REPO = Path(__file__).resolve().parents[1]
@@ -34,9 +35,12 @@ OUTPUTS = {"disparity": DisparityImage, "disparity_transformed": Image, "pothole
 
 
 def isolate_ros_graph() -> None:
-    """Give this test run a DDS domain of its own on the loopback interface."""
+    """Give this test run a DDS domain of its own on the loopback interface, with the transport
+    profile the README asks of the camera's node (a left and a right 640x480 image published
+    together outgrow Fast DDS's default shared memory)."""
     os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    large_image_transport()
 
 
 def header_at(nanoseconds: int, frame_id: str = "stereo_left_optical_frame") -> Header:
