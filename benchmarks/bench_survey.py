@@ -3,7 +3,7 @@ tracking, survey.csv and report.html) on a drive bag of our generator, per image
 a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
-        [--backend cpu|gpu] [--ray [--chunk-frames 30]]
+        [--backend cpu|gpu] [--ray | --jobs N] [--chunk-frames 30]
 
 The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
 frame at these sizes would take longer than the survey)."""
@@ -37,9 +37,10 @@ def make_bag(bag: Path, samples: list, frames: int) -> Path:
     return bag
 
 
-def bench(bag: Path, config: Config, use_ray: bool, out: Path) -> tuple[float, int]:
+def bench(bag: Path, config: Config, use_ray: bool, jobs: int, out: Path
+          ) -> tuple[float, int]:
     start = time.perf_counter()
-    surveys = survey([bag], config, use_ray=use_ray)
+    surveys = survey([bag], config, use_ray=use_ray, jobs=jobs)
     write_csv(surveys, out / "survey.csv")
     write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
         d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px))
@@ -53,6 +54,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--backend", default="cpu", choices=("cpu", "gpu", "auto"))
     parser.add_argument("--ray", action="store_true", help="chunks as tasks on a local Ray")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="chunks in this many worker processes here")
     parser.add_argument("--chunk-frames", type=int, default=600)
     args = parser.parse_args()
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
@@ -66,17 +69,19 @@ def main() -> None:
             bag = make_bag(folder / f"drive_{size}", samples, args.frames)
             warm = folder / f"warm_{size}"
             warm.mkdir()
-            bench(make_bag(warm / "drive", samples, 3), config, False, warm)  # compiles kernels
+            bench(make_bag(warm / "drive", samples, 3), config, False, 1, warm)  # compiles kernels
             out = folder / f"out_{size}"
             out.mkdir()
-            seconds, frames = bench(bag, config, args.ray, out)
+            seconds, frames = bench(bag, config, args.ray, args.jobs, out)
             rows.append((size, frames, seconds))
     if args.backend == "cpu":
         device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
     else:
         from pothole_detector.backend import get_backend
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
-    mode = f"Ray, chunks of {args.chunk_frames} frames" if args.ray else "one process"
+    mode = f"Ray, chunks of {args.chunk_frames} frames" if args.ray else (
+        f"{args.jobs} worker processes, chunks of {args.chunk_frames} frames" if args.jobs > 1
+        else "one process")
     print(f"survey throughput, {device}, {mode}, {args.frames} frames a bag, "
           f"{datetime.date.today().isoformat()}")
     print("| size | frames | seconds (decode, pipeline, odometry, tracking, outputs) | "

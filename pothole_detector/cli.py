@@ -98,6 +98,9 @@ def _parser() -> argparse.ArgumentParser:
     survey_cmd.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
                             help="run chunks of the bags as Ray tasks, on the cluster at "
                                  "ADDRESS or a local one")
+    survey_cmd.add_argument("--jobs", type=int, default=1, metavar="N",
+                            help="run chunks of the bags (chunk_frames frames each) in N "
+                                 "worker processes here (default 1: in this process)")
     survey_cmd.add_argument("--odometry-topic", help="nav_msgs/Odometry topic (default: the "
                                                      "bag's only one; else /tf, GNSS or "
                                                      "visual odometry)")
@@ -251,13 +254,17 @@ def run_survey(args: argparse.Namespace) -> int:
     for bag in args.bags:
         if not Path(bag).exists():
             raise InputError(f"{bag} does not exist")
+    if args.jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {args.jobs}")
+    if args.jobs > 1 and args.ray is not None:
+        raise InputError("--jobs and --ray both say where chunks run: give one of them")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    label = "survey (chunks)" if args.ray is not None else "survey"
+    label = "survey (chunks)" if args.ray is not None or args.jobs > 1 else "survey"
     surveys = survey(args.bags, config, ray_address=args.ray, use_ray=args.ray is not None,
                      progress=lambda index, total: draw_progress(index, total, start, label),
-                     **names)
+                     jobs=args.jobs, **names)
     write_csv(surveys, out / "survey.csv")
     geojson = write_geojson(surveys, out / "survey.geojson")
     write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(

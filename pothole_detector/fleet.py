@@ -9,12 +9,7 @@ from typing import Any, Callable, Sequence
 
 from .errors import InputError
 from .params import Config
-from .survey import DriveTopics, FrameObservation, observe
-
-
-def _observe_task(bag: str, topics: DriveTopics, values: dict[str, Any], first: int,
-                  stop: int) -> list[FrameObservation]:
-    return observe(bag, topics, Config(values), first, stop)
+from .survey import DriveTopics, FrameObservation, observe_chunk
 
 
 def observe_on_ray(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]]]],
@@ -37,7 +32,7 @@ def observe_on_ray(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]
             "cpu" if config.backend == "auto" else config.backend)
         values = {**config.as_dict(), "backend": backend}
         task = ray.remote(num_gpus=1 if backend == "gpu" else 0,
-                          num_cpus=1)(_observe_task)
+                          num_cpus=1)(observe_chunk)
         refs = [[task.remote(str(bag), topics, values, first, stop) for first, stop in ranges]
                 for bag, topics, ranges in plans]
         flat = [ref for per_bag in refs for ref in per_bag]

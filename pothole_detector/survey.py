@@ -380,12 +380,41 @@ def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
     return find_drive_topics(bagtools.topics_of(bag), **names)
 
 
+def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any], first: int,
+                  stop: int) -> list[FrameObservation]:
+    """:func:`observe` of one chunk with the parameter values ``values``: a task for worker
+    processes and Ray."""
+    return observe(bag, topics, Config(values), first, stop)
+
+
+def observe_in_processes(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]]]],
+                         config: Config, jobs: int,
+                         progress: Callable[[int, int], None] | None = None
+                         ) -> list[list[FrameObservation]]:
+    """Observations of every (bag, topics, chunk ranges) plan, one chunk per task in ``jobs``
+    worker processes on this machine (started afresh, each with its own pipeline on the
+    configured backend: several share one GPU); per bag, in chunk order."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    values = config.as_dict()
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = [[pool.submit(observe_chunk, str(bag), topics, values, first, stop)
+                    for first, stop in ranges] for bag, topics, ranges in plans]
+        flat = [future for per_bag in futures for future in per_bag]
+        for done, _ in enumerate(as_completed(flat), 1):
+            if progress is not None:
+                progress(done, len(flat))
+        return [[obs for future in per_bag for obs in future.result()] for per_bag in futures]
+
+
 def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None = None,
            use_ray: bool = False, progress: Callable[[int, int], None] | None = None,
-           **names: Any) -> list[DriveSurvey]:
+           jobs: int = 1, **names: Any) -> list[DriveSurvey]:
     """Survey every bag (one id sequence over all of them). With ``use_ray``, every chunk of
     every bag is a Ray task (one GPU each on GPU nodes, else one CPU), on the cluster at
-    ``ray_address`` or a local one."""
+    ``ray_address`` or a local one; with ``jobs`` > 1, a task of one of ``jobs`` worker
+    processes here (:func:`observe_in_processes`)."""
     plans = []
     for bag in bags:
         topics = drive_topics(bag, **names)
@@ -393,6 +422,8 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
     if use_ray:
         from .fleet import observe_on_ray
         observed = observe_on_ray(plans, config, ray_address, progress)
+    elif jobs > 1:
+        observed = observe_in_processes(plans, config, jobs, progress)
     else:
         total = sum(stop - first for _, _, ranges in plans for first, stop in ranges)
         observed, done = [], 0

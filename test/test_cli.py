@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import REPO
 from pothole_detector.calibration import camera_info_yaml
 from pothole_detector.cli import main
 
@@ -70,7 +71,8 @@ def run_cli(*args):
     ("missing", "does not exist"), ("size", "equal sizes"), ("texture", "texture"),
     ("calibration", "--focal and --baseline"), ("config", "delta_pd_px"),
     ("same", "not a stereo pair"), ("empty_info", "is empty"), ("conflict", "conflicts"),
-    ("auto_backend", "not a stereo pair"), ("not_a_bag", "is not a bag")])
+    ("auto_backend", "not a stereo pair"), ("not_a_bag", "is not a bag"),
+    ("jobs_and_ray", "give one of them")])
 def test_bad_input_exits_with_one_line(case, says, pair_dir, tmp_path):
     """Each refusal: exit status 2 and one line on stderr that says why (under the auto
     backend too, whose notice goes to stdout)."""
@@ -104,6 +106,9 @@ def test_bad_input_exits_with_one_line(case, says, pair_dir, tmp_path):
     if case == "not_a_bag":
         (tmp_path / "notes.txt").write_text("not a bag\n")
         result = run_cli("process", str(tmp_path / "notes.txt"), "--out", str(tmp_path / "o"))
+    elif case == "jobs_and_ray":
+        result = run_cli("survey", str(REPO / "bags" / "sample_drive"), "--out",
+                         str(tmp_path / "o"), "--jobs", "2", "--ray")
     else:
         result = run_cli("detect", "--left", str(left), "--right", str(right), *extra, "--out",
                          str(tmp_path / "o"), *backend)

@@ -149,6 +149,22 @@ def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags):
     assert_same_potholes(split, whole)
 
 
+def test_chunks_in_worker_processes_give_the_sequential_survey(survey_drive_bags):
+    """survey --jobs: chunks of two drives in two worker processes, merged per drive."""
+    from conftest import REPO
+    bags, _, _ = survey_drive_bags
+    drives = [bags["none"], REPO / "bags" / "sample_drive"]
+    seen = []
+    in_workers = survey(drives, Config({"backend": "cpu", "chunk_frames": 12}), jobs=2,
+                        progress=lambda done, total: seen.append((done, total)))
+    here = survey(drives, Config({"backend": "cpu"}))
+    assert [len(d.potholes) for d in in_workers] == [6, 5]
+    assert seen[-1] == (6, 6)  # 48 frames in 4 chunks, 16 in 2
+    for split, whole in zip(in_workers, here):
+        assert (split.frames, split.failed) == (whole.frames, whole.failed)
+        assert_same_potholes(split, whole)
+
+
 def assert_same_potholes(split, whole):
     """A chunk starts with a fresh road fit (and the backends' matchers differ in a few
     pixels), so frames may differ a little: the same potholes and severities, first seen
