@@ -107,22 +107,11 @@ class RoadModel:
 
     def row_samples(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
         """(columns (S,), f there per row (H, S)) on the host: both ends and, for a curved
-        model, ROW_SAMPLES columns evenly spread (px). f as :meth:`at`, arranged for speed
-        (the band is worked out from it once per frame)."""
+        model, ROW_SAMPLES columns evenly spread (px)."""
         samples = ROW_SAMPLES if self.kind != "planar" else 2
         columns = np.linspace(0.0, float(max(width - 1, 0)), samples)
-        rows = np.arange(height, dtype=np.float64)
-        planar = (self.a0 + self.a1 * math.cos(self.roll_rad) * rows)[:, None] \
-            - (self.a1 * math.sin(self.roll_rad) * columns)[None, :]
-        if self.kind == "planar":
-            return columns, planar
-        c0, c1, c2, c3, c4, c5 = self.curvature
-        x = columns / CURVATURE_SCALE_PX
-        across = c0 + c1 * x
-        along = c2 * rows / CURVATURE_SCALE_PX
-        inverse = INVERSE_SCALE_PX / np.maximum(planar, MIN_ROAD_DISPARITY_PX)
-        return columns, planar + (along[:, None] + across[None, :]) \
-            + inverse * (c5 + x * (c4 + x * c3))[None, :]
+        rows = np.arange(height, dtype=np.float64)[:, None]
+        return columns, self.at(np, columns[None, :], rows)
 
     def kernel_params(self) -> np.ndarray:
         """The model as the GPU kernels read it (float64 (ROAD_PARAMS,)): a0, a1, cos(roll),
