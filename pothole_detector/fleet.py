@@ -5,7 +5,7 @@ optional extra: ``pip install .[fleet]``."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 from .errors import InputError
 from .params import Config

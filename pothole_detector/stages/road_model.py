@@ -132,10 +132,15 @@ class RoadModel:
                 "model": self.kind, "curvature": list(self.curvature)}
 
 
+def _inverse(xp: Any, planar: Any) -> Any:
+    """w of the correction q where the plane's disparity is ``planar`` (px)."""
+    return INVERSE_SCALE_PX / xp.maximum(planar, MIN_ROAD_DISPARITY_PX)
+
+
 def _poly(xp: Any, c: Any, x: Any, y: Any, planar: Any) -> Any:
     """The correction q at x = u / 1000, y = v / 1000 where the plane's disparity is
     ``planar`` (px)."""
-    inverse = INVERSE_SCALE_PX / xp.maximum(planar, MIN_ROAD_DISPARITY_PX)
+    inverse = _inverse(xp, planar)
     return c[0] + x * c[1] + y * c[2] + inverse * (c[5] + x * (c[4] + x * c[3]))
 
 
@@ -203,7 +208,7 @@ def _curvature_design(xp: Any, shape: tuple[int, int], u: Any, v: Any, planar: A
     y = v / 1000 and w from the HxW plane disparity ``planar`` (px)."""
     x = xp.broadcast_to(u / CURVATURE_SCALE_PX, shape).reshape(-1)
     y = xp.broadcast_to(v / CURVATURE_SCALE_PX, shape).reshape(-1)
-    inverse = (INVERSE_SCALE_PX / xp.maximum(planar, MIN_ROAD_DISPARITY_PX)).reshape(-1)
+    inverse = _inverse(xp, planar).reshape(-1)
     return xp.stack([xp.ones_like(x), x, y, x * x * inverse, x * inverse, inverse], axis=1)
 
 
