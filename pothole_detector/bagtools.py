@@ -265,6 +265,18 @@ class BagFrame:
     left: np.ndarray | None
     right: np.ndarray | None
     calibration: Any
+    logged_ns: int = 0
+
+
+@dataclass(frozen=True)
+class LogSpan:
+    """A part of a bag by log time (ns): the sets whose left image was logged in
+    [``start_ns``, ``stop_ns``), read with ``lead_ns`` more on both sides (earlier sets, for
+    visual odometry, and partners logged after the span)."""
+
+    start_ns: int
+    stop_ns: int
+    lead_ns: int
 
 
 @dataclass
@@ -284,21 +296,46 @@ class ProcessSummary:
                 f"frame, {self.failed} failed, {self.unpaired} unpaired images")
 
 
+def _info_messages(reader: AnyReader, topics: StereoTopics, span: LogSpan | None
+                   ) -> Iterator[tuple[str, Any]]:
+    """(role, CameraInfo) of the bag, or of ``span`` with its lead; a role without an info
+    logged in the lead also gets the newest one logged before it (a latched camera_info)."""
+    roles = {topics.left_info: "left_info", topics.right_info: "right_info"}
+    connections = [c for c in reader.connections if c.topic in roles]
+    window = {} if span is None else {"start": span.start_ns - span.lead_ns,
+                                      "stop": span.stop_ns + span.lead_ns}
+    in_lead = set()
+    for connection, logged, rawdata in reader.messages(connections=connections, **window):
+        if span is not None and logged < span.start_ns:
+            in_lead.add(roles[connection.topic])
+        yield roles[connection.topic], deserialize(cdr_bytes(reader, connection, rawdata),
+                                                   INFO_TYPE)
+    for connection in connections:
+        if span is None or roles[connection.topic] in in_lead:
+            continue
+        newest = None
+        for _, _, rawdata in reader.messages(connections=[connection], stop=window["start"]):
+            newest = rawdata
+        if newest is not None:
+            yield roles[connection.topic], deserialize(cdr_bytes(reader, connection, newest),
+                                                       INFO_TYPE)
+
+
 def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
-                 summary: ProcessSummary) -> Iterator[tuple[int, Any, Any, Any, Any]]:
-    """Synchronized (stamp, left, right, left_info, right_info) messages of a bag. Each
-    pair takes the camera_info of its own stamp wherever the bag holds it (before or after the
-    images), else the newest one before it; the infos are None for a pair before any. Images
-    that found no partner are counted in ``summary``."""
+                 summary: ProcessSummary, span: LogSpan | None = None
+                 ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
+    """Synchronized (stamp, left image's log time, left, right, left_info, right_info)
+    messages of a bag, or of the sets whose left image was logged before ``span``'s stop
+    (reading from its lead before its start). Each pair takes the camera_info of its own stamp
+    wherever the bag holds it (before or after the images), else the newest one before it; the
+    infos are None for a pair before any. Images that found no partner are counted in
+    ``summary``."""
     from . import conversions
     from .sync import StereoSynchronizer
 
-    info_roles = {topics.left_info: "left_info", topics.right_info: "right_info"}
     infos: dict[str, dict[int, Any]] = {"left_info": {}, "right_info": {}}
-    for connection, _, rawdata in reader.messages(
-            connections=[c for c in reader.connections if c.topic in info_roles]):
-        info = deserialize(cdr_bytes(reader, connection, rawdata), INFO_TYPE)
-        infos[info_roles[connection.topic]][conversions.stamp_ns(info.header)] = info
+    for role, info in _info_messages(reader, topics, span):
+        infos[role][conversions.stamp_ns(info.header)] = info
     stamps = {role: sorted(by_stamp) for role, by_stamp in infos.items()}
 
     def info_at(role: str, stamp: int) -> Any:
@@ -308,44 +345,50 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
         return infos[role][stamps[role][before - 1]] if before else None
 
     image_roles = {topics.left: "left", topics.right: "right"}
+    window = {} if span is None else {"start": span.start_ns - span.lead_ns,
+                                      "stop": span.stop_ns + span.lead_ns}
     synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
-    for connection, _, rawdata in reader.messages(
-            connections=[c for c in reader.connections if c.topic in image_roles]):
+    for connection, logged, rawdata in reader.messages(
+            connections=[c for c in reader.connections if c.topic in image_roles], **window):
         msg = deserialize(cdr_bytes(reader, connection, rawdata), IMAGE_TYPE)
         outcome = synchronizer.add(image_roles[connection.topic],
-                                   conversions.stamp_ns(msg.header), msg)
+                                   conversions.stamp_ns(msg.header), (logged, msg))
         summary.unpaired += outcome.dropped
-        for pair_stamp, left, right in outcome.pairs:
+        for pair_stamp, (left_logged, left), (_, right) in outcome.pairs:
+            if span is not None and left_logged >= span.stop_ns:
+                continue
             left_info, right_info = (info_at(role, pair_stamp)
                                      for role in ("left_info", "right_info"))
             if left_info is None or right_info is None:
-                yield pair_stamp, left, right, None, None
+                yield pair_stamp, left_logged, left, right, None, None
             else:
-                yield pair_stamp, left, right, left_info, right_info
+                yield pair_stamp, left_logged, left, right, left_info, right_info
     summary.unpaired += synchronizer.reset()
 
 
 def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backend: Any,
                   summary: ProcessSummary,
                   progress: Callable[[int, int], None] | None = None,
-                  first: int = 0, stop: int | None = None
-                  ) -> Iterator[tuple[BagFrame, Any]]:
+                  span: LogSpan | None = None) -> Iterator[tuple[BagFrame, Any]]:
     """(frame, PipelineResult or the PotholeError that stopped it) for the synchronized sets
-    ``first`` to ``stop`` (indices; None: to the end) of a bag, in order. One pipeline per run
-    of frames with the same calibration; within a run the host prepares the next pair while
-    the device works (Pipeline.run_stream). ``progress(done, total)`` is called per set."""
+    of a bag, or of a :class:`LogSpan` of it (with the sets of its lead before it: their
+    ``logged_ns`` is before the span's start), in order. One pipeline per run of frames with
+    the same calibration; within a run the host prepares the next pair while the device works
+    (Pipeline.run_stream). ``progress(done, total)`` is called per set (of the whole bag's
+    left images, or of a span's share of them)."""
     from . import conversions
     from .pipeline import Pipeline
 
-    image_count = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
-    total = min(image_count, stop) - first if stop is not None else image_count - first
+    total = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
+    if span is not None:
+        bag_ns = max(reader.end_time - reader.start_time + 1, 1)
+        total = round(total * min(span.stop_ns - span.start_ns, bag_ns) / bag_ns)
 
     def prepared() -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
-        sets = _stereo_sets(reader, stereo, config, summary)
-        for index, (stamp, left_msg, right_msg, left_cal, right_cal) in enumerate(
-                itertools.islice(sets, first, stop)):
+        sets = _stereo_sets(reader, stereo, config, summary, span)
+        for index, (stamp, logged, left_msg, right_msg, left_cal, right_cal) in enumerate(sets):
             if progress is not None:
-                progress(index, total)
+                progress(min(index, total), total)
             try:
                 if left_cal is None:
                     raise InputError(f"no camera_info on {stereo.left_info} and "
@@ -356,9 +399,9 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
                 calibration = conversions.calibration_from_camera_info(
                     left_cal, right_cal, width, height)
             except PotholeError as exc:
-                yield BagFrame(stamp, left_msg.header, None, None, None), exc
+                yield BagFrame(stamp, left_msg.header, None, None, None, logged), exc
                 continue
-            yield BagFrame(stamp, left_msg.header, left_px, right_px, calibration)
+            yield BagFrame(stamp, left_msg.header, left_px, right_px, calibration, logged)
 
     def key(item: BagFrame | tuple[BagFrame, PotholeError]) -> Any:
         return None if isinstance(item, tuple) else item.calibration
@@ -451,15 +494,18 @@ def topics_of(bag: str | Path) -> dict[str, str]:
         reader.close()
 
 
-def read_messages(bag: str | Path, topics: Iterable[str] | None = None
-                  ) -> Iterator[tuple[str, int, Any]]:
-    """(topic, bag time ns, message) of a bag, in time order."""
+def read_messages(bag: str | Path, topics: Iterable[str] | None = None,
+                  span: LogSpan | None = None) -> Iterator[tuple[str, int, Any]]:
+    """(topic, bag time ns, message) of a bag, or of those logged in a span (its lead
+    left out), in time order."""
 
     reader = open_bag(bag)
     try:
         wanted = None if topics is None else set(topics)
         connections = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        for connection, timestamp, rawdata in reader.messages(connections=connections):
+        window = {} if span is None else {"start": span.start_ns, "stop": span.stop_ns}
+        for connection, timestamp, rawdata in reader.messages(connections=connections,
+                                                              **window):
             yield connection.topic, timestamp, deserialize(
                 cdr_bytes(reader, connection, rawdata), connection.msgtype)
     finally:

@@ -4,20 +4,19 @@ optional extra: ``pip install .[fleet]``."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Callable, Sequence
 
 from .errors import InputError
 from .params import Config
-from .survey import DriveTopics, FrameObservation, observe_chunk
+from .survey import ChunkResult, Plan, observe_chunk
 
 
-def observe_on_ray(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]]]],
-                   config: Config, address: str | None = None,
+def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = None,
                    progress: Callable[[int, int], None] | None = None
-                   ) -> list[list[FrameObservation]]:
-    """Observations of every (bag, topics, chunk ranges) plan, a Ray task per chunk; per bag,
-    in chunk order. The bags must be readable at the same path on every worker."""
+                   ) -> list[list[ChunkResult]]:
+    """:func:`~pothole_detector.survey.observe_chunk` of every (bag, topics, chunk spans)
+    plan, a Ray task per chunk; per bag, in chunk order. The bags must be readable at the same
+    path on every worker."""
     try:
         import ray
     except ImportError:
@@ -33,8 +32,8 @@ def observe_on_ray(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]
         values = {**config.as_dict(), "backend": backend}
         task = ray.remote(num_gpus=1 if backend == "gpu" else 0,
                           num_cpus=1)(observe_chunk)
-        refs = [[task.remote(str(bag), topics, values, first, stop) for first, stop in ranges]
-                for bag, topics, ranges in plans]
+        refs = [[task.remote(str(bag), topics, values, span) for span in spans]
+                for bag, topics, spans in plans]
         flat = [ref for per_bag in refs for ref in per_bag]
         done, pending = 0, list(flat)
         while pending:
@@ -42,7 +41,7 @@ def observe_on_ray(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]
             done += len(ready)
             if progress is not None:
                 progress(done, len(flat))
-        return [[obs for ref in per_bag for obs in ray.get(ref)] for per_bag in refs]
+        return [[ray.get(ref) for ref in per_bag] for per_bag in refs]
     finally:
         if started_here:
             ray.shutdown()

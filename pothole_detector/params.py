@@ -251,8 +251,9 @@ PARAMETERS: tuple[Param, ...] = (
           "Survey: stereo frames per task when a bag is split for parallel work (--ray).",
           2, 1000000, group="survey"),
     Param("chunk_overlap_frames", int, 2,
-          "Survey: frames that a chunk also processes before its start, so that visual "
-          "odometry runs on across chunk boundaries.", 1, 100, group="survey"),
+          "Survey: frames that a chunk also processes before its start (two more, at the "
+          "bag's mean frame rate), so that visual odometry runs on across chunk boundaries.",
+          1, 100, group="survey"),
 )
 
 PARAMETER_BY_NAME: dict[str, Param] = {p.name: p for p in PARAMETERS}

@@ -49,7 +49,6 @@ class FrameObservation:
     on the first frame or when it failed), its road frame's axes (rows forward, left, up in
     the left optical frame; None when the frame failed) and, when the frame failed, why."""
 
-    index: int
     stamp_ns: int
     sightings: tuple[Sighting, ...]
     observed_range_m: tuple[float, float]
@@ -94,25 +93,23 @@ def find_drive_topics(topics: dict[str, str], odometry: str | None = None,
         only(gnss, GNSS_TYPE, "--gnss-topic"), base_frame)
 
 
-def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0,
-            stop: int | None = None, progress: Callable[[int, int], None] | None = None
-            ) -> list[FrameObservation]:
-    """Run the pipeline and visual odometry on frames ``first`` to ``stop`` of ``bag``
-    (``config.chunk_overlap_frames`` earlier frames run too, for the odometry, and are not
-    returned)."""
+def observe(bag: str | Path, topics: DriveTopics, config: Config,
+            span: bagtools.LogSpan | None = None,
+            progress: Callable[[int, int], None] | None = None) -> list[FrameObservation]:
+    """Run the pipeline and visual odometry on the frames of ``bag``, or of a span of it (the
+    frames of its lead before it run too, for the odometry, and are not returned)."""
     from .backend import get_backend
     from .stages.matching import to_gray8
 
-    start = max(0, first - config.chunk_overlap_frames)
     reader = bagtools.open_bag(bag)
     odometry = StereoOdometry()
     observations = []
     try:
         summary = bagtools.ProcessSummary()
         backend = get_backend(config.backend)
-        for offset, (frame, outcome) in enumerate(bagtools.frame_results(
-                reader, topics.stereo, config, backend, summary, progress, start, stop)):
-            index = start + offset
+        for frame, outcome in bagtools.frame_results(reader, topics.stereo, config, backend,
+                                                     summary, progress, span):
+            kept = span is None or frame.logged_ns >= span.start_ns
             try:
                 if isinstance(outcome, PotholeError):
                     raise outcome
@@ -120,15 +117,15 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config, first: int = 0
                 plane = road_frame(outcome.road, frame.calibration, width, height)
             except (PotholeError, ValueError) as exc:
                 odometry.reset()
-                if index >= first:
-                    observations.append(FrameObservation(index, frame.stamp, (),
+                if kept:
+                    observations.append(FrameObservation(frame.stamp, (),
                                                          (math.nan, math.nan), None, str(exc)))
                 continue
             step = odometry.step(to_gray8(frame.left), outcome.host("disparity"), plane,
                                  frame.calibration)
-            if index >= first:
+            if kept:
                 observations.append(FrameObservation(
-                    index, frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height),
+                    frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height),
                     tuple(float(v) for v in outcome.observed_range_m), step,
                     axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
     finally:
@@ -148,40 +145,61 @@ class MotionSeries:
     gnss_latlon: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
-def read_motion(bag: str | Path, topics: DriveTopics) -> MotionSeries:
-    """The motion and GNSS series of a bag."""
-    series = MotionSeries()
+@dataclass
+class MotionSamples:
+    """The motion messages of a bag or of a span of it, as read: odometry and /tf poses of
+    ``base_frame`` and GNSS fixes, each as (stamp ns, value) pairs."""
+
+    odometry: list[tuple[int, Pose2]] = field(default_factory=list)
+    tf: list[tuple[int, Pose2]] = field(default_factory=list)
+    gnss: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
+
+
+def read_motion_samples(bag: str | Path, topics: DriveTopics,
+                        span: bagtools.LogSpan | None = None) -> MotionSamples:
+    """The odometry, /tf and GNSS messages of ``bag``, or of those logged in ``span``."""
+    samples = MotionSamples()
     wanted = [t for t in (topics.odometry, topics.tf, topics.gnss) if t]
     if not wanted:
-        return series
-    stamps, poses, gnss_stamps, gnss = [], [], [], []
-    tf_stamps, tf_poses = [], []
-    for topic, _, msg in bagtools.read_messages(bag, wanted):
+        return samples
+    for topic, _, msg in bagtools.read_messages(bag, wanted, span):
         if topic == topics.odometry:
-            stamps.append(stamp_ns(msg.header))
-            poses.append(planar_pose(msg.pose.pose.position, msg.pose.pose.orientation))
+            samples.odometry.append((stamp_ns(msg.header), planar_pose(
+                msg.pose.pose.position, msg.pose.pose.orientation)))
         elif topic == topics.tf:
-            for transform in msg.transforms:
-                if transform.child_frame_id.strip("/") == topics.base_frame:
-                    tf_stamps.append(stamp_ns(transform.header))
-                    tf_poses.append(planar_pose(transform.transform.translation,
-                                                transform.transform.rotation))
+            samples.tf += [(stamp_ns(transform.header), planar_pose(
+                transform.transform.translation, transform.transform.rotation))
+                for transform in msg.transforms
+                if transform.child_frame_id.strip("/") == topics.base_frame]
         elif topic == topics.gnss and msg.status.status >= 0 and math.isfinite(msg.latitude):
-            gnss_stamps.append(stamp_ns(msg.header))
-            gnss.append((float(msg.latitude), float(msg.longitude)))
-    if not stamps and tf_stamps:
-        stamps, poses, series.source = tf_stamps, tf_poses, f"/tf ({topics.base_frame})"
-    elif stamps:
+            samples.gnss.append((stamp_ns(msg.header),
+                                 (float(msg.latitude), float(msg.longitude))))
+    return samples
+
+
+def motion_series(parts: Iterable[MotionSamples], topics: DriveTopics) -> MotionSeries:
+    """The motion and GNSS series of a bag from its samples (read whole or by span): the
+    odometry, else /tf; GNSS fixes."""
+    series = MotionSeries()
+    odometry, tf, gnss = [], [], []
+    for part in parts:
+        odometry += part.odometry
+        tf += part.tf
+        gnss += part.gnss
+    poses = odometry or tf
+    if odometry:
         series.source = f"odometry ({topics.odometry})"
-    if stamps:
-        order = np.argsort(stamps)
-        series.stamps_ns = np.asarray(stamps, dtype=np.int64)[order]
-        series.poses = [poses[i] for i in order]
+    elif tf:
+        series.source = f"/tf ({topics.base_frame})"
+    if poses:
+        poses.sort(key=lambda sample: sample[0])
+        series.stamps_ns = np.array([stamp for stamp, _ in poses], dtype=np.int64)
+        series.poses = [pose for _, pose in poses]
     if gnss:
-        order = np.argsort(gnss_stamps)
-        series.gnss_stamps_ns = np.asarray(gnss_stamps, dtype=np.int64)[order]
-        series.gnss_latlon = np.asarray(gnss, dtype=np.float64)[order]
-        if not stamps:
+        gnss.sort(key=lambda sample: sample[0])
+        series.gnss_stamps_ns = np.array([stamp for stamp, _ in gnss], dtype=np.int64)
+        series.gnss_latlon = np.array([fix for _, fix in gnss], dtype=np.float64)
+        if not poses:
             series.source = f"GNSS ({topics.gnss})"
     return series
 
@@ -360,19 +378,25 @@ def _observed_length(frames: Sequence[FrameObservation], poses: Sequence[Pose2 |
     return length
 
 
-def chunks(frame_count: int, config: Config) -> list[tuple[int, int]]:
-    """(first, stop) frame ranges of ``chunk_frames`` frames covering ``frame_count``."""
-    size = config.chunk_frames
-    return [(first, min(first + size, frame_count)) for first in range(0, frame_count, size)]
-
-
-def frame_count(bag: str | Path, topics: DriveTopics) -> int:
-    """Left images in ``bag`` (an upper bound of its stereo frames)."""
+def chunk_spans(bag: str | Path, topics: DriveTopics, config: Config
+                ) -> tuple[int, list[bagtools.LogSpan]]:
+    """The left images in ``bag`` (an upper bound of its stereo frames) and its chunks: its
+    log time split evenly into spans of about ``chunk_frames`` frames, each read with a lead of
+    ``chunk_overlap_frames`` + 2 frames (at the bag's mean rate) and the sync tolerance. A
+    chunk seeks to its span: no frame before it is read."""
     reader = bagtools.open_bag(bag)
     try:
-        return sum(c.msgcount for c in reader.connections if c.topic == topics.stereo.left)
+        count = sum(c.msgcount for c in reader.connections if c.topic == topics.stereo.left)
+        start, end = (reader.start_time, reader.end_time) if count else (0, 0)
     finally:
         reader.close()
+    pieces = max(1, math.ceil(count / config.chunk_frames))
+    period_ns = (end - start) / max(count - 1, 1)
+    lead_ns = math.ceil(period_ns * (config.chunk_overlap_frames + 2)
+                        + config.approximate_sync_tolerance_seconds * 1e9)
+    bounds = [start + (end + 1 - start) * k // pieces for k in range(pieces + 1)]
+    return count, [bagtools.LogSpan(first, stop, lead_ns)
+                   for first, stop in zip(bounds, bounds[1:])]
 
 
 def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
@@ -380,32 +404,35 @@ def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
     return find_drive_topics(bagtools.topics_of(bag), **names)
 
 
-def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any], first: int,
-                  stop: int) -> list[FrameObservation]:
-    """:func:`observe` of one chunk with the parameter values ``values``: a task for worker
-    processes and Ray."""
-    return observe(bag, topics, Config(values), first, stop)
+Plan = tuple[Path, DriveTopics, list[bagtools.LogSpan]]
+ChunkResult = tuple[list[FrameObservation], MotionSamples]
 
 
-def observe_in_processes(plans: Sequence[tuple[Path, DriveTopics, list[tuple[int, int]]]],
-                         config: Config, jobs: int,
+def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
+                  span: bagtools.LogSpan) -> ChunkResult:
+    """:func:`observe` of one chunk with the parameter values ``values``, and the motion
+    messages logged in it: a task for worker processes and Ray."""
+    return observe(bag, topics, Config(values), span), read_motion_samples(bag, topics, span)
+
+
+def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
                          progress: Callable[[int, int], None] | None = None
-                         ) -> list[list[FrameObservation]]:
-    """Observations of every (bag, topics, chunk ranges) plan, one chunk per task in ``jobs``
-    worker processes on this machine (started afresh, each with its own pipeline on the
+                         ) -> list[list[ChunkResult]]:
+    """:func:`observe_chunk` of every (bag, topics, chunk spans) plan, a task per chunk in
+    ``jobs`` worker processes on this machine (started afresh, each with its own pipeline on the
     configured backend: several share one GPU); per bag, in chunk order."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     values = config.as_dict()
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [[pool.submit(observe_chunk, str(bag), topics, values, first, stop)
-                    for first, stop in ranges] for bag, topics, ranges in plans]
+        futures = [[pool.submit(observe_chunk, str(bag), topics, values, span)
+                    for span in spans] for bag, topics, spans in plans]
         flat = [future for per_bag in futures for future in per_bag]
         for done, _ in enumerate(as_completed(flat), 1):
             if progress is not None:
                 progress(done, len(flat))
-        return [[obs for future in per_bag for obs in future.result()] for per_bag in futures]
+        return [[future.result() for future in per_bag] for per_bag in futures]
 
 
 def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None = None,
@@ -415,32 +442,37 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
     every bag is a Ray task (one GPU each on GPU nodes, else one CPU), on the cluster at
     ``ray_address`` or a local one; with ``jobs`` > 1, a task of one of ``jobs`` worker
     processes here (:func:`observe_in_processes`)."""
-    plans = []
+    plans: list[Plan] = []
+    total = 0
     for bag in bags:
         topics = drive_topics(bag, **names)
-        plans.append((Path(bag), topics, chunks(frame_count(bag, topics), config)))
+        count, spans = chunk_spans(bag, topics, config)
+        plans.append((Path(bag), topics, spans))
+        total += count
     if use_ray:
         from .fleet import observe_on_ray
-        observed = observe_on_ray(plans, config, ray_address, progress)
+        chunked = observe_on_ray(plans, config, ray_address, progress)
     elif jobs > 1:
-        observed = observe_in_processes(plans, config, jobs, progress)
+        chunked = observe_in_processes(plans, config, jobs, progress)
     else:
-        total = sum(stop - first for _, _, ranges in plans for first, stop in ranges)
-        observed, done = [], 0
-        for bag, topics, ranges in plans:
-            per_bag = []
-            for first, stop in ranges:
+        chunked, done = [], 0
+        for bag, topics, spans in plans:
+            per_bag: list[ChunkResult] = []
+            for span in spans:
                 def step(index: int, _: int, base: int = done) -> None:
                     if progress is not None:
                         progress(min(base + index, total), total)
-                per_bag += observe(bag, topics, config, first, stop, step)
-                done += stop - first
-            observed.append(per_bag)
+                observed = observe(bag, topics, config, span, step)
+                per_bag.append((observed, read_motion_samples(bag, topics, span)))
+                done += len(observed)
+            chunked.append(per_bag)
         if progress is not None:
             progress(total, total)
     surveys, next_id = [], 1
-    for (bag, topics, _), observations in zip(plans, observed):
-        drive = assemble(bag, observations, read_motion(bag, topics), config, next_id, topics)
+    for (bag, topics, _), per_bag in zip(plans, chunked):
+        observations = [o for observed, _ in per_bag for o in observed]
+        motion = motion_series((samples for _, samples in per_bag), topics)
+        drive = assemble(bag, observations, motion, config, next_id, topics)
         next_id += len(drive.potholes)
         surveys.append(drive)
     return surveys

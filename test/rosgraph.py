@@ -139,8 +139,8 @@ class Probe:
 
     def spin(self, seconds: float, until: Callable[[], bool] | None = None) -> bool:
         deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.05)
+        while (left := deadline - time.monotonic()) > 0:
+            self.executor.spin_once(timeout_sec=min(0.05, left))
             if until is not None and until():
                 return True
         return until is None

@@ -248,3 +248,46 @@ def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_
     assert (summary.frames, summary.failed) == (6, 0)
     messages = [msg for _, _, msg in bagtools.read_messages(tmp_path / "out", ["/cam/potholes"])]
     assert len(messages) == 6 and all(msg.status != msg.FAILED for msg in messages)
+
+
+def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp_path,
+                                                                           drive_frames):
+    """Nine sets, camera_info only with the first: sets read by spans of log time (each with
+    a lead of one frame) are the bag's sets, each once, each with the camera_info; no set
+    after a span is read."""
+    source, latched = tmp_path / "every", tmp_path / "latched"
+    frames = [(START + i * 100_000_000, drive_frames[i % 3][1]) for i in range(9)]
+    assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 9
+    reader = bagtools.open_bag(source)
+    writer = bagtools.writer_for(latched, "mcap")
+    writer.open()
+    try:
+        store = bagtools.typestore()
+        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                       for c in reader.connections}
+        for connection, timestamp, rawdata in reader.messages():
+            if not connection.topic.endswith("camera_info") or timestamp == START:
+                writer.write(connections[connection.id], timestamp, rawdata)
+    finally:
+        writer.close()
+        reader.close()
+    config = Config()
+    topics = bagtools.StereoTopics(*STEREO)
+    reader = bagtools.open_bag(latched)
+    try:
+        whole = [s[0] for s in bagtools._stereo_sets(reader, topics, config,
+                                                     bagtools.ProcessSummary())]
+        assert whole == [stamp for stamp, _ in frames]
+        kept = []
+        for first, stop in ((START, START + 350_000_000), (START + 350_000_000,
+                                                           START + 700_000_000),
+                            (START + 700_000_000, START + 900_000_000)):
+            span = bagtools.LogSpan(first, stop, 100_000_000)
+            sets = list(bagtools._stereo_sets(reader, topics, config,
+                                              bagtools.ProcessSummary(), span))
+            assert all(s[4] is not None and s[5] is not None for s in sets)
+            assert all(first - 100_000_000 <= s[1] < stop for s in sets)
+            kept += [s[0] for s in sets if s[1] >= first]
+        assert kept == whole
+    finally:
+        reader.close()
