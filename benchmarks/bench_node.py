@@ -2,8 +2,11 @@
 over DDS from this process, as a camera driver would: for each image size, after a warm-up,
 each rate for ``--seconds``. Prints a Markdown table (for docs/benchmarks.md): processed rate,
 sets the node dropped, sets that never arrived, latency from publishing a set to receiving its
-``potholes`` (p50/p95), and the node's CPU per processed frame: all threads, and the worker
-thread split into message conversion (images in, messages out) and the pipeline.
+``potholes`` (p50/p95; "in node": from the set's arrival to its ``potholes``, over the node's
+last 5 s), the worker's time on a set (p95 and longest, last 5 s), sets this process sent more
+than a period late (its own stalls, which reach the node as bursts), and the node's CPU per
+processed frame: all threads, and the worker thread split into message conversion (images in,
+messages out) and the pipeline.
 
 Run: python benchmarks/bench_node.py [--backend gpu] [--sizes 1280x720 2079x1040]
      [--rates 30 60] [--seconds 10]
@@ -57,6 +60,7 @@ class Feeder:
         self.index = 0
         self.sent: dict[int, float] = {}
         self.arrived: dict[int, float] = {}
+        self.late = 0
         probe.node.create_subscription(
             PotholeArray, f"{probe.namespace}/potholes",
             lambda m: self.arrived.setdefault(stamp_ns(m.header), time.monotonic()), 100)
@@ -64,8 +68,10 @@ class Feeder:
     def feed(self, rate: float, seconds: float) -> list[int]:
         """Publish at ``rate`` Hz for ``seconds``; the stamps sent."""
         period, start, stamps = 1.0 / rate, time.monotonic(), []
+        self.late = 0
         while time.monotonic() - start < seconds:
             stamp = FIRST_STAMP_NS + self.index * 1_000_000
+            self.late += time.monotonic() > start + (len(stamps) + 1) * period
             self.probe.publish(self.frame, stamp)
             self.sent[stamp] = time.monotonic()
             stamps.append(stamp)
@@ -94,6 +100,8 @@ def measure(feeder: Feeder, pid: int, rate: float, seconds: float) -> dict:
         "conversion_ms": float(diagnostics.get("conversion_cpu_ms_per_frame", "nan")),
         "pipeline_ms": float(diagnostics.get("pipeline_cpu_ms_per_frame", "nan")),
         "work_p95": float(diagnostics.get("work_p95_ms", "nan")),
+        "node_p95": float(diagnostics.get("latency_p95_ms", "nan")),
+        "work_max": float(diagnostics.get("work_max_ms", "nan")), "late": feeder.late,
         "rss": rss_mib(pid), "backend": diagnostics.get("backend", "?"),
     }
 
@@ -166,13 +174,15 @@ def main() -> None:
           f"rate, {datetime.date.today().isoformat()}"
           + "".join(f", {item}" for item in args.node_param))
     print("| size | input Hz | sets sent | processed | processed Hz | dropped by node | "
-          "never arrived | latency p50 ms | latency p95 ms | worker p95 ms | CPU ms/frame all | "
-          "conversion | pipeline | node RSS MiB |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "never arrived | sent late | latency p50 ms | latency p95 ms | in node p95 ms | "
+          "worker p95 ms | worker max ms | CPU ms/frame all | conversion | pipeline | "
+          "node RSS MiB |")
+    print("| --- " * 17 + "|")
     for r in rows:
         print(f"| {r['size']} | {r['rate']:.0f} | {r['sent']} | {r['processed']} | "
-              f"{r['processed_hz']:.1f} | {r['dropped']} | {r['lost']} | {r['p50']:.1f} | "
-              f"{r['p95']:.1f} | {r['work_p95']:.1f} | {r['cpu_ms']:.1f} | "
+              f"{r['processed_hz']:.1f} | {r['dropped']} | {r['lost']} | {r['late']} | "
+              f"{r['p50']:.1f} | {r['p95']:.1f} | {r['node_p95']:.1f} | {r['work_p95']:.1f} | "
+              f"{r['work_max']:.1f} | {r['cpu_ms']:.1f} | "
               f"{r['conversion_ms']:.1f} | "
               f"{r['pipeline_ms']:.1f} | {r['rss']:.0f} |")
 

@@ -3,12 +3,12 @@ tracking, survey.csv and report.html) on a drive bag of our generator, per image
 a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
-        [--backend cpu|gpu] [--ray | --jobs N] [--chunk-frames 30]
+        [--backend cpu|gpu] [--ray | --jobs N [N ...]] [--chunk-frames 30]
 
 The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
 frame at these sizes would take longer than the survey), with an odometry topic that follows
-the cycle, so that the survey tracks the same six potholes throughout; visual odometry runs
-on every frame all the same, as on a bag without odometry."""
+the cycle, as survey vehicles record it: the survey takes its motion from it (no visual
+odometry) and tracks the same six potholes throughout."""
 
 from __future__ import annotations
 
@@ -19,7 +19,9 @@ import platform
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
+from multiprocessing import get_context
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -60,8 +62,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--backend", default="cpu", choices=("cpu", "gpu", "auto"))
     parser.add_argument("--ray", action="store_true", help="chunks as tasks on a local Ray")
-    parser.add_argument("--jobs", type=int, default=1,
-                        help="chunks in this many worker processes here")
+    parser.add_argument("--jobs", type=int, nargs="+", default=[1],
+                        help="chunks in this many worker processes here (several: a row each)")
     parser.add_argument("--chunk-frames", type=int, default=600)
     args = parser.parse_args()
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
@@ -70,33 +72,36 @@ def main() -> None:
         folder = Path(scratch)
         for size in args.sizes:
             width, height = (int(v) for v in size.lower().split("x"))
-            scenes = survey_drive(frames=DISTINCT_FRAMES * 4, width=width, height=height)
-            samples = [render(replace(s, supersample=1)) for s in scenes[::4]]
-            forward = [s.camera_y_m for s in scenes[::4]]
+            scenes = [replace(s, supersample=1) for s in survey_drive(
+                frames=DISTINCT_FRAMES * 4, width=width, height=height)[::4]]
+            with ProcessPoolExecutor(len(scenes), mp_context=get_context("spawn")) as pool:
+                samples = list(pool.map(render, scenes))
+            forward = [s.camera_y_m for s in scenes]
             bag = make_bag(folder / f"drive_{size}", samples, forward, args.frames)
             warm = folder / f"warm_{size}"
             warm.mkdir()
             bench(make_bag(warm / "drive", samples, forward, 3), config, False, 1,
                   warm)  # compiles kernels
-            out = folder / f"out_{size}"
-            out.mkdir()
-            seconds, frames, potholes = bench(bag, config, args.ray, args.jobs, out)
-            rows.append((size, frames, potholes, seconds))
+            for jobs in [1] if args.ray else args.jobs:
+                out = folder / f"out_{size}_{jobs}"
+                out.mkdir()
+                seconds, frames, potholes = bench(bag, config, args.ray, jobs, out)
+                mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
+                    f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
+                rows.append((size, mode, frames, potholes, seconds))
     if args.backend == "cpu":
         device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
     else:
         from pothole_detector.backend import get_backend
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
-    mode = f"Ray, chunks of {args.chunk_frames} frames" if args.ray else (
-        f"{args.jobs} worker processes, chunks of {args.chunk_frames} frames" if args.jobs > 1
-        else "one process")
-    print(f"survey throughput, {device}, {mode}, {args.frames} frames a bag, "
+    print(f"survey throughput, {device}, {args.frames} frames a bag, "
           f"{datetime.date.today().isoformat()}")
-    print("| size | frames | potholes | seconds (decode, pipeline, odometry, tracking, "
-          "outputs) | frames/s |")
-    print("| --- | --- | --- | --- | --- |")
-    for size, frames, potholes, seconds in rows:
-        print(f"| {size} | {frames} | {potholes} | {seconds:.1f} | {frames / seconds:.1f} |")
+    print("| size | processes | frames | potholes | seconds (decode, pipeline, odometry, "
+          "tracking, outputs) | frames/s |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for size, mode, frames, potholes, seconds in rows:
+        print(f"| {size} | {mode} | {frames} | {potholes} | {seconds:.1f} | "
+              f"{frames / seconds:.1f} |")
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ import bisect
 import itertools
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
@@ -296,29 +297,7 @@ class ProcessSummary:
                 f"frame, {self.failed} failed, {self.unpaired} unpaired images")
 
 
-def _info_messages(reader: AnyReader, topics: StereoTopics, span: LogSpan | None
-                   ) -> Iterator[tuple[str, Any]]:
-    """(role, CameraInfo) of the bag, or of ``span`` with its lead; a role without an info
-    logged in the lead also gets the newest one logged before it (a latched camera_info)."""
-    roles = {topics.left_info: "left_info", topics.right_info: "right_info"}
-    connections = [c for c in reader.connections if c.topic in roles]
-    window = {} if span is None else {"start": span.start_ns - span.lead_ns,
-                                      "stop": span.stop_ns + span.lead_ns}
-    in_lead = set()
-    for connection, logged, rawdata in reader.messages(connections=connections, **window):
-        if span is not None and logged < span.start_ns:
-            in_lead.add(roles[connection.topic])
-        yield roles[connection.topic], deserialize(cdr_bytes(reader, connection, rawdata),
-                                                   INFO_TYPE)
-    for connection in connections:
-        if span is None or roles[connection.topic] in in_lead:
-            continue
-        newest = None
-        for _, _, rawdata in reader.messages(connections=[connection], stop=window["start"]):
-            newest = rawdata
-        if newest is not None:
-            yield roles[connection.topic], deserialize(cdr_bytes(reader, connection, newest),
-                                                       INFO_TYPE)
+INFO_WAIT_NS = 1_000_000_000
 
 
 def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
@@ -326,43 +305,81 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
                  ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
     """Synchronized (stamp, left image's log time, left, right, left_info, right_info)
     messages of a bag, or of the sets whose left image was logged before ``span``'s stop
-    (reading from its lead before its start). Each pair takes the camera_info of its own stamp
-    wherever the bag holds it (before or after the images), else the newest one before it; the
-    infos are None for a pair before any. Images that found no partner are counted in
-    ``summary``."""
+    (reading from its lead before its start), in one pass. Each pair takes the camera_info of
+    its own stamp where the bag holds it (logged before the images or up to INFO_WAIT_NS
+    after), else the newest one before it (for a span, also one logged before it: a latched
+    camera_info); the infos are None for a pair before any. Images that found no partner
+    are counted in ``summary``."""
     from . import conversions
     from .sync import StereoSynchronizer
 
+    roles = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
+             topics.right_info: "right_info"}
+    connections = [c for c in reader.connections if c.topic in roles]
+    window = {} if span is None else {"start": span.start_ns - span.lead_ns,
+                                      "stop": span.stop_ns + span.lead_ns}
     infos: dict[str, dict[int, Any]] = {"left_info": {}, "right_info": {}}
-    for role, info in _info_messages(reader, topics, span):
-        infos[role][conversions.stamp_ns(info.header)] = info
-    stamps = {role: sorted(by_stamp) for role, by_stamp in infos.items()}
+    stamps: dict[str, list[int]] = {"left_info": [], "right_info": []}
+    latched: dict[str, Any] = {}
+
+    def logged_before_window(role: str) -> Any:
+        if role not in latched:
+            latched[role] = None
+            if span is not None:
+                for connection, _, rawdata in reader.messages(
+                        connections=[c for c in connections if roles[c.topic] == role],
+                        stop=window["start"]):
+                    latched[role] = (connection, rawdata)
+            if latched[role] is not None:
+                latched[role] = deserialize(cdr_bytes(reader, *latched[role]), INFO_TYPE)
+        return latched[role]
 
     def info_at(role: str, stamp: int) -> Any:
         if stamp in infos[role]:
             return infos[role][stamp]
         before = bisect.bisect_right(stamps[role], stamp)
-        return infos[role][stamps[role][before - 1]] if before else None
+        if before:
+            return infos[role][stamps[role][before - 1]]
+        return logged_before_window(role)
 
-    image_roles = {topics.left: "left", topics.right: "right"}
-    window = {} if span is None else {"start": span.start_ns - span.lead_ns,
-                                      "stop": span.stop_ns + span.lead_ns}
-    synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
-    for connection, logged, rawdata in reader.messages(
-            connections=[c for c in reader.connections if c.topic in image_roles], **window):
-        msg = deserialize(cdr_bytes(reader, connection, rawdata), IMAGE_TYPE)
-        outcome = synchronizer.add(image_roles[connection.topic],
-                                   conversions.stamp_ns(msg.header), (logged, msg))
-        summary.unpaired += outcome.dropped
-        for pair_stamp, (left_logged, left), (_, right) in outcome.pairs:
-            if span is not None and left_logged >= span.stop_ns:
-                continue
+    waiting: deque[tuple[int, int, Any, Any]] = deque()
+
+    def release(now_ns: int | None) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
+        """The waiting pairs whose infos have come (both streams past their stamp), waited
+        INFO_WAIT_NS of log time, or all (``now_ns`` None: the end of the bag)."""
+        while waiting:
+            pair_stamp, logged, left, right = waiting[0]
+            if now_ns is not None and now_ns - logged < INFO_WAIT_NS and not all(
+                    stamps[role] and stamps[role][-1] >= pair_stamp for role in stamps):
+                return
+            waiting.popleft()
             left_info, right_info = (info_at(role, pair_stamp)
                                      for role in ("left_info", "right_info"))
             if left_info is None or right_info is None:
-                yield pair_stamp, left_logged, left, right, None, None
-            else:
-                yield pair_stamp, left_logged, left, right, left_info, right_info
+                left_info = right_info = None
+            yield pair_stamp, logged, left, right, left_info, right_info
+            for role, kept in stamps.items():
+                while len(kept) > 1 and kept[1] <= pair_stamp:
+                    del infos[role][kept.pop(0)]
+
+    synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
+    for connection, logged, rawdata in reader.messages(connections=connections, **window):
+        role = roles[connection.topic]
+        if role in infos:
+            info = deserialize(cdr_bytes(reader, connection, rawdata), INFO_TYPE)
+            stamp = conversions.stamp_ns(info.header)
+            if stamp not in infos[role]:
+                bisect.insort(stamps[role], stamp)
+            infos[role][stamp] = info
+        else:
+            msg = deserialize(cdr_bytes(reader, connection, rawdata), IMAGE_TYPE)
+            outcome = synchronizer.add(role, conversions.stamp_ns(msg.header), (logged, msg))
+            summary.unpaired += outcome.dropped
+            waiting.extend((pair_stamp, left_logged, left, right)
+                           for pair_stamp, (left_logged, left), (_, right) in outcome.pairs
+                           if span is None or left_logged < span.stop_ns)
+        yield from release(logged)
+    yield from release(None)
     summary.unpaired += synchronizer.reset()
 
 

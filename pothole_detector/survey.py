@@ -9,6 +9,7 @@ tracking. No ROS: bags are read with rosbags."""
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -46,8 +47,9 @@ def severity(max_depth_m: float, config: Config) -> str:
 class FrameObservation:
     """What the survey keeps of one stereo frame: its potholes, the observed range (near, far,
     m along the road; NaN when none), the visual-odometry step from the previous frame (None
-    on the first frame or when it failed), its road frame's axes (rows forward, left, up in
-    the left optical frame; None when the frame failed) and, when the frame failed, why."""
+    on the first frame, when it failed or when the bag has odometry), its road frame's axes
+    (rows forward, left, up in the left optical frame; None when the frame failed) and, when
+    the frame failed, why."""
 
     stamp_ns: int
     sightings: tuple[Sighting, ...]
@@ -96,13 +98,15 @@ def find_drive_topics(topics: dict[str, str], odometry: str | None = None,
 def observe(bag: str | Path, topics: DriveTopics, config: Config,
             span: bagtools.LogSpan | None = None,
             progress: Callable[[int, int], None] | None = None) -> list[FrameObservation]:
-    """Run the pipeline and visual odometry on the frames of ``bag``, or of a span of it (the
-    frames of its lead before it run too, for the odometry, and are not returned)."""
+    """Run the pipeline and, where the bag has no odometry messages, visual odometry on the
+    frames of ``bag``, or of a span of it (the frames of its lead before it run too, for the
+    odometry, and are not returned)."""
     from .backend import get_backend
     from .stages.matching import to_gray8
 
     reader = bagtools.open_bag(bag)
     odometry = StereoOdometry()
+    has_odometry = any(c.topic == topics.odometry and c.msgcount for c in reader.connections)
     observations = []
     try:
         summary = bagtools.ProcessSummary()
@@ -121,8 +125,8 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                     observations.append(FrameObservation(frame.stamp, (),
                                                          (math.nan, math.nan), None, str(exc)))
                 continue
-            step = odometry.step(to_gray8(frame.left), outcome.host("disparity"), plane,
-                                 frame.calibration)
+            step = None if has_odometry else odometry.step(
+                to_gray8(frame.left), outcome.host("disparity"), plane, frame.calibration)
             if kept:
                 observations.append(FrameObservation(
                     frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height),
@@ -425,7 +429,9 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     values = config.as_dict()
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=cv2.setNumThreads, initargs=(threads,)) as pool:
         futures = [[pool.submit(observe_chunk, str(bag), topics, values, span)
                     for span in spans] for bag, topics, spans in plans]
         flat = [future for per_bag in futures for future in per_bag]
