@@ -24,6 +24,26 @@ STEREO = ["/cam/left/image_rect", "/cam/right/image_rect", "/cam/left/camera_inf
           "/cam/right/camera_info"]
 
 
+def rewrite_bag(source, out, log_time):
+    """Copy bag ``source`` to ``out`` with each message logged at ``log_time(topic, log time
+    ns)`` (None: left out)."""
+    reader = bagtools.open_bag(source)
+    writer = bagtools.writer_for(out, "mcap")
+    writer.open()
+    try:
+        store = bagtools.typestore()
+        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                       for c in reader.connections}
+        for connection, timestamp, rawdata in reader.messages():
+            moved = log_time(connection.topic, timestamp)
+            if moved is not None:
+                writer.write(connections[connection.id], moved,
+                             bagtools.cdr_bytes(reader, connection, rawdata))
+    finally:
+        writer.close()
+        reader.close()
+
+
 @pytest.fixture(scope="module")
 def drive_frames():
     """Three frames of the driving sequence at 640x360."""
@@ -217,20 +237,8 @@ def test_process_pairs_camera_info_written_after_the_images(tmp_path, drive_fram
     the images'): every pair still gets the camera_info of its own stamp."""
     source, late = tmp_path / "ordered", tmp_path / "late"
     assert bagtools.write_stereo_bag(source, drive_frames[:2], namespace="/cam") == 2
-    reader = bagtools.open_bag(source)
-    writer = bagtools.writer_for(late, "mcap")
-    writer.open()
-    try:
-        store = bagtools.typestore()
-        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                       for c in reader.connections}
-        for connection, timestamp, rawdata in reader.messages():
-            delay = 5_000_000 if connection.topic.endswith("camera_info") else 0
-            writer.write(connections[connection.id], timestamp + delay,
-                         bagtools.cdr_bytes(reader, connection, rawdata))
-    finally:
-        writer.close()
-        reader.close()
+    rewrite_bag(source, late, lambda topic, timestamp: timestamp + (
+        5_000_000 if topic.endswith("camera_info") else 0))
     summary = bagtools.process(late, tmp_path / "out", Config({"backend": "cpu"}))
     assert (summary.frames, summary.failed) == (2, 0), summary.errors
 
@@ -258,19 +266,8 @@ def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp
     source, latched = tmp_path / "every", tmp_path / "latched"
     frames = [(START + i * 100_000_000, drive_frames[i % 3][1]) for i in range(9)]
     assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 9
-    reader = bagtools.open_bag(source)
-    writer = bagtools.writer_for(latched, "mcap")
-    writer.open()
-    try:
-        store = bagtools.typestore()
-        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                       for c in reader.connections}
-        for connection, timestamp, rawdata in reader.messages():
-            if not connection.topic.endswith("camera_info") or timestamp == START:
-                writer.write(connections[connection.id], timestamp, rawdata)
-    finally:
-        writer.close()
-        reader.close()
+    rewrite_bag(source, latched, lambda topic, timestamp: timestamp if (
+        not topic.endswith("camera_info") or timestamp == START) else None)
     config = Config()
     topics = bagtools.StereoTopics(*STEREO)
     reader = bagtools.open_bag(latched)
