@@ -531,12 +531,18 @@ def best_view_picture(bag: str | Path, topics: DriveTopics, stamp: int,
     reader = bagtools.open_bag(bag)
     try:
         connections = [c for c in reader.connections if c.topic == topics.stereo.left]
-        for connection, _, rawdata in reader.messages(connections=connections,
-                                                      start=stamp - 1_000_000_000):
-            msg = bagtools.deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
-                                       bagtools.IMAGE_TYPE)
-            if stamp_ns(msg.header) == stamp:
-                image = image_to_array(msg)
+        image = None
+        # logged at most 0.1 s before its stamp and within 1 s after, as recorders do; else
+        # anywhere from 1 s before it on
+        for window in ({"start": stamp - 100_000_000, "stop": stamp + 1_000_000_000},
+                       {"start": stamp - 1_000_000_000}):
+            for connection, _, rawdata in reader.messages(connections=connections, **window):
+                msg = bagtools.deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
+                                           bagtools.IMAGE_TYPE)
+                if stamp_ns(msg.header) == stamp:
+                    image = image_to_array(msg)
+                    break
+            if image is not None:
                 break
         else:
             raise InputError(f"{bag} has no left image at {stamp}")

@@ -69,3 +69,25 @@ def survey_drive_bags(tmp_path_factory):
         bagtools.write_drive_bag(bags[kind], forward, samples, kind, SURVEY_ORIGIN_LATLON,
                                  SURVEY_START_NS)
     return bags, scenes, samples
+
+
+def rewrite_bag(source, out, log_time):
+    """Copy bag ``source`` to ``out`` with each message logged at ``log_time(topic, log time
+    ns)`` (None: left out)."""
+    from pothole_detector import bagtools
+
+    reader = bagtools.open_bag(source)
+    writer = bagtools.writer_for(out, "mcap")
+    writer.open()
+    try:
+        store = bagtools.typestore()
+        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
+                       for c in reader.connections}
+        for connection, timestamp, rawdata in reader.messages():
+            moved = log_time(connection.topic, timestamp)
+            if moved is not None:
+                writer.write(connections[connection.id], moved,
+                             bagtools.cdr_bytes(reader, connection, rawdata))
+    finally:
+        writer.close()
+        reader.close()

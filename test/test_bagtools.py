@@ -17,31 +17,11 @@ from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
 from pothole_detector.synthetic import drive_scenes, render  # noqa: E402
 
-from conftest import REPO  # noqa: E402
+from conftest import REPO, rewrite_bag  # noqa: E402
 
 START = 1_700_000_000_000_000_000
 STEREO = ["/cam/left/image_rect", "/cam/right/image_rect", "/cam/left/camera_info",
           "/cam/right/camera_info"]
-
-
-def rewrite_bag(source, out, log_time):
-    """Copy bag ``source`` to ``out`` with each message logged at ``log_time(topic, log time
-    ns)`` (None: left out)."""
-    reader = bagtools.open_bag(source)
-    writer = bagtools.writer_for(out, "mcap")
-    writer.open()
-    try:
-        store = bagtools.typestore()
-        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                       for c in reader.connections}
-        for connection, timestamp, rawdata in reader.messages():
-            moved = log_time(connection.topic, timestamp)
-            if moved is not None:
-                writer.write(connections[connection.id], moved,
-                             bagtools.cdr_bytes(reader, connection, rawdata))
-    finally:
-        writer.close()
-        reader.close()
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import subprocess
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, rewrite_bag
 
 from pothole_detector.params import Config
 from pothole_detector.report import write_report
@@ -50,6 +50,24 @@ def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):
     assert crop.ndim == 3 and crop.dtype == np.uint8 and max(crop.shape[:2]) <= 240
     red = (crop[..., 0] > 200) & (crop[..., 1] < 100)
     assert red.sum() > 20  # the drawn box
+
+
+def test_a_best_view_picture_is_found_however_early_its_image_was_logged(tmp_path):
+    """The sample drive with every message logged 0.5 s before its stamp: the picture at a
+    stamp is still that frame's left image."""
+    from pothole_detector import bagtools
+    from pothole_detector.survey import drive_topics
+
+    source, early = REPO / "bags" / "sample_drive", tmp_path / "early"
+    rewrite_bag(source, early, lambda topic, timestamp: timestamp - 500_000_000)
+    stamps = [stamp for _, stamp, _ in bagtools.read_messages(source)]
+    topics = drive_topics(early)
+    box = (10, 10, 40, 40)
+    stamp = sorted(set(stamps))[8]
+    np.testing.assert_array_equal(best_view_picture(early, topics, stamp, box),
+                                  best_view_picture(source, topics, stamp, box))
+    with pytest.raises(Exception, match="has no left image"):
+        best_view_picture(early, topics, stamp + 1, box)
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (apt install chromium)")
