@@ -323,15 +323,20 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     latched: dict[str, Any] = {}
 
     def logged_before_window(role: str) -> Any:
+        """The newest info of ``role`` logged before the span's window: looked for in the
+        INFO_WAIT_NS before it, then anywhere before it."""
         if role not in latched:
-            latched[role] = None
-            if span is not None:
+            newest = None
+            ends = (window["start"] - INFO_WAIT_NS, None) if span is not None else ()
+            for start in ends:
                 for connection, _, rawdata in reader.messages(
                         connections=[c for c in connections if roles[c.topic] == role],
-                        stop=window["start"]):
-                    latched[role] = (connection, rawdata)
-            if latched[role] is not None:
-                latched[role] = deserialize(cdr_bytes(reader, *latched[role]), INFO_TYPE)
+                        start=start, stop=window["start"]):
+                    newest = (connection, rawdata)
+                if newest is not None:
+                    break
+            latched[role] = None if newest is None else deserialize(
+                cdr_bytes(reader, *newest), INFO_TYPE)
         return latched[role]
 
     def info_at(role: str, stamp: int) -> Any:

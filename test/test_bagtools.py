@@ -240,11 +240,12 @@ def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_
 
 def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp_path,
                                                                            drive_frames):
-    """Nine sets, camera_info only with the first: sets read by spans of log time (each with
-    a lead of one frame) are the bag's sets, each once, each with the camera_info; no set
-    after a span is read."""
+    """Nine sets 0.2 s apart, camera_info only with the first: sets read by spans of log time
+    (each with a lead of one frame) are the bag's sets, each once, each with the camera_info
+    (for the last span, logged more than a second before it); no set after a span is
+    read."""
     source, latched = tmp_path / "every", tmp_path / "latched"
-    frames = [(START + i * 100_000_000, drive_frames[i % 3][1]) for i in range(9)]
+    frames = [(START + i * 200_000_000, drive_frames[i % 3][1]) for i in range(9)]
     assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 9
     rewrite_bag(source, latched, lambda topic, timestamp: timestamp if (
         not topic.endswith("camera_info") or timestamp == START) else None)
@@ -256,14 +257,14 @@ def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp
                                                      bagtools.ProcessSummary())]
         assert whole == [stamp for stamp, _ in frames]
         kept = []
-        for first, stop in ((START, START + 350_000_000), (START + 350_000_000,
-                                                           START + 700_000_000),
-                            (START + 700_000_000, START + 900_000_000)):
-            span = bagtools.LogSpan(first, stop, 100_000_000)
+        for first, stop in ((START, START + 700_000_000), (START + 700_000_000,
+                                                           START + 1_400_000_000),
+                            (START + 1_400_000_000, START + 1_800_000_000)):
+            span = bagtools.LogSpan(first, stop, 200_000_000)
             sets = list(bagtools._stereo_sets(reader, topics, config,
                                               bagtools.ProcessSummary(), span))
             assert all(s[4] is not None and s[5] is not None for s in sets)
-            assert all(first - 100_000_000 <= s[1] < stop for s in sets)
+            assert all(first - 200_000_000 <= s[1] < stop for s in sets)
             kept += [s[0] for s in sets if s[1] >= first]
         assert kept == whole
     finally:
