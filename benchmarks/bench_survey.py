@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pothole_detector.bagtools import odometry_message, write_stereo_bag  # noqa: E402
+from pothole_detector.bagtools import write_drive_bag  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.report import write_report  # noqa: E402
 from pothole_detector.survey import best_view_picture, survey, write_csv  # noqa: E402
@@ -37,11 +37,9 @@ DISTINCT_FRAMES = 4
 
 def make_bag(bag: Path, samples: list, forward_m: list[float], frames: int) -> Path:
     """``frames`` frames at 30 Hz cycling ``samples`` (taken ``forward_m`` along the road)."""
-    write_stereo_bag(bag, ((1_700_000_000_000_000_000 + i * 33_333_333,
-                            samples[i % len(samples)]) for i in range(frames)),
-                     ground_truth=False, extras=lambda i, stamp, _: {
-                         "/odom": odometry_message(stamp, forward_m[i % len(samples)], 0.0,
-                                                   0.0)})
+    cycle = [i % len(samples) for i in range(frames)]
+    write_drive_bag(bag, [forward_m[i] for i in cycle], [samples[i] for i in cycle], "odom",
+                    rate_hz=30.0, ground_truth=False)
     return bag
 
 

@@ -568,11 +568,12 @@ DRIVE_MOTIONS = ("none", "odom", "gnss")
 
 def write_drive_bag(out: str | Path, forward_m: Sequence[float], samples: Sequence[Any],
                     motion: str = "none", origin_latlon: tuple[float, float] = (48.137, 11.575),
-                    start_ns: int = 1_700_000_000_000_000_000, rate_hz: float = 10.0) -> int:
+                    start_ns: int = 1_700_000_000_000_000_000, rate_hz: float = 10.0,
+                    ground_truth: bool = True) -> int:
     """A stereo bag of a straight drive of our generator: frame i (StereoSample) taken
     ``forward_m[i]`` m along the road from the first, at ``rate_hz``; with ``motion`` "odom"
     also /odom (the road point below the camera, x forward), with "gnss" /gnss/fix (driving
-    north from ``origin_latlon``)."""
+    north from ``origin_latlon``); the label images as write_stereo_bag's ``ground_truth``."""
     from .motion import latlon_of
 
     if motion not in DRIVE_MOTIONS:
@@ -587,7 +588,8 @@ def write_drive_bag(out: str | Path, forward_m: Sequence[float], samples: Sequen
         return {}
 
     return write_stereo_bag(out, ((start_ns + round(i * 1e9 / rate_hz), sample)
-                                  for i, sample in enumerate(samples)), extras=extras)
+                                  for i, sample in enumerate(samples)),
+                            ground_truth=ground_truth, extras=extras)
 
 
 def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
