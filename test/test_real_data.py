@@ -38,7 +38,10 @@ def test_kitti_gpt_sgm_against_plain_sgbm():
 
 def test_kitti_road_frames_have_no_pothole_and_the_lidar_roll():
     """KITTI frames (a car's rig among cars, walls and trees; no potholes): the road plane's
-    roll within 1 deg of the plane the LiDAR ground truth holds, and no pothole."""
+    roll within 1 deg of the plane the LiDAR ground truth holds, no pothole, and an observed
+    range, where any, that ends short of the farthest road the LiDAR saw."""
+    import math
+
     import cv2
     import numpy as np
 
@@ -56,14 +59,17 @@ def test_kitti_road_frames_have_no_pothole_and_the_lidar_roll():
         result = Pipeline(Config(), calibration, CPU).run(left, right)
         truth = sample.ground_truth_disparity()
         rows, cols = np.nonzero(np.isfinite(truth))
-        lidar = _ransac_plane_roll_deg(cols, rows, truth[rows, cols])
-        assert abs(result.road.roll_deg - lidar) < 1.0, sample.name
+        lidar_roll_deg, road_disparities = _ransac_road_plane(cols, rows, truth[rows, cols])
+        assert abs(result.road.roll_deg - lidar_roll_deg) < 1.0, sample.name
         assert result.potholes == [], sample.name
+        farthest_road_m = calibration.fb / road_disparities.min()
+        near_m, far_m = result.observed_range_m
+        assert math.isnan(far_m) or near_m <= far_m <= farthest_road_m, sample.name
 
 
-def _ransac_plane_roll_deg(u, v, d):
+def _ransac_road_plane(u, v, d):
     """The roll (deg, RoadModel convention) of the plane d = a + b u + c v with the most points
-    within 1 px, from 2000 three-point hypotheses."""
+    within 1 px, from 2000 three-point hypotheses, and the disparities (px) of those points."""
     import numpy as np
     rng = np.random.default_rng(0)
     design = np.stack([np.ones_like(u), u, v], axis=1).astype(np.float64)
@@ -78,4 +84,4 @@ def _ransac_plane_roll_deg(u, v, d):
             best, best_count = plane, count
     inliers = np.abs(design @ best - d) < 1.0
     a, b, c = np.linalg.lstsq(design[inliers], d[inliers], rcond=None)[0]
-    return float(np.degrees(np.arctan2(-b, c)))
+    return float(np.degrees(np.arctan2(-b, c))), d[inliers]

@@ -77,17 +77,12 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
     double values[SUMS] = {0, 0, 0, 0, 0, 0, 0, 0};
     float depth_value = __int_as_float(0xff800000);
     if (label > 0) {
-        const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
-                     sin_phi = road[ROAD_SIN];
-        const double beta = -a1 * sin_phi, gamma = a1 * cos_phi;
-        double normal_x = beta * f, normal_y = gamma * f, normal_z = a0 + beta * cx + gamma * cy;
-        const double norm = sqrt(normal_x * normal_x + normal_y * normal_y + normal_z * normal_z);
-        normal_x /= norm;
-        normal_y /= norm;
-        normal_z /= norm;
+        double normal[3];
+        road_unit_normal(road, f, cx, cy, normal);
         const double uu = u, vv = v;
         const double road_d = road_disparity(road, uu, vv);
-        const double incidence = normal_x * (uu - cx) / f + normal_y * (vv - cy) / f + normal_z;
+        const double incidence = normal[0] * (uu - cx) / f + normal[1] * (vv - cy) / f
+                                 + normal[2];
         // measured only where the pixel's ray meets the road plane in front of the camera
         const bool on_road = road_d > 0.0 && incidence > 0.0;
         const double road_z = fb / road_d;

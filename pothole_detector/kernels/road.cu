@@ -500,9 +500,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                         return;
                     const double d = (double)raw * scale;
                     const double x = column_x[col], y = row_y[row];
-                    const double inverse = __ddiv_rn((double)INVERSE_SCALE_PX,
-                                                     fmax(planar[i],
-                                                          (double)MIN_ROAD_DISPARITY_PX));
+                    const double inverse = road_inverse(planar[i]);
                     const double design[6] = {1.0, x, y, x * x * inverse, x * inverse,
                                               inverse};
                     const double target = d - planar[i];

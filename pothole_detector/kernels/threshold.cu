@@ -192,17 +192,7 @@ extern "C" __global__ void threshold_select(const double* result, double lo, dou
                   && valid_fraction[i] > min_valid_fraction;
 }
 
-// Per superpixel the threshold as a disparity drop (drops, px) and whether the road is
-// observed there (stages/threshold.observation, the reference): one block, a thread per
-// superpixel in turn. Superpixel k sits at the centre of its grid cell (k / cells_x,
-// k % cells_x) of `step` px on the map reduced by `downsample`. Metric mode: the threshold
-// depth is depth_m or, where more, the depth whose disparity drop is noise_sigmas robust
-// sigmas of the fit, fB (1 / (d - k sigma) - 1 / d) incidence; observed where the ray meets the
-// road plane in front of the camera and the threshold depth is at most max_depth_m. With
-// drop_px > 0 (the pixel threshold mode) the drop is drop_px, observed where
-// d > drop_px >= sigma. range: nearest and farthest distance (m) along the road plane from
-// the point below the camera of an observed superpixel, NaN where none is. road: the kernel
-// parameters (ROAD_*); fit: the fit report (FIT_*).
+// The block's minimum or maximum of value, in every thread.
 __device__ __forceinline__ double block_reduce(double value, bool minimum, double* shared) {
     for (int offset = 16; offset > 0; offset >>= 1) {
         const double other = __shfl_down_sync(0xffffffffu, value, offset);
@@ -218,20 +208,29 @@ __device__ __forceinline__ double block_reduce(double value, bool minimum, doubl
     return value;
 }
 
+// Per superpixel the threshold as a disparity drop (drops, px) and whether the road is
+// observed there (stages/threshold.observation, the reference): one block, a thread per
+// superpixel in turn. Superpixel k sits at the centre of its grid cell (k / cells_x,
+// k % cells_x) of `step` px on the map reduced by `downsample`. Metric mode: the threshold
+// depth is depth_m or, where more, the depth whose disparity drop is noise_sigmas robust
+// sigmas of the fit, fB (1 / (d - k sigma) - 1 / d) incidence; observed where the ray meets the
+// road plane in front of the camera, the model is the road (road_modelled) and the threshold
+// depth is at most max_depth_m. With drop_px > 0 (the pixel threshold mode) the drop is
+// drop_px, observed where d > drop_px >= sigma, the ray meets the plane in front and the model
+// is the road. range: nearest and farthest distance (m) along the road plane from the point
+// below the camera of an observed superpixel, NaN where none is. road: the kernel parameters
+// (ROAD_*); fit: the fit report (FIT_*).
 extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_observation(const double* road, const double* fit, int count, int cells_x, int step,
                       int width, int height, int downsample, double f, double cx, double cy,
                       double fb, double depth_m, double drop_px, double noise_sigmas,
                       double max_depth_m, bool* observed, double* drops, double* range) {
     __shared__ double partial[SEARCH_THREADS / 32];
-    const double a0 = road[ROAD_A0], a1 = road[ROAD_A1], cos_phi = road[ROAD_COS],
-                 sin_phi = road[ROAD_SIN], curved = road[ROAD_CURVED];
+    const double curved = road[ROAD_CURVED];
     const double* c = road + ROAD_C0;
     const double sigma = curved != 0.0 ? fit[FIT_QUADRATIC_SIGMA] : fit[FIT_PLANAR_SIGMA];
-    const double beta = -a1 * sin_phi, gamma = a1 * cos_phi;
-    const double raw_x = beta * f, raw_y = gamma * f, raw_z = a0 + beta * cx + gamma * cy;
-    const double norm = sqrt(raw_x * raw_x + raw_y * raw_y + raw_z * raw_z);
-    const double height_m = fb / norm;
+    double normal[3];
+    const double height_m = fb / road_unit_normal(road, f, cx, cy, normal);
     double nearest = POSITIVE_INFINITY, farthest = -POSITIVE_INFINITY;
     for (int k = threadIdx.x; k < count; k += blockDim.x) {
         const double u = fmin((k % cells_x + 0.5) * step, width - 0.5) * downsample;
@@ -240,18 +239,19 @@ threshold_observation(const double* road, const double* fit, int count, int cell
         const double d = __dadd_rn(planar, __dmul_rn(curved, curvature_at(
             c, __ddiv_rn(u, (double)CURVATURE_SCALE_PX), __ddiv_rn(v, (double)CURVATURE_SCALE_PX),
             planar)));
-        const double incidence = raw_x / norm * (u - cx) / f + raw_y / norm * (v - cy) / f
-                                 + raw_z / norm;
+        const double incidence = normal[0] * (u - cx) / f + normal[1] * (v - cy) / f
+                                 + normal[2];
+        const bool ahead = incidence > 0.0 && road_modelled(d, planar);
         bool seen;
         double safe;
         if (drop_px > 0.0) {
-            const bool near_road = d > sigma && incidence > 0.0;
+            const bool near_road = d > sigma && ahead;
             safe = near_road ? d : 2.0 * sigma + 1.0;
             seen = near_road && d > drop_px && drop_px >= sigma;
             drops[k] = drop_px;
         } else {
             const double noise = noise_sigmas * sigma;
-            const bool near_road = d > noise && incidence > 0.0;
+            const bool near_road = d > noise && ahead;
             safe = near_road ? d : 2.0 * noise + 1.0;
             const double resolvable = fb * (1.0 / (safe - noise) - 1.0 / safe) * incidence;
             const double threshold_m = fmax(resolvable, depth_m);

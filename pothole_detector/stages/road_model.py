@@ -27,12 +27,15 @@ from ..errors import NoRoadError
 
 # The quadratic correction's coordinates are u and v divided by CURVATURE_SCALE_PX and its
 # inverse disparity is INVERSE_SCALE_PX / max(p, MIN_ROAD_DISPARITY_PX) (px), for conditioning
-# and to stay finite at the horizon; the kernels take them as defines (ROAD_DEFINES).
+# and to stay finite at the horizon. Where the correction exceeds MAX_CURVATURE_PERCENT of the
+# plane's disparity the model extrapolates past the road it was fitted on, and the road there is
+# not observed. The kernels take them as defines (ROAD_DEFINES).
 ROAD_CONSTANTS = {"CURVATURE_SCALE_PX": 1000, "INVERSE_SCALE_PX": 100,
-                  "MIN_ROAD_DISPARITY_PX": 8}
+                  "MIN_ROAD_DISPARITY_PX": 8, "MAX_CURVATURE_PERCENT": 50}
 CURVATURE_SCALE_PX = float(ROAD_CONSTANTS["CURVATURE_SCALE_PX"])
 INVERSE_SCALE_PX = float(ROAD_CONSTANTS["INVERSE_SCALE_PX"])
 MIN_ROAD_DISPARITY_PX = float(ROAD_CONSTANTS["MIN_ROAD_DISPARITY_PX"])
+MAX_CURVATURE_SHARE = ROAD_CONSTANTS["MAX_CURVATURE_PERCENT"] / 100.0
 # Columns per row at which the band and the row extremes evaluate the road.
 ROW_SAMPLES = 9
 
@@ -435,13 +438,20 @@ def model_from_report(report: np.ndarray, kind: str, quadratic_gain: float) -> R
     return quadratic
 
 
+def params_planar(params: Any, u: Any, v: Any) -> Any:
+    """Disparity (px) at pixels (u, v) of the plane (the linear part) of the road model given by
+    its kernel parameters (backend float64 (ROAD_PARAMS,), PARAM_LAYOUT)."""
+    layout = PARAM_LAYOUT
+    return params[layout["ROAD_A0"]] + params[layout["ROAD_A1"]] * (
+        v * params[layout["ROAD_COS"]] - u * params[layout["ROAD_SIN"]])
+
+
 def params_at(xp: Any, params: Any, u: Any, v: Any) -> Any:
     """Road disparity (px) at pixels (u, v) of the road model given by its kernel parameters
     (backend float64 (ROAD_PARAMS,), PARAM_LAYOUT), on the backend with nothing read back."""
     layout = PARAM_LAYOUT
     c = [params[layout["ROAD_C0"] + k] for k in range(6)]
-    planar = params[layout["ROAD_A0"]] + params[layout["ROAD_A1"]] * (
-        v * params[layout["ROAD_COS"]] - u * params[layout["ROAD_SIN"]])
+    planar = params_planar(params, u, v)
     return planar + params[layout["ROAD_CURVED"]] * _poly(
         xp, tuple(c), u / CURVATURE_SCALE_PX, v / CURVATURE_SCALE_PX, planar)
 

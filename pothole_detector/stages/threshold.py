@@ -223,9 +223,12 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
     threshold depth is ``depth_m``, or where more, the depth the matcher resolves there:
     fB (1 / (d - k sigma) - 1 / d) cos(incidence), the depth whose disparity drop is
     k = ``noise_sigmas`` times the road fit's robust sigma (road_model.fit_sigma); the drop is
-    that depth's, and the road is observed where the ray meets it in front of the camera and
-    the threshold depth is at most ``max_depth_m``. Pixel mode (``drop_px`` > 0): the drop is
-    ``drop_px``, observed where d > ``drop_px`` >= sigma. Returns bool (count,) observed and
+    that depth's, and the road is observed where the ray meets it in front of the camera, the
+    model's curvature stays within road_model.MAX_CURVATURE_SHARE of its plane's disparity (else
+    it extrapolates past the road it was fitted on), and the threshold depth is at most
+    ``max_depth_m``. Pixel mode (``drop_px`` > 0): the drop is
+    ``drop_px``, observed where d > ``drop_px`` >= sigma, the ray meets the plane in front of the
+    camera and the curvature is within that share. Returns bool (count,) observed and
     float64 (count,) drops, and writes into ``observed_range`` (float64 (2,), where given) the
     nearest and farthest distance (m) along the road plane, from the point below the camera,
     of an observed superpixel, NaN where none is. On the GPU one single-block kernel
@@ -261,18 +264,20 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
     """observation on the host (NumPy): the reference of kernels/threshold.cu's."""
     u, v = centres
     road = road_model.params_at(xp, road_params, u, v)
+    planar = road_model.params_planar(road_params, u, v)
     sigma = road_model.fit_sigma(xp, road_report, road_params)
     nx, ny, nz = road_model.params_normal(xp, road_params, calibration)
     f, fb = calibration.f, calibration.fb
     incidence = nx * (u - calibration.cx) / f + ny * (v - calibration.cy) / f + nz
+    ahead = (incidence > 0) & (xp.abs(road - planar) <= road_model.MAX_CURVATURE_SHARE * planar)
     if drop_px > 0:
-        near_road = (road > sigma) & (incidence > 0)
+        near_road = (road > sigma) & ahead
         observed = near_road & (road > drop_px) & (drop_px >= sigma)
         drops = xp.full(road.shape, drop_px, dtype=xp.float64)
         safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
     else:
         noise = noise_sigmas * sigma
-        near_road = (road > noise) & (incidence > 0)
+        near_road = (road > noise) & ahead
         safe = xp.where(near_road, road, 2.0 * noise + 1.0)
         resolvable = fb * (1.0 / (safe - noise) - 1.0 / safe) * incidence
         threshold_m = xp.maximum(resolvable, depth_m)
