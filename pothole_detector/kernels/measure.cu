@@ -95,7 +95,7 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         values[1] = footprint;
         if (on_road && d > 0.0f && finite(depth)) {
             const double floor = floor_area(disparity, u, v, height, width, f, cx, cy, fb,
-                                            normal_x, normal_y, normal_z);
+                                            normal[0], normal[1], normal[2]);
             values[2] = footprint;
             values[3] = floor;
             values[4] = (double)depth * floor;

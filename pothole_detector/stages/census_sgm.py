@@ -300,6 +300,20 @@ def select_shared_bytes(levels: int, width: int, threads: int, lanes: int) -> in
     return 4 * (3 * width + levels + threads // lanes * (((levels + 1) // 2) | 1))
 
 
+def kernel_defines(levels: int, lanes: int, pair_bytes: bool) -> dict[str, int]:
+    """The numbers kernels/sgm.cu is built with for ``levels`` disparity levels, ``lanes``
+    threads per path line and slot pairs added as bytes (slot_pair_bytes) or not."""
+    path_depth = path_levels(levels)
+    return {"LEVELS": levels, "PATH_LEVELS": path_depth, "LANES": lanes,
+            "SELECT_LANES": select_lanes_for(path_depth), "CENSUS_RY": CENSUS_RADIUS_Y,
+            "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
+            "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X,
+            "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes)),
+            "PATH_THREADS": path_threads(path_depth, lanes),
+            "SELECT_THREADS": select_threads(path_depth, lanes),
+            "SLOT_PAIR_BYTES": int(pair_bytes), "SHIFT_BITS": perspective.SHIFT_BITS}
+
+
 def path_lines(height: int, width: int) -> int:
     """Path lines of one pass of the GPU matcher, on average: one straight direction of each
     axis and two diagonals."""
@@ -353,15 +367,7 @@ class GpuMatcher:
         return self._kernel_sets[key]
 
     def _build_kernels(self, levels: int, lanes: int, pair_bytes: bool) -> dict[str, Any]:
-        path_depth = path_levels(levels)
-        defines = {"LEVELS": levels, "PATH_LEVELS": path_depth, "LANES": lanes,
-                   "SELECT_LANES": select_lanes_for(path_depth), "CENSUS_RY": CENSUS_RADIUS_Y,
-                   "CENSUS_RX": CENSUS_RADIUS_X, "INVALID_COST": INVALID_COST,
-                   "BORDER_Y": BORDER_Y, "BORDER_X": BORDER_X,
-                   "HORIZONTALS_SECOND": int(horizontals_second(path_depth, lanes)),
-                   "PATH_THREADS": path_threads(path_depth, lanes),
-                   "SELECT_THREADS": select_threads(path_depth, lanes),
-                   "SLOT_PAIR_BYTES": int(pair_bytes), "SHIFT_BITS": perspective.SHIFT_BITS}
+        defines = kernel_defines(levels, lanes, pair_bytes)
         names = ("census_pair", "gpt_census", "sgm_paths_write", "sgm_paths_add",
                  "sgm_select", "sgm_finish")
         return {name: self.backend.kernel("sgm.cu", name, defines) for name in names} \

@@ -17,6 +17,7 @@ from .transform import transform_disparity
 SMOOTHING_PX = 5
 # kernels/refine.cu: the block of one thread per pixel
 _BLOCK = (32, 8)
+_REFINE_DEFINES = {"SMOOTHING": SMOOTHING_PX, **ROAD_DEFINES}
 
 
 def smooth(backend: Backend, disparity: Any) -> tuple[Any, Any]:
@@ -91,4 +92,4 @@ def _grid(height: int, width: int) -> tuple[int, int]:
 
 def _kernel(backend: Backend, name: str) -> Any:
     """Kernel ``name`` of kernels/refine.cu with the numbers it shares with this module."""
-    return backend.kernel("refine.cu", name, {"SMOOTHING": SMOOTHING_PX, **ROAD_DEFINES})
+    return backend.kernel("refine.cu", name, _REFINE_DEFINES)
