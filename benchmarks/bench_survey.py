@@ -4,6 +4,7 @@ a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
         [--backend cpu|gpu] [--ray | --jobs N [N ...]] [--chunk-frames 30]
+        [--read-threads N [N ...]]
 
 The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
 frame at these sizes would take longer than the survey), with an odometry topic that follows
@@ -63,6 +64,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, nargs="+", default=[1],
                         help="chunks in this many worker processes here (several: a row each)")
     parser.add_argument("--chunk-frames", type=int, default=600)
+    parser.add_argument("--read-threads", type=int, nargs="+", default=[4],
+                        help="threads per process that read the bag ahead (several: a row "
+                             "each)")
     args = parser.parse_args()
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
     rows = []
@@ -81,12 +85,15 @@ def main() -> None:
             bench(make_bag(warm / "drive", samples, forward, 3), config, False, 1,
                   warm)  # compiles kernels
             for jobs in [1] if args.ray else args.jobs:
-                out = folder / f"out_{size}_{jobs}"
-                out.mkdir()
-                seconds, frames, potholes = bench(bag, config, args.ray, jobs, out)
-                mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
-                    f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
-                rows.append((size, mode, frames, potholes, seconds))
+                for threads in args.read_threads:
+                    out = folder / f"out_{size}_{jobs}_{threads}"
+                    out.mkdir()
+                    seconds, frames, potholes = bench(
+                        bag, config.replace(read_threads=threads), args.ray, jobs,
+                        out)
+                    mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
+                        f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
+                    rows.append((size, mode, threads, frames, potholes, seconds))
     if args.backend == "cpu":
         device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
     else:
@@ -94,11 +101,11 @@ def main() -> None:
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
     print(f"survey throughput, {device}, {args.frames} frames a bag, "
           f"{datetime.date.today().isoformat()}")
-    print("| size | processes | frames | potholes | seconds (decode, pipeline, odometry, "
-          "tracking, outputs) | frames/s |")
-    print("| --- | --- | --- | --- | --- | --- |")
-    for size, mode, frames, potholes, seconds in rows:
-        print(f"| {size} | {mode} | {frames} | {potholes} | {seconds:.1f} | "
+    print("| size | processes | read threads each | frames | potholes | seconds (decode, "
+          "pipeline, odometry, tracking, outputs) | frames/s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for size, mode, threads, frames, potholes, seconds in rows:
+        print(f"| {size} | {mode} | {threads} | {frames} | {potholes} | {seconds:.1f} | "
               f"{frames / seconds:.1f} |")
 
 

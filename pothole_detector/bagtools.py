@@ -301,7 +301,8 @@ INFO_WAIT_NS = 1_000_000_000
 
 
 def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
-                 summary: ProcessSummary, span: LogSpan | None = None
+                 summary: ProcessSummary, span: LogSpan | None = None,
+                 others: Sequence[str] = (), collected: list | None = None
                  ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
     """Synchronized (stamp, left image's log time, left, right, left_info, right_info)
     messages of a bag, or of the sets whose left image was logged before ``span``'s stop
@@ -309,12 +310,14 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     its own stamp where the bag holds it (logged before the images or up to INFO_WAIT_NS
     after), else the newest one before it (for a span, also one logged before it: a latched
     camera_info); the infos are None for a pair before any. Images that found no partner
-    are counted in ``summary``."""
+    are counted in ``summary``. The messages of the ``others`` topics logged in the span (not
+    its lead) go into ``collected`` as (topic, log time ns, message), in the same pass."""
     from . import conversions
     from .sync import StereoSynchronizer
 
     roles = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
              topics.right_info: "right_info"}
+    roles.update({topic: "other" for topic in others if topic not in roles})
     connections = [c for c in reader.connections if c.topic in roles]
     window = {} if span is None else {"start": span.start_ns - span.lead_ns,
                                       "stop": span.stop_ns + span.lead_ns}
@@ -370,6 +373,12 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
     for connection, logged, rawdata in reader.messages(connections=connections, **window):
         role = roles[connection.topic]
+        if role == "other":
+            if collected is not None and (span is None
+                                          or span.start_ns <= logged < span.stop_ns):
+                collected.append((connection.topic, logged, deserialize(
+                    cdr_bytes(reader, connection, rawdata), connection.msgtype)))
+            continue
         if role in infos:
             info = deserialize(cdr_bytes(reader, connection, rawdata), INFO_TYPE)
             stamp = conversions.stamp_ns(info.header)
@@ -388,16 +397,81 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     summary.unpaired += synchronizer.reset()
 
 
+# Sets per slice of log time that a read thread takes at a time (read_sets_ahead).
+READ_BLOCK_FRAMES = 24
+
+
+def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
+                    span: LogSpan | None, threads: int, others: Sequence[str] = (),
+                    collected: list | None = None
+                    ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
+    """The sets of :func:`_stereo_sets` over ``span`` (or the whole bag) in order, and its
+    ``others`` messages into ``collected``, read by ``threads`` threads ahead of the caller,
+    each with its own reader on the bag: the span's log time is cut into blocks of about
+    READ_BLOCK_FRAMES sets (at the bag's mean rate), a thread reads a block with a lead of two
+    frames and the sync tolerance on both sides (for partners logged across its edges) and
+    keeps the sets whose left image was logged in it (the first block also its span's lead).
+    The bag's decompression, which releases the GIL, runs beside the pipeline; at most
+    ``threads`` + 1 blocks are held. Unpaired images are not counted."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    count = sum(c.msgcount for c in reader.connections if c.topic == topics.left)
+    end_ns = reader.end_time + 1
+    outer = span or LogSpan(reader.start_time, end_ns, 0)
+    period_ns = (end_ns - reader.start_time) / max(count, 1)
+    block_ns = max(1, math.ceil(period_ns * READ_BLOCK_FRAMES))
+    lead_ns = math.ceil(2 * period_ns + config.approximate_sync_tolerance_seconds * 1e9)
+    starts = list(range(outer.start_ns, outer.stop_ns, block_ns)) or [outer.start_ns]
+    blocks = [LogSpan(first, min(first + block_ns, outer.stop_ns),
+                      max(outer.lead_ns, lead_ns) if index == 0 else lead_ns)
+              for index, first in enumerate(starts)]
+    path = list(reader.paths)[0]
+    local = threading.local()
+    opened: list[AnyReader] = []
+
+    def read(block: LogSpan, first: bool) -> tuple[list, list]:
+        if not hasattr(local, "reader"):
+            local.reader = open_bag(path)
+            opened.append(local.reader)
+        extras: list = []
+        sets = [item for item in _stereo_sets(local.reader, topics, config, ProcessSummary(),
+                                              block, others, extras)
+                if first or item[1] >= block.start_ns]
+        return sets, extras
+
+    try:
+        with ThreadPoolExecutor(threads, thread_name_prefix="bag-read") as pool:
+            pending: deque = deque()
+            for index, block in enumerate(blocks):
+                pending.append(pool.submit(read, block, index == 0))
+                while len(pending) > threads or (pending and index == len(blocks) - 1):
+                    sets, extras = pending.popleft().result()
+                    if collected is not None:
+                        collected.extend(extras)
+                    yield from sets
+    finally:
+        for own in opened:
+            own.close()
+
+
 def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backend: Any,
                   summary: ProcessSummary,
                   progress: Callable[[int, int], None] | None = None,
-                  span: LogSpan | None = None) -> Iterator[tuple[BagFrame, Any]]:
+                  span: LogSpan | None = None, read_threads: int = 1,
+                  others: Sequence[str] = (), collected: list | None = None
+                  ) -> Iterator[tuple[BagFrame, Any]]:
     """(frame, PipelineResult or the PotholeError that stopped it) for the synchronized sets
     of a bag, or of a :class:`LogSpan` of it (with the sets of its lead before it: their
     ``logged_ns`` is before the span's start), in order. One pipeline per run of frames with
     the same calibration; within a run the host prepares the next pair while the device works
     (Pipeline.run_stream). ``progress(done, total)`` is called per set (of the whole bag's
-    left images, or of a span's share of them)."""
+    left images, or of a span's share of them). ``read_threads`` > 1: the bag is read ahead
+    in that many threads (:func:`read_sets_ahead`; ``summary`` then counts no unpaired
+    images) where its camera_info topics hold a message per image or so (a block then finds
+    its infos in itself; a bag with latched infos is read in this thread). The messages of
+    the ``others`` topics logged in the span go into ``collected`` in the same pass (complete
+    once the frames are)."""
     from . import conversions
     from .pipeline import Pipeline
 
@@ -407,7 +481,14 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
         total = round(total * min(span.stop_ns - span.start_ns, bag_ns) / bag_ns)
 
     def prepared() -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
-        sets = _stereo_sets(reader, stereo, config, summary, span)
+        counts: dict[str, int] = {}
+        for connection in reader.connections:
+            counts[connection.topic] = counts.get(connection.topic, 0) + connection.msgcount
+        streamed_infos = all(2 * counts.get(topic, 0) >= counts.get(stereo.left, 0)
+                             for topic in (stereo.left_info, stereo.right_info))
+        sets = read_sets_ahead(reader, stereo, config, span, read_threads, others,
+                               collected) if read_threads > 1 and streamed_infos \
+            else _stereo_sets(reader, stereo, config, summary, span, others, collected)
         for index, (stamp, logged, left_msg, right_msg, left_cal, right_cal) in enumerate(sets):
             if progress is not None:
                 progress(min(index, total), total)

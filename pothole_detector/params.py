@@ -250,6 +250,10 @@ PARAMETERS: tuple[Param, ...] = (
     Param("chunk_frames", int, 600,
           "Survey: stereo frames per task when a bag is split for parallel work (--ray).",
           2, 1000000, group="survey"),
+    Param("read_threads", int, 4,
+          "Survey: threads that read and decompress the bag ahead of the pipeline, each a "
+          "slice of a few dozen frames at a time (where camera_info comes with every image); "
+          "1 reads in the pipeline's thread.", 1, 64, group="survey"),
     Param("chunk_overlap_frames", int, 2,
           "Survey: frames that a chunk also processes before its start (two more, at the "
           "bag's mean frame rate), so that visual odometry runs on across chunk boundaries.",

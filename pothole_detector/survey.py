@@ -70,6 +70,10 @@ class DriveTopics:
     gnss: str | None = None
     base_frame: str = "base_link"
 
+    def motion_topics(self) -> tuple[str, ...]:
+        """The motion and GNSS topics the bag has."""
+        return tuple(topic for topic in (self.odometry, self.tf, self.gnss) if topic)
+
 
 def find_drive_topics(topics: dict[str, str], odometry: str | None = None,
                       gnss: str | None = None, base_frame: str = "base_link",
@@ -97,10 +101,11 @@ def find_drive_topics(topics: dict[str, str], odometry: str | None = None,
 
 def observe(bag: str | Path, topics: DriveTopics, config: Config,
             span: bagtools.LogSpan | None = None,
-            progress: Callable[[int, int], None] | None = None) -> list[FrameObservation]:
+            progress: Callable[[int, int], None] | None = None) -> ChunkResult:
     """Run the pipeline and, where the bag has no odometry messages, visual odometry on the
     frames of ``bag``, or of a span of it (the frames of its lead before it run too, for the
-    odometry, and are not returned)."""
+    odometry, and are not returned); and read its motion messages (those logged in the
+    span), in the same pass over the bag."""
     from .backend import get_backend
     from .stages.matching import to_gray8
 
@@ -108,11 +113,13 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     odometry = StereoOdometry()
     has_odometry = any(c.topic == topics.odometry and c.msgcount for c in reader.connections)
     observations = []
+    motion_messages: list[tuple[str, int, Any]] = []
     try:
         summary = bagtools.ProcessSummary()
         backend = get_backend(config.backend)
-        for frame, outcome in bagtools.frame_results(reader, topics.stereo, config, backend,
-                                                     summary, progress, span):
+        for frame, outcome in bagtools.frame_results(
+                reader, topics.stereo, config, backend, summary, progress, span,
+                config.read_threads, topics.motion_topics(), motion_messages):
             kept = span is None or frame.logged_ns >= span.start_ns
             try:
                 if isinstance(outcome, PotholeError):
@@ -134,7 +141,7 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                     axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
     finally:
         reader.close()
-    return observations
+    return observations, motion_samples(motion_messages, topics)
 
 
 @dataclass
@@ -159,14 +166,11 @@ class MotionSamples:
     gnss: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
 
 
-def read_motion_samples(bag: str | Path, topics: DriveTopics,
-                        span: bagtools.LogSpan | None = None) -> MotionSamples:
-    """The odometry, /tf and GNSS messages of ``bag``, or of those logged in ``span``."""
+def motion_samples(messages: Iterable[tuple[str, int, Any]], topics: DriveTopics
+                   ) -> MotionSamples:
+    """The odometry, /tf and GNSS samples of (topic, log time, message) motion messages."""
     samples = MotionSamples()
-    wanted = [t for t in (topics.odometry, topics.tf, topics.gnss) if t]
-    if not wanted:
-        return samples
-    for topic, _, msg in bagtools.read_messages(bag, wanted, span):
+    for topic, _, msg in messages:
         if topic == topics.odometry:
             samples.odometry.append((stamp_ns(msg.header), planar_pose(
                 msg.pose.pose.position, msg.pose.pose.orientation)))
@@ -414,9 +418,9 @@ ChunkResult = tuple[list[FrameObservation], MotionSamples]
 
 def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
                   span: bagtools.LogSpan) -> ChunkResult:
-    """:func:`observe` of one chunk with the parameter values ``values``, and the motion
-    messages logged in it: a task for worker processes and Ray."""
-    return observe(bag, topics, Config(values), span), read_motion_samples(bag, topics, span)
+    """:func:`observe` of one chunk with the parameter values ``values``: a task for worker
+    processes and Ray."""
+    return observe(bag, topics, Config(values), span)
 
 
 def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
@@ -468,8 +472,8 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
                 def step(index: int, _: int, base: int = done) -> None:
                     if progress is not None:
                         progress(min(base + index, total), total)
-                observed = observe(bag, topics, config, span, step)
-                per_bag.append((observed, read_motion_samples(bag, topics, span)))
+                observed, samples = observe(bag, topics, config, span, step)
+                per_bag.append((observed, samples))
                 done += len(observed)
             chunked.append(per_bag)
         if progress is not None:

@@ -269,3 +269,33 @@ def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp
         assert kept == whole
     finally:
         reader.close()
+
+
+def test_sets_read_ahead_in_threads_are_the_sets_read_in_one(tmp_path, drive_frames,
+                                                           monkeypatch):
+    """Twenty sets 0.1 s apart, the right image and both camera_infos logged 30 ms after the
+    left (partners across the blocks' edges): read in blocks of three sets by three threads,
+    of the whole bag and of a span with its lead, they are the sets one reader finds, in
+    order, each with its camera_info."""
+    source, late = tmp_path / "source", tmp_path / "late"
+    frames = [(START + i * 100_000_000, drive_frames[i % 3][1]) for i in range(20)]
+    assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 20
+    rewrite_bag(source, late, lambda topic, timestamp: timestamp + (
+        0 if topic == STEREO[0] else 30_000_000))
+    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 3)
+    config = Config()
+    topics = bagtools.StereoTopics(*STEREO)
+    reader = bagtools.open_bag(late)
+    try:
+        for span in (None, bagtools.LogSpan(START + 450_000_000, START + 1_650_000_000,
+                                            250_000_000)):
+            alone = list(bagtools._stereo_sets(reader, topics, config,
+                                               bagtools.ProcessSummary(), span))
+            ahead = list(bagtools.read_sets_ahead(reader, topics, config, span, 3))
+            assert [s[:2] for s in ahead] == [s[:2] for s in alone]
+            assert len(alone) == (20 if span is None else 15)
+            assert all(s[4] is not None and s[5] is not None for s in ahead)
+            assert [s[2].header.stamp.sec * 10**9 + s[2].header.stamp.nanosec
+                    for s in ahead] == [s[0] for s in alone]
+    finally:
+        reader.close()

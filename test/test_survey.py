@@ -160,6 +160,25 @@ def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags, motion):
     assert_same_potholes(split, whole)
 
 
+@pytest.mark.parametrize("motion", ["odom", "gnss"])
+def test_reading_ahead_in_threads_observes_what_one_reader_does(survey_drive_bags, motion,
+                                                               monkeypatch):
+    """A chunk (24 frames) read in blocks of five frames by three threads: the same frames,
+    sightings and motion messages as read in the pipeline's thread."""
+    from pothole_detector import bagtools
+    from pothole_detector.survey import chunk_spans, drive_topics, observe
+
+    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 5)
+    bags, _, _ = survey_drive_bags
+    topics = drive_topics(bags[motion])
+    config = Config({"backend": "cpu", "chunk_frames": 30})
+    _, spans = chunk_spans(bags[motion], topics, config)
+    alone = observe(bags[motion], topics, config.replace(read_threads=1), spans[1])
+    ahead = observe(bags[motion], topics, config.replace(read_threads=3), spans[1])
+    assert ahead == alone
+    assert len(alone[0]) == 24 and len(alone[1].odometry) + len(alone[1].gnss) >= 24
+
+
 def test_chunks_in_worker_processes_give_the_sequential_survey(survey_drive_bags):
     """survey --jobs: chunks of two drives in two worker processes, merged per drive."""
     from conftest import REPO
