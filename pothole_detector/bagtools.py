@@ -401,6 +401,11 @@ def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
 READ_BLOCK_FRAMES = 24
 
 
+def message_count(reader: AnyReader, topic: str) -> int:
+    """How many messages the bag holds on ``topic`` (0 where it has no such topic)."""
+    return sum(c.msgcount for c in reader.connections if c.topic == topic)
+
+
 def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                     span: LogSpan | None, threads: int, others: Sequence[str] = (),
                     collected: list | None = None
@@ -416,7 +421,7 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    count = sum(c.msgcount for c in reader.connections if c.topic == topics.left)
+    count = message_count(reader, topics.left)
     end_ns = reader.end_time + 1
     outer = span or LogSpan(reader.start_time, end_ns, 0)
     period_ns = (end_ns - reader.start_time) / max(count, 1)
@@ -440,16 +445,21 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                 if first or item[1] >= block.start_ns]
         return sets, extras
 
+    def take(future: Any) -> list:
+        sets, extras = future.result()
+        if collected is not None:
+            collected.extend(extras)
+        return sets
+
     try:
         with ThreadPoolExecutor(threads, thread_name_prefix="bag-read") as pool:
             pending: deque = deque()
             for index, block in enumerate(blocks):
                 pending.append(pool.submit(read, block, index == 0))
-                while len(pending) > threads or (pending and index == len(blocks) - 1):
-                    sets, extras = pending.popleft().result()
-                    if collected is not None:
-                        collected.extend(extras)
-                    yield from sets
+                if len(pending) > threads:
+                    yield from take(pending.popleft())
+            while pending:
+                yield from take(pending.popleft())
     finally:
         for own in opened:
             own.close()
@@ -475,16 +485,13 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
     from . import conversions
     from .pipeline import Pipeline
 
-    total = sum(c.msgcount for c in reader.connections if c.topic == stereo.left)
+    images = total = message_count(reader, stereo.left)
     if span is not None:
         bag_ns = max(reader.end_time - reader.start_time + 1, 1)
         total = round(total * min(span.stop_ns - span.start_ns, bag_ns) / bag_ns)
 
     def prepared() -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
-        counts: dict[str, int] = {}
-        for connection in reader.connections:
-            counts[connection.topic] = counts.get(connection.topic, 0) + connection.msgcount
-        streamed_infos = all(2 * counts.get(topic, 0) >= counts.get(stereo.left, 0)
+        streamed_infos = all(2 * message_count(reader, topic) >= images
                              for topic in (stereo.left_info, stereo.right_info))
         sets = read_sets_ahead(reader, stereo, config, span, read_threads, others,
                                collected) if read_threads > 1 and streamed_infos \

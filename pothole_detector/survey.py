@@ -111,7 +111,7 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
 
     reader = bagtools.open_bag(bag)
     odometry = StereoOdometry()
-    has_odometry = any(c.topic == topics.odometry and c.msgcount for c in reader.connections)
+    has_odometry = bool(topics.odometry) and bagtools.message_count(reader, topics.odometry) > 0
     observations = []
     motion_messages: list[tuple[str, int, Any]] = []
     try:
@@ -394,7 +394,7 @@ def chunk_spans(bag: str | Path, topics: DriveTopics, config: Config
     chunk seeks to its span: no frame before it is read."""
     reader = bagtools.open_bag(bag)
     try:
-        count = sum(c.msgcount for c in reader.connections if c.topic == topics.stereo.left)
+        count = bagtools.message_count(reader, topics.stereo.left)
         start, end = (reader.start_time, reader.end_time) if count else (0, 0)
     finally:
         reader.close()
