@@ -406,6 +406,11 @@ def message_count(reader: AnyReader, topic: str) -> int:
     return sum(c.msgcount for c in reader.connections if c.topic == topic)
 
 
+def mean_period_ns(reader: AnyReader, topic: str) -> float:
+    """The mean time (ns) between the bag's messages on ``topic``, over its whole log time."""
+    return (reader.end_time - reader.start_time) / max(message_count(reader, topic) - 1, 1)
+
+
 def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                     span: LogSpan | None, threads: int, others: Sequence[str] = (),
                     collected: list | None = None
@@ -421,10 +426,8 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    count = message_count(reader, topics.left)
-    end_ns = reader.end_time + 1
-    outer = span or LogSpan(reader.start_time, end_ns, 0)
-    period_ns = (end_ns - reader.start_time) / max(count, 1)
+    outer = span or LogSpan(reader.start_time, reader.end_time + 1, 0)
+    period_ns = mean_period_ns(reader, topics.left)
     block_ns = max(1, math.ceil(period_ns * READ_BLOCK_FRAMES))
     lead_ns = math.ceil(2 * period_ns + config.approximate_sync_tolerance_seconds * 1e9)
     starts = list(range(outer.start_ns, outer.stop_ns, block_ns)) or [outer.start_ns]

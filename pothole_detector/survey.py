@@ -396,10 +396,10 @@ def chunk_spans(bag: str | Path, topics: DriveTopics, config: Config
     try:
         count = bagtools.message_count(reader, topics.stereo.left)
         start, end = (reader.start_time, reader.end_time) if count else (0, 0)
+        period_ns = bagtools.mean_period_ns(reader, topics.stereo.left) if count else 0.0
     finally:
         reader.close()
     pieces = max(1, math.ceil(count / config.chunk_frames))
-    period_ns = (end - start) / max(count - 1, 1)
     lead_ns = math.ceil(period_ns * (config.chunk_overlap_frames + 2)
                         + config.approximate_sync_tolerance_seconds * 1e9)
     bounds = [start + (end + 1 - start) * k // pieces for k in range(pieces + 1)]
