@@ -145,6 +145,19 @@ class Probe:
                 return True
         return until is None
 
+    def answer(self, send: Callable[[], Any], seconds: float = 60.0,
+               resend_after: float = 5.0) -> Any:
+        """The result of the service call `send` starts, sent again every `resend_after` seconds
+        until answered: a service can be discovered before its reply reaches this participant,
+        and the first request is then lost."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            future = send()
+            if self.spin(min(resend_after, deadline - time.monotonic()), future.done):
+                return future.result()
+            future.cancel()
+        raise AssertionError(f"no answer to the service call within {seconds:.0f} s")
+
     def wait_connected(self, timeout: float = 15.0) -> None:
         outputs = [f"{self.namespace}/potholes", "/diagnostics"]
 

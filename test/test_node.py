@@ -164,9 +164,8 @@ def test_parameters_change_at_run_time_and_bad_values_are_refused(node_factory, 
     assert client.wait_for_services(timeout_sec=10)
 
     def set_parameters(**values):
-        future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
-        assert p.spin(10, future.done)
-        return future.result().results
+        return p.answer(lambda: client.set_parameters(
+            [Parameter(k, value=v) for k, v in values.items()])).results
 
     refused = set_parameters(delta_pd_px=-1.0)
     assert not refused[0].successful and "out of range" in refused[0].reason
@@ -338,7 +337,7 @@ def test_record_writes_live_topics_as_raw_cdr(tmp_path, probe, frames):
 
 @pytest.mark.parametrize("params_file", ["shipped", "written"])
 def test_the_parameter_file_applies_under_any_namespace_and_node_name(tmp_path, node_factory,
-                                                                     params_file):
+                                                                     probe, params_file):
     """The README's command (`-r __ns:=... --params-file config/pothole_detector.yaml`): the
     file's `/**` key reaches a node in another namespace under another name."""
     from rcl_interfaces.srv import GetParameters
@@ -348,15 +347,12 @@ def test_the_parameter_file_applies_under_any_namespace_and_node_name(tmp_path, 
     path = tmp_path / "params.yaml"
     path.write_text(text if params_file == "written" else default_yaml())
     node_factory(namespace="/robot/front", node_name="holes", params_file=path)
-    client_node = rclpy.create_node("parameter_probe")
-    try:
-        client = client_node.create_client(GetParameters, "/robot/front/holes/get_parameters")
-        assert client.wait_for_service(timeout_sec=20.0), "the renamed node did not come up"
-        future = client.call_async(GetParameters.Request(names=["delta_dt_px", "queue_size"]))
-        rclpy.spin_until_future_complete(client_node, future, timeout_sec=10.0)
-        values = [value.double_value or value.integer_value for value in future.result().values]
-    finally:
-        client_node.destroy_node()
+    p = probe(namespace="/robot/front")
+    client = p.node.create_client(GetParameters, "/robot/front/holes/get_parameters")
+    assert client.wait_for_service(timeout_sec=20.0), "the renamed node did not come up"
+    request = GetParameters.Request(names=["delta_dt_px", "queue_size"])
+    values = [value.double_value or value.integer_value
+              for value in p.answer(lambda: client.call_async(request)).values]
     assert values == [41.5 if params_file == "written" else 32.0, 10]
 
 
