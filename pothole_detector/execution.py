@@ -162,16 +162,16 @@ class _Checkpoint:
         return frame.road
 
 
-_GraphKey = tuple[int, int, int]
+_GraphKey = tuple[int, int, int, int]
 
 
 class FrameGraphs:
     """CUDA graphs of the GPU frame after its upload (SGM and every stage after it), one set
-    per (height, width, levels). A key's first frame runs without graphs (kernels built,
-    caches filled, the matcher's buffers sized); its next frame captures them, and later
-    frames replay them. The graphs hold the matcher's buffers by address: when the matcher
-    replaces them (its ``generation``) or the image size changes, every graph is dropped and
-    each key starts again. Where a capture fails, frames run without graphs from then on."""
+    per (height, width, levels, SLIC grid step). A key's first frame runs without graphs
+    (kernels built, caches filled, the matcher's buffers sized); its next frame captures them,
+    and later frames replay them. The graphs hold the matcher's buffers by address: when the
+    matcher replaces them (its ``generation``) or the image size changes, every graph is
+    dropped and each key starts again. Where a capture fails, frames run without graphs from then on."""
 
     def __init__(self) -> None:
         self._graphs: dict[_GraphKey, CapturedGraph] = {}
@@ -317,7 +317,7 @@ class FrameExecutor:
         staged.send_ahead(2)
         pair, shifts, levels = pipeline.prepare(
             lambda table, prior: _send(staged, table, prior), (height, width), clock)
-        key = (height, width, levels)
+        key = (height, width, levels, pipeline.region_size(width))
         graphed = backend.is_gpu and config.cuda_graph and not seeding \
             and pipeline.matcher.kind(config) == "census"
         graph = self.graphs.get(key, pipeline.matcher.generation, self._capture) \
@@ -361,10 +361,10 @@ class FrameExecutor:
         frame.readbacks[0].send(frame.report.header_bytes)
 
     def _capture(self, key: _GraphKey) -> CapturedGraph:
-        """:meth:`_frame` of a (height, width, levels) captured as two CUDA graphs, cut after
-        the road fit; the outputs: the input arrays (left, right, shifts, prior) they read and
-        the frame."""
-        height, width, levels = key
+        """:meth:`_frame` of a (height, width, levels, SLIC grid step) captured as two CUDA
+        graphs, cut after the road fit; the outputs: the input arrays (left, right, shifts,
+        prior) they read and the frame."""
+        height, width, levels, _ = key
         xp = self.backend.xp
 
         def body(cut: Callable[[], None]) -> tuple[tuple[Any, Any, Any, Any], _Frame]:
@@ -414,7 +414,8 @@ class FrameExecutor:
             frame.arrays = FrameArrays(
                 arrays.disparity.copy(), arrays.transformed.copy(), None,
                 superpixels.Superpixels(None, found.count, found.labels.copy(), None, None),
-                arrays.candidate.copy(), arrays.labels.copy(), arrays.observed.copy())
+                arrays.candidate.copy(), arrays.labels.copy(), arrays.observed.copy(),
+                arrays.drops.copy(), arrays.region_px)
 
     def _wait(self, frame: _Frame, readback: Readback) -> np.ndarray:
         """A readback's bytes; the wait counts into the frame's host_wait on the GPU."""

@@ -137,7 +137,9 @@ PARAMETERS: tuple[Param, ...] = (
     Param("slic_region_size_px", int, 0,
           "SLIC grid step S in full-resolution px (the SLIC image uses S / slic_downsample); "
           "0: the image width / 64 (32 px at 2079 px wide, 10 px at 640), so that superpixels "
-          "take the same share of the view on any image size.", 0, 512),
+          "take the same share of the view on any image size, shrunk where the optical axis "
+          "meets the seeded road at less than 30 deg (in proportion to the sine, to at most "
+          "half: rows foreshorten such a road), at least 8 px.", 0, 512),
     Param("slic_compactness", float, 2.0,
           "SLIC m: a spatial distance of S weighs like m px of transformed disparity.", 0.01, 100),
     Param("slic_iterations", int, 6, "Fixed number of SLIC k-means iterations.", 1, 50),

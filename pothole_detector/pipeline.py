@@ -76,9 +76,9 @@ class PipelineResult:
 @dataclass
 class FrameArrays:
     """What :meth:`Pipeline.stages` leaves on the backend: D1, D2, the valid mask, the
-    superpixels, the candidate mask on the SLIC grid, the pothole labels, the bool
-    per-superpixel mask of where the road is observed and the float64 per-superpixel threshold
-    drops (px)."""
+    superpixels (of grid step ``region_px``), the candidate mask on the SLIC grid, the pothole
+    labels, the bool per-superpixel mask of where the road is observed and the float64
+    per-superpixel threshold drops (px)."""
 
     disparity: Any
     transformed: Any
@@ -88,6 +88,7 @@ class FrameArrays:
     labels: Any
     observed: Any = None
     drops: Any = None
+    region_px: int = 0
 
 
 class FrameReport(Protocol):
@@ -134,6 +135,7 @@ class Pipeline:
         # the seed pass's matcher: buffers of its own size, path costs in the frame matcher's
         self._seed_matcher = matching.Matcher(backend, lender=self.matcher)
         self.road: road_model.RoadModel | None = None
+        self._axis_sine = 1.0  # of the last seeded road: see region_size
         self._accepted: road_model.RoadModel | None = None  # the last road a frame passed
         self._refused = 0  # frames refused in a row
         self._band_memo: tuple[Any, Config, tuple[int, ...], tuple[np.ndarray, int]] | None \
@@ -195,6 +197,7 @@ class Pipeline:
         if seeding:
             with clock.stage("seed"):
                 self.road = self._seed(left, right)
+                self._axis_sine = float(measure.road_normal(self.road, self.calibration)[2])
                 shifts, levels = self.band(shape)
                 shifts_dev = self.backend.upload(shifts)
                 prior_dev = self.backend.upload(self.prior())
@@ -258,7 +261,7 @@ class Pipeline:
                 config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops)
+                            drops, region_px)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -277,7 +280,7 @@ class Pipeline:
             filled, smoothed = refine.smooth(backend, frame.disparity)
             labels = refine.refine_labels(
                 backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
-                frame.observed, refine.radius(self.region_size(labels.shape[1])),
+                frame.observed, refine.radius(frame.region_px),
                 config.refine_depth_fraction)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, smoothed, road,
@@ -341,8 +344,11 @@ class Pipeline:
 
     def region_size(self, width: int) -> int:
         """The SLIC grid step (full-resolution px) on images ``width`` px wide
-        (superpixels.region_size of ``slic_region_size_px``)."""
-        return superpixels.region_size(self.config.slic_region_size_px, width)
+        (superpixels.region_size of ``slic_region_size_px``), shrunk for the angle between the
+        optical axis and the road that the last seed pass fitted (the rig's; a full step
+        without one, as with ``gpt_enabled`` off): fixed from one seed to the next."""
+        return superpixels.region_size(self.config.slic_region_size_px, width,
+                                       self._axis_sine)
 
     def shift_mode(self) -> str:
         """pixel or row: the GPT shifts ``gpt_shift`` asks for on this backend (auto: pixel

@@ -12,7 +12,7 @@ from pothole_detector.execution import FrameGraphs, FrameReport
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.stages import road_model
 from pothole_detector.stages.measure import MEASURE_SUMS
-from pothole_detector.stages.superpixels import cell_centres
+from pothole_detector.stages.superpixels import cell_centres, grid_count
 from pothole_detector.stages.threshold import observation
 from pothole_detector.stages import perspective
 from pothole_detector.synthetic import demo_scene, drive_scenes, render
@@ -124,6 +124,7 @@ def test_metric_threshold_mode(demo_sample):
     # frame's road fit; the noise floor only raises it
     shape = demo_sample.left.shape[:2]
     region = Pipeline(config, demo_sample.calibration).region_size(shape[1])
+    assert region == demo_sample.left.shape[1] // 64  # the demo rig looks 35 deg down
     report = road_model.fit_report(np, result.disparity, stride=config.road_fit_stride,
                                    kind="planar")
 
@@ -245,7 +246,7 @@ def test_frame_report_views_share_one_buffer_and_read_back_whole():
 
 def test_frame_graphs_capture_a_key_on_its_second_frame_and_drop_stale_ones():
     """FrameGraphs' bookkeeping (the capture itself needs a GPU: test_gpu.py)."""
-    captured: list[tuple[int, int, int]] = []
+    captured: list[tuple[int, int, int, int]] = []
 
     def capture(key):
         captured.append(key)
@@ -259,9 +260,9 @@ def test_frame_graphs_capture_a_key_on_its_second_frame_and_drop_stale_ones():
         assert graphs.get(key, generation, capture) == f"graph {key}"
         return graphs.keys()
 
-    small, other_levels, large = (192, 320, 48), (192, 320, 64), (160, 288, 48)
+    small, other_levels, large = (192, 320, 48, 8), (192, 320, 64, 8), (160, 288, 48, 8)
     assert two_frames(small, 1) == {small}
-    assert graphs.get(small, 1, capture) == "graph (192, 320, 48)" and captured == [small]
+    assert graphs.get(small, 1, capture) == "graph (192, 320, 48, 8)" and captured == [small]
     assert two_frames(other_levels, 1) == {small, other_levels}
     # the matcher replaced its buffers (more levels): every graph is stale
     assert two_frames(other_levels, 2) == {other_levels}
@@ -279,7 +280,7 @@ def test_frame_graphs_run_without_graphs_after_a_failed_capture(caplog):
         raise RuntimeError("operation not permitted when stream is capturing")
 
     graphs = FrameGraphs()
-    key = (192, 320, 48)
+    key = (192, 320, 48, 8)
     graphs.ran(key, 1)
     with caplog.at_level("WARNING"):
         assert graphs.get(key, 1, failing) is None
@@ -350,6 +351,24 @@ def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_never_a_pothole(
     everywhere = Pipeline(config, demo_sample.calibration).run(demo_sample.left,
                                                                 demo_sample.right)
     assert everywhere.host("observed").all() and np.isfinite(everywhere.observed_range_m).all()
+
+
+def test_superpixels_shrink_for_a_road_seen_at_a_grazing_angle(demo_sample):
+    """The SLIC grid step follows the seeded road: a vehicle rig looking 15 deg down (rows
+    foreshorten its road about four times) gets the smallest step, the demo rig (35 deg) the
+    whole width / 64, and a step stays until the next seed."""
+    from pothole_detector.synthetic import vehicle_scene
+    sample = render(vehicle_scene(width=1280, height=720, pitch_deg=15.0))
+    pipeline = Pipeline(Config(), sample.calibration)
+    assert pipeline.region_size(1280) == 20
+    first = pipeline.run(sample.left, sample.right)
+    assert pipeline.region_size(1280) == 10 and first.seeded
+    assert np.unique(first.host("superpixels")).size > 3 * grid_count((720, 1280), 20, 2)
+    steep = Pipeline(Config(), demo_sample.calibration)
+    steep.run(demo_sample.left, demo_sample.right)
+    assert steep.region_size(640) == 10
+    second = pipeline.run(sample.left, sample.right)
+    assert not second.seeded and pipeline.region_size(1280) == 10
 
 
 def test_a_refused_frame_keeps_the_last_accepted_road_once(demo_sample):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.superpixels import (grid_count, slic, superpixel_grid,
-                                                 superpixel_means, superpixels)
+from pothole_detector.stages.superpixels import (grid_count, region_size, slic,
+                                                 superpixel_grid, superpixel_means, superpixels)
 
 
 def disc_image(height=96, width=128):
@@ -69,3 +69,14 @@ def test_grid_count_is_the_count_superpixel_grid_returns(shape, region, downsamp
     image = np.random.default_rng(0).normal(30, 2, shape).astype(np.float32)
     _, n = superpixel_grid(CPU, image, region, 2.0, 1, downsample)
     assert grid_count(shape, region, downsample) == n
+
+
+@pytest.mark.parametrize(("given", "width", "axis_sine", "step"), [
+    (0, 2079, 1.0, 32), (0, 2079, 0.71, 32), (0, 2079, 0.5, 32), (0, 2079, 0.4, 26),
+    (0, 2079, 0.26, 17), (0, 2079, 0.03, 16), (0, 1280, 0.1, 10), (0, 640, 0.1, 8),
+    (0, 320, 1.0, 8), (24, 2079, 0.1, 24)])
+def test_region_size_shares_the_width_and_shrinks_on_a_grazing_road(given, width, axis_sine,
+                                                                    step):
+    """width / 64, times the axis's sine over sin(30 deg) below it, at most halved, at least
+    8 px; a step that is given stays."""
+    assert region_size(given, width, axis_sine) == step

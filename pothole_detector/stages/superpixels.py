@@ -24,6 +24,11 @@ UPDATE_THREADS = 256
 # slic_region_size_px 0: superpixels across the image width, and the smallest grid step (px)
 REGIONS_ACROSS = 64
 MIN_REGION_PX = 8
+# slic_region_size_px 0 on a road seen at a grazing angle: the sine of the angle between the
+# optical axis and the road below which the grid step shrinks in proportion, and by how much
+# at most (a share of the step)
+GRAZING_REFERENCE_SINE = 0.5
+MIN_GRAZING_SHARE = 0.5
 _SLIC_DEFINES = {"UPDATE_THREADS": UPDATE_THREADS}
 
 def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
@@ -239,13 +244,19 @@ def _block_mean_gpu(backend: Backend, image: Any, factor: int) -> tuple[Any, Any
     return filled, valid
 
 
-def region_size(region_size_px: int, width: int) -> int:
+def region_size(region_size_px: int, width: int, axis_sine: float = 1.0) -> int:
     """The SLIC grid step S (full-resolution px) for ``slic_region_size_px``: as given, or
     where it is 0, one that cuts the image width into REGIONS_ACROSS superpixels (at least
-    MIN_REGION_PX): the same share of the view on any image size."""
+    MIN_REGION_PX), so that superpixels take the same share of the view on any image size.
+    ``axis_sine``: the sine of the angle between the optical axis and the road. Rows foreshorten
+    the road by that factor, so that a square superpixel reaches 1 / ``axis_sine`` times as far
+    along the road as across it and covers a pothole seen at a grazing angle with road: below
+    GRAZING_REFERENCE_SINE (the axis 30 degrees to the road) the step shrinks in proportion,
+    to no less than MIN_GRAZING_SHARE of it."""
     if region_size_px > 0:
         return region_size_px
-    return max(MIN_REGION_PX, round(width / REGIONS_ACROSS))
+    share = min(1.0, max(MIN_GRAZING_SHARE, axis_sine / GRAZING_REFERENCE_SINE))
+    return max(MIN_REGION_PX, round(width * share / REGIONS_ACROSS))
 
 
 def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
