@@ -171,7 +171,8 @@ class FrameGraphs:
     (kernels built, caches filled, the matcher's buffers sized); its next frame captures them,
     and later frames replay them. The graphs hold the matcher's buffers by address: when the
     matcher replaces them (its ``generation``) or the image size changes, every graph is
-    dropped and each key starts again. Where a capture fails, frames run without graphs from then on."""
+    dropped and each key starts again. Where a capture fails, frames run without graphs from
+    then on."""
 
     def __init__(self) -> None:
         self._graphs: dict[_GraphKey, CapturedGraph] = {}
