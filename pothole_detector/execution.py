@@ -7,8 +7,8 @@ one path. On the CPU every step completes when it is called; on the GPU:
   back asynchronously: its header (road fit, valid count) as soon as the road fit is done, for
   the checks that can refuse a frame, and the whole of it at the end;
 - with ``cuda_graph``, SGM and the stages after it are captured as two CUDA graphs (cut after
-  the road fit) per image size and level count and replayed: two launches instead of about
-  fifty, the same results;
+  the road fit) per image size, level count and SLIC grid step and replayed: two launches
+  instead of about fifty, the same results;
 - in a stream, pair N + 1 is queued as soon as pair N's road fit is read back and checked
   (N + 1's band needs N's road model), behind N's later stages.
 """
