@@ -173,7 +173,7 @@ PARAMETERS: tuple[Param, ...] = (
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),
     Param("refine_depth_fraction", float, 0.25,
           "Pixel-level refinement: pixels within half a superpixel of a pothole join it where "
-          "their depth below the road (a 5x5 mean) exceeds this fraction of the threshold, so "
+          "their depth below the road (a 7x7 mean) exceeds this fraction of the threshold, so "
           "that rims are not cut at superpixel edges; 0 turns it off.", 0, 1),
     # components
     Param("corner_fraction", float, 0.1,

@@ -106,7 +106,7 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
     assert set(np.unique(cloud["label"])) == {p.label for p in result.potholes}
     for pothole in result.potholes:
         own = cloud[cloud["label"] == pothole.label]
-        # the report measures the 5x5-smoothed disparity; the points are the raw pixels
+        # the report measures the smoothed disparity; the points are the raw pixels
         assert np.nanmax(own["depth_below_road"]) == pytest.approx(pothole.max_depth_m, rel=0.15)
         assert own["z"].mean() == pytest.approx(pothole.centroid_cam_m[2], rel=0.05)
     markers = conversions.markers_message(result.labels, result.potholes, result.road,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.refine import radius, refine_labels, smooth
+from pothole_detector.stages.refine import SMOOTHING_PX, radius, refine_labels, smooth
 from pothole_detector.stages.road_model import RoadModel
 
 # a road at 32 px everywhere with delta_DT 32: the transformed disparity is the disparity
@@ -38,7 +38,7 @@ def test_pixels_below_the_road_within_the_radius_join_the_pothole():
     assert refined.dtype == np.int32
     assert np.array_equal(refined[labels > 0], labels[labels > 0])
     grown = (refined == 1) & (labels == 0)
-    # within 4 px of the pothole, where the 5x5 mean lies 0.5 px (a quarter of 2) below
+    # within 4 px of the pothole, where the smoothed disparity lies 0.5 px (a quarter of 2) below
     rows, cols = np.nonzero(grown)
     assert grown.any() and cols.min() >= 12 and cols.max() <= 15
     assert rows.min() >= 1 and rows.max() <= 18
@@ -59,13 +59,16 @@ def test_refinement_keeps_to_observed_road_and_deep_enough_pixels():
 
 
 def test_smooth_averages_the_valid_neighbours():
-    values = np.arange(49, dtype=np.float32).reshape(7, 7)
+    size, half = 2 * SMOOTHING_PX + 1, SMOOTHING_PX // 2
+    values = np.arange(size * size, dtype=np.float32).reshape(size, size)
     values[0, 0] = np.nan
     filled, smoothed = smooth(CPU, values)
     assert np.isnan(smoothed[0, 0]) and smoothed.dtype == filled.dtype == np.float32
-    assert smoothed[3, 3] == pytest.approx(24.0)  # a linear ramp keeps its centre value
-    corner = values[:4, :4][np.isfinite(values[:4, :4])].mean()  # the 5x5 square, clipped
-    assert smoothed[1, 1] == pytest.approx(corner, rel=1e-6)
-    assert filled[0, 0] == pytest.approx(values[:3, :3][np.isfinite(values[:3, :3])].mean())
+    centre = SMOOTHING_PX
+    assert smoothed[centre, centre] == pytest.approx(values[centre, centre])  # a linear ramp
+    square = values[:half + 2, :half + 2]  # the square about (1, 1), clipped at the border
+    assert smoothed[1, 1] == pytest.approx(square[np.isfinite(square)].mean(), rel=1e-6)
+    square = values[:half + 1, :half + 1]
+    assert filled[0, 0] == pytest.approx(square[np.isfinite(square)].mean())
     assert np.array_equal(filled[1:], smoothed[1:]) and np.isfinite(filled).all()
     assert np.isnan(smooth(CPU, np.full((6, 6), np.nan, np.float32))[0]).all()

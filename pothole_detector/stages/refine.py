@@ -14,7 +14,7 @@ from .road_model import ROAD_DEFINES, RoadModel, device_params
 from .transform import transform_disparity
 
 # side (px) of the square over which a pixel's disparity is averaged
-SMOOTHING_PX = 5
+SMOOTHING_PX = 7
 # kernels/refine.cu: the block of one thread per pixel
 _BLOCK = (32, 8)
 _REFINE_DEFINES = {"SMOOTHING": SMOOTHING_PX, **ROAD_DEFINES}
