@@ -194,8 +194,7 @@ PARAMETERS: tuple[Param, ...] = (
     Param("cuda_graph", bool, True,
           "GPU backend: replay each frame's SGM and later stages as CUDA graphs per image "
           "size, level count and SLIC grid step (same results, two launches instead of about "
-          "fifty); "
-          "per-stage timings need it off. Not used for seed frames."),
+          "fifty); per-stage timings need it off. Not used for seed frames."),
     # node
     Param("backend", str, "auto", "Array backend: gpu (CuPy), cpu (NumPy), or auto (gpu when "
           "CuPy sees a device, else cpu).", choices=("auto", "cpu", "gpu"), group="node"),
