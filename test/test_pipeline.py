@@ -117,14 +117,15 @@ def test_without_gpt_full_range_gives_the_same_potholes(demo_sample):
 
 def test_metric_threshold_mode(demo_sample):
     config = Config({"threshold_mode": "metres", "delta_pd_m": 0.006})
-    result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    pipeline = Pipeline(config, demo_sample.calibration)
+    result = pipeline.run(demo_sample.left, demo_sample.right)
     covered, false = detection_coverage(result, demo_sample)
     assert len(result.potholes) == 3 and false < 0.1
     # the drop of delta_pd_m at the superpixel at the image centre (no noise floor), from the
     # frame's road fit; the noise floor only raises it
     shape = demo_sample.left.shape[:2]
-    region = Pipeline(config, demo_sample.calibration).region_size(shape[1])
-    assert region == demo_sample.left.shape[1] // 64  # the demo rig looks 35 deg down
+    region = pipeline.region_size(shape[1])  # the step of the frame's seeded road
+    assert region == demo_sample.left.shape[1] // 64  # the demo rig looks 55 deg down
     report = road_model.fit_report(np, result.disparity, stride=config.road_fit_stride,
                                    kind="planar")
 
@@ -355,7 +356,7 @@ def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_never_a_pothole(
 
 def test_superpixels_shrink_for_a_road_seen_at_a_grazing_angle(demo_sample):
     """The SLIC grid step follows the seeded road: a vehicle rig looking 15 deg down (rows
-    foreshorten its road about four times) gets the smallest step, the demo rig (35 deg) the
+    foreshorten its road about four times) gets the smallest step, the demo rig (55 deg) the
     whole width / 64, and a step stays until the next seed."""
     from pothole_detector.synthetic import vehicle_scene
     sample = render(vehicle_scene(width=1280, height=720, pitch_deg=15.0))
