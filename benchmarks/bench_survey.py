@@ -4,7 +4,7 @@ a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
         [--backend cpu|gpu] [--ray | --jobs N [N ...]] [--chunk-frames 30]
-        [--read-threads N [N ...]]
+        [--read-threads N [N ...]] [--read-processes N [N ...]]
 
 The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
 frame at these sizes would take longer than the survey), with an odometry topic that follows
@@ -67,6 +67,9 @@ def main() -> None:
     parser.add_argument("--read-threads", type=int, nargs="+", default=[4],
                         help="threads per process that read the bag ahead (several: a row "
                              "each)")
+    parser.add_argument("--read-processes", type=int, nargs="+", default=[0],
+                        help="worker processes that read and decode the bag ahead instead of "
+                             "the threads (0: the threads; several: a row each)")
     args = parser.parse_args()
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
     rows = []
@@ -85,15 +88,19 @@ def main() -> None:
             bench(make_bag(warm / "drive", samples, forward, 3), config, False, 1,
                   warm)  # compiles kernels
             for jobs in [1] if args.ray else args.jobs:
-                for threads in args.read_threads:
-                    out = folder / f"out_{size}_{jobs}_{threads}"
+                for threads, readers in [(t, 0) for t in args.read_threads if 0 in
+                                         args.read_processes] + [
+                        (1, p) for p in args.read_processes if p > 0]:
+                    out = folder / f"out_{size}_{jobs}_{threads}_{readers}"
                     out.mkdir()
                     seconds, frames, potholes = bench(
-                        bag, config.replace(read_threads=threads), args.ray, jobs,
-                        out)
+                        bag, config.replace(read_threads=threads, read_processes=readers),
+                        args.ray, jobs, out)
                     mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
                         f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
-                    rows.append((size, mode, threads, frames, potholes, seconds))
+                    reading = (f"{readers} processes" if readers else
+                               f"{threads} thread{'s' if threads > 1 else ''}")
+                    rows.append((size, mode, reading, frames, potholes, seconds))
     if args.backend == "cpu":
         device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
     else:
@@ -101,11 +108,11 @@ def main() -> None:
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
     print(f"survey throughput, {device}, {args.frames} frames a bag, "
           f"{datetime.date.today().isoformat()}")
-    print("| size | processes | read threads each | frames | potholes | seconds (decode, "
+    print("| size | processes | reading ahead (each) | frames | potholes | seconds (decode, "
           "pipeline, odometry, tracking, outputs) | frames/s |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
-    for size, mode, threads, frames, potholes, seconds in rows:
-        print(f"| {size} | {mode} | {threads} | {frames} | {potholes} | {seconds:.1f} | "
+    for size, mode, reading, frames, potholes, seconds in rows:
+        print(f"| {size} | {mode} | {reading} | {frames} | {potholes} | {seconds:.1f} | "
               f"{frames / seconds:.1f} |")
 
 

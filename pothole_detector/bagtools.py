@@ -411,6 +411,37 @@ def mean_period_ns(reader: AnyReader, topic: str) -> float:
     return (reader.end_time - reader.start_time) / max(message_count(reader, topic) - 1, 1)
 
 
+def read_blocks(reader: AnyReader, topics: StereoTopics, config: Config,
+                span: LogSpan | None) -> tuple[list[LogSpan], float]:
+    """``span``'s log time (or the whole bag's) cut into blocks of about READ_BLOCK_FRAMES
+    sets at the bag's mean rate, each with a lead of two frames and the sync tolerance (for
+    partners logged across its edges; the first block at least the span's own lead), and the
+    mean period (ns) of the left images."""
+    outer = span or LogSpan(reader.start_time, reader.end_time + 1, 0)
+    period_ns = mean_period_ns(reader, topics.left)
+    block_ns = max(1, math.ceil(period_ns * READ_BLOCK_FRAMES))
+    lead_ns = math.ceil(2 * period_ns + config.approximate_sync_tolerance_seconds * 1e9)
+    starts = list(range(outer.start_ns, outer.stop_ns, block_ns)) or [outer.start_ns]
+    return [LogSpan(first, min(first + block_ns, outer.stop_ns),
+                    max(outer.lead_ns, lead_ns) if index == 0 else lead_ns)
+            for index, first in enumerate(starts)], max(period_ns, 1.0)
+
+
+def convert_set(topics: StereoTopics, left_msg: Any, right_msg: Any, left_info: Any,
+                right_info: Any) -> tuple[np.ndarray, np.ndarray, Any]:
+    """The left and right pixels (HxW or HxWx3) and the calibration of a synchronized set;
+    raises InputError where it cannot be converted."""
+    from . import conversions
+
+    if left_info is None:
+        raise InputError(f"no camera_info on {topics.left_info} and {topics.right_info} yet")
+    left = conversions.image_to_array(left_msg)
+    right = conversions.image_to_array(right_msg)
+    height, width = left.shape[:2]
+    return left, right, conversions.calibration_from_camera_info(left_info, right_info, width,
+                                                                 height)
+
+
 def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                     span: LogSpan | None, threads: int, others: Sequence[str] = (),
                     collected: list | None = None
@@ -426,14 +457,7 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
     import threading
     from concurrent.futures import ThreadPoolExecutor
 
-    outer = span or LogSpan(reader.start_time, reader.end_time + 1, 0)
-    period_ns = mean_period_ns(reader, topics.left)
-    block_ns = max(1, math.ceil(period_ns * READ_BLOCK_FRAMES))
-    lead_ns = math.ceil(2 * period_ns + config.approximate_sync_tolerance_seconds * 1e9)
-    starts = list(range(outer.start_ns, outer.stop_ns, block_ns)) or [outer.start_ns]
-    blocks = [LogSpan(first, min(first + block_ns, outer.stop_ns),
-                      max(outer.lead_ns, lead_ns) if index == 0 else lead_ns)
-              for index, first in enumerate(starts)]
+    blocks, _ = read_blocks(reader, topics, config, span)
     path = list(reader.paths)[0]
     local = threading.local()
     opened: list[AnyReader] = []
@@ -472,8 +496,8 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
                   summary: ProcessSummary,
                   progress: Callable[[int, int], None] | None = None,
                   span: LogSpan | None = None, read_threads: int = 1,
-                  others: Sequence[str] = (), collected: list | None = None
-                  ) -> Iterator[tuple[BagFrame, Any]]:
+                  others: Sequence[str] = (), collected: list | None = None,
+                  read_processes: int = 0) -> Iterator[tuple[BagFrame, Any]]:
     """(frame, PipelineResult or the PotholeError that stopped it) for the synchronized sets
     of a bag, or of a :class:`LogSpan` of it (with the sets of its lead before it: their
     ``logged_ns`` is before the span's start), in order. One pipeline per run of frames with
@@ -482,10 +506,10 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
     left images, or of a span's share of them). ``read_threads`` > 1: the bag is read ahead
     in that many threads (:func:`read_sets_ahead`; ``summary`` then counts no unpaired
     images) where its camera_info topics hold a message per image or so (a block then finds
-    its infos in itself; a bag with latched infos is read in this thread). The messages of
-    the ``others`` topics logged in the span go into ``collected`` in the same pass (complete
-    once the frames are)."""
-    from . import conversions
+    its infos in itself; a bag with latched infos is read in this thread); ``read_processes``
+    > 0: read and decoded by that many worker processes instead (:mod:`.decoding`, on the
+    same condition). The messages of the ``others`` topics logged in the span go into
+    ``collected`` in the same pass (complete once the frames are)."""
     from .pipeline import Pipeline
 
     images = total = message_count(reader, stereo.left)
@@ -496,6 +520,14 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
     def prepared() -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
         streamed_infos = all(2 * message_count(reader, topic) >= images
                              for topic in (stereo.left_info, stereo.right_info))
+        if read_processes > 0 and streamed_infos:
+            from .decoding import decoded_frames
+            for index, item in enumerate(decoded_frames(reader, stereo, config, span,
+                                                        read_processes, others, collected)):
+                if progress is not None:
+                    progress(min(index, total), total)
+                yield item
+            return
         sets = read_sets_ahead(reader, stereo, config, span, read_threads, others,
                                collected) if read_threads > 1 and streamed_infos \
             else _stereo_sets(reader, stereo, config, summary, span, others, collected)
@@ -503,14 +535,8 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
             if progress is not None:
                 progress(min(index, total), total)
             try:
-                if left_cal is None:
-                    raise InputError(f"no camera_info on {stereo.left_info} and "
-                                     f"{stereo.right_info} yet")
-                left_px = conversions.image_to_array(left_msg)
-                right_px = conversions.image_to_array(right_msg)
-                height, width = left_px.shape[:2]
-                calibration = conversions.calibration_from_camera_info(
-                    left_cal, right_cal, width, height)
+                left_px, right_px, calibration = convert_set(stereo, left_msg, right_msg,
+                                                             left_cal, right_cal)
             except PotholeError as exc:
                 yield BagFrame(stamp, left_msg.header, None, None, None, logged), exc
                 continue

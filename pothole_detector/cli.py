@@ -101,6 +101,9 @@ def _parser() -> argparse.ArgumentParser:
     survey_cmd.add_argument("--jobs", type=int, default=1, metavar="N",
                             help="run chunks of the bags (chunk_frames frames each) in N "
                                  "worker processes here (default 1: in this process)")
+    survey_cmd.add_argument("--read-processes", type=int, metavar="N",
+                            help="read and decode the bags in N worker processes ahead of the "
+                                 "pipeline (the read_processes parameter; 0: in threads)")
     survey_cmd.add_argument("--odometry-topic", help="nav_msgs/Odometry topic (default: the "
                                                      "bag's only one; else /tf, GNSS or "
                                                      "visual odometry)")
@@ -248,6 +251,8 @@ def run_survey(args: argparse.Namespace) -> int:
     from .survey import best_view_picture, survey, write_csv, write_geojson
 
     config = _config(args.config, args.backend)
+    if args.read_processes is not None:
+        config = config.replace(read_processes=args.read_processes)
     names = dict(odometry=args.odometry_topic, gnss=args.gnss_topic,
                  base_frame=args.base_frame, left=args.left_topic, right=args.right_topic,
                  left_info=args.left_info_topic, right_info=args.right_info_topic)

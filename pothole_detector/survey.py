@@ -119,7 +119,8 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
         backend = get_backend(config.backend)
         for frame, outcome in bagtools.frame_results(
                 reader, topics.stereo, config, backend, summary, progress, span,
-                config.read_threads, topics.motion_topics(), motion_messages):
+                config.read_threads, topics.motion_topics(), motion_messages,
+                config.read_processes):
             kept = span is None or frame.logged_ns >= span.start_ns
             try:
                 if isinstance(outcome, PotholeError):

@@ -161,10 +161,10 @@ def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags, motion):
 
 
 @pytest.mark.parametrize("motion", ["odom", "gnss"])
-def test_reading_ahead_in_threads_observes_what_one_reader_does(survey_drive_bags, motion,
-                                                               monkeypatch):
-    """A chunk (24 frames) read in blocks of five frames by three threads: the same frames,
-    sightings and motion messages as read in the pipeline's thread."""
+def test_reading_ahead_observes_what_one_reader_does(survey_drive_bags, motion, monkeypatch):
+    """A chunk (24 frames) read in blocks of five frames by three threads, and by two worker
+    processes: the same frames, sightings and motion messages as read in the pipeline's
+    thread."""
     from pothole_detector import bagtools
     from pothole_detector.survey import chunk_spans, drive_topics, observe
 
@@ -176,6 +176,7 @@ def test_reading_ahead_in_threads_observes_what_one_reader_does(survey_drive_bag
     alone = observe(bags[motion], topics, config.replace(read_threads=1), spans[1])
     ahead = observe(bags[motion], topics, config.replace(read_threads=3), spans[1])
     assert ahead == alone
+    assert observe(bags[motion], topics, config.replace(read_processes=2), spans[1]) == alone
     assert len(alone[0]) == 24 and len(alone[1].odometry) + len(alone[1].gnss) >= 24
 
 
@@ -227,7 +228,8 @@ def test_survey_command_writes_the_table_and_the_report(tmp_path):
     out = tmp_path / "survey"
     done = subprocess.run(
         [sys.executable, "-m", "pothole_detector.cli", "survey",
-         str(REPO / "bags" / "sample_drive"), "--out", str(out), "--backend", "cpu"],
+         str(REPO / "bags" / "sample_drive"), "--out", str(out), "--backend", "cpu",
+         "--read-processes", "2"],
         capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "sample_drive: 16 frames (0 failed), 5 potholes" in done.stdout

@@ -1,0 +1,248 @@
+"""Reading a bag ahead of the pipeline in worker processes (the ``read_processes`` parameter).
+
+Each worker opens the bag itself and reads, decompresses and decodes blocks of its log time
+(as the read threads of :func:`bagtools.read_sets_ahead` do); it writes each set's pixels
+into a slot of a ring of shared memory that this process reads in place, so the process that
+runs the pipeline takes no part in decoding and copies no pixels. A slot returns to the ring
+when the last array on it is gone. Where the ring has no free slot, or a pair does not fit in
+one, the pixels come back pickled instead."""
+
+from __future__ import annotations
+
+import atexit
+import math
+import shutil
+import weakref
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from multiprocessing import get_context
+from multiprocessing.shared_memory import SharedMemory
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from . import bagtools, conversions
+from .errors import PotholeError
+from .msgtypes import deserialize, serialize
+from .params import Config
+
+SLOT_ALIGN_BYTES = 64
+# The share of the free shared memory (/dev/shm) that the ring may take.
+SHARED_MEMORY_SHARE = 0.5
+
+# (stamp ns, left image's log time ns, frame_id, pixels, calibration, error): pixels are
+# (slot, left shape, left dtype, right shape, right dtype) or the (left, right) arrays.
+DecodedSet = tuple[int, int, str, Any, Any, PotholeError | None]
+
+_WORKER: dict[str, Any] = {}
+
+
+def _aligned(size: int) -> int:
+    return -(-size // SLOT_ALIGN_BYTES) * SLOT_ALIGN_BYTES
+
+
+def _worker_reader(path: str) -> Any:
+    """This worker's open reader of ``path`` (the previous bag's is closed)."""
+    if _WORKER.get("path") != path:
+        if "reader" in _WORKER:
+            _WORKER.pop("reader").close()
+        _WORKER["reader"] = bagtools.open_bag(path)
+        _WORKER["path"] = path
+    return _WORKER["reader"]
+
+
+def _worker_ring(name: str) -> memoryview:
+    """The buffer of the shared-memory ring ``name``, attached once per worker."""
+    if _WORKER.get("ring_name") != name:
+        if "ring" in _WORKER:
+            _WORKER.pop("ring").close()
+        _WORKER["ring"] = SharedMemory(name=name)
+        _WORKER["ring_name"] = name
+    return _WORKER["ring"].buf
+
+
+def decode_block(path: str, topics: bagtools.StereoTopics, values: dict[str, Any],
+                 block: bagtools.LogSpan, first: bool, others: Sequence[str], ring: str,
+                 slot_bytes: int, slots: Sequence[int]
+                 ) -> tuple[list[DecodedSet], list[tuple[str, int, bytes]], list[int]]:
+    """A worker's task: the sets whose left image was logged in ``block`` (the first block
+    also its lead), converted, their pixels written into the granted ``slots`` of the ring
+    (each ``slot_bytes`` long) while they last; the ``others`` messages logged in the block as
+    (topic, log time ns, CDR bytes); and the slots left unused."""
+    reader = _worker_reader(path)
+    types = {connection.topic: connection.msgtype for connection in reader.connections}
+    free = deque(slots)
+    decoded: list[DecodedSet] = []
+    extras: list[tuple[str, int, Any]] = []
+    for stamp, logged, left_msg, right_msg, left_info, right_info in bagtools._stereo_sets(
+            reader, topics, Config(values), bagtools.ProcessSummary(), block, others, extras):
+        if not first and logged < block.start_ns:
+            continue
+        frame_id = left_msg.header.frame_id
+        try:
+            left, right, calibration = bagtools.convert_set(topics, left_msg, right_msg,
+                                                            left_info, right_info)
+        except PotholeError as exc:
+            decoded.append((stamp, logged, frame_id, None, None, exc))
+            continue
+        pixels: Any = (left, right)
+        if free and _aligned(left.nbytes) + right.nbytes <= slot_bytes:
+            slot = free.popleft()
+            buffer = _worker_ring(ring)
+            offset = slot * slot_bytes
+            for part, start in ((left, offset), (right, offset + _aligned(left.nbytes))):
+                np.ndarray(part.nbytes, np.uint8, buffer, start)[:] = part.reshape(-1).view(
+                    np.uint8)
+            pixels = (slot, left.shape, left.dtype.str, right.shape, right.dtype.str)
+        decoded.append((stamp, logged, frame_id, pixels, calibration, None))
+    messages = [(topic, logged, serialize(msg, types[topic])) for topic, logged, msg in extras]
+    return decoded, messages, list(free)
+
+
+class Decoders:
+    """``processes`` worker processes and a ring of ``slots`` shared-memory slots of
+    ``slot_bytes`` each (fewer, or none, where shared memory is short)."""
+
+    def __init__(self, processes: int, slot_bytes: int, slots: int) -> None:
+        self.processes, self.slot_bytes, self.wanted = processes, slot_bytes, slots
+        try:
+            free_bytes = shutil.disk_usage("/dev/shm").free
+        except OSError:
+            free_bytes = slot_bytes * slots
+        slots = min(slots, int(free_bytes * SHARED_MEMORY_SHARE) // slot_bytes)
+        self.ring = SharedMemory(create=True, size=slot_bytes * slots) if slots > 0 else None
+        self.slots = slots
+        self.free: deque[int] = deque(range(slots))
+        self.pool = ProcessPoolExecutor(processes, mp_context=get_context("spawn"))
+
+    def grant(self, count: int) -> list[int]:
+        """Up to ``count`` free slots, taken off the ring."""
+        taken = []
+        while self.free and len(taken) < count:
+            taken.append(self.free.popleft())
+        return taken
+
+    def frame(self, decoded: DecodedSet
+              ) -> bagtools.BagFrame | tuple[bagtools.BagFrame, PotholeError]:
+        """The frame of a decoded set, its arrays on its slot (which returns to the ring when
+        they are gone), or the frame and the error that its conversion raised."""
+        stamp, logged, frame_id, pixels, calibration, error = decoded
+        header = conversions.header_at(stamp, frame_id)
+        if error is not None:
+            return bagtools.BagFrame(stamp, header, None, None, None, logged), error
+        if isinstance(pixels[0], np.ndarray):
+            left, right = pixels
+        else:
+            slot, left_shape, left_dtype, right_shape, right_dtype = pixels
+            assert self.ring is not None
+            whole = np.ndarray(self.slot_bytes, np.uint8, self.ring.buf, slot * self.slot_bytes)
+            weakref.finalize(whole, self.free.append, slot)
+            left_bytes = math.prod(left_shape) * np.dtype(left_dtype).itemsize
+            right_bytes = math.prod(right_shape) * np.dtype(right_dtype).itemsize
+            start = _aligned(left_bytes)
+            left = whole[:left_bytes].view(left_dtype).reshape(left_shape)
+            right = whole[start:start + right_bytes].view(right_dtype).reshape(right_shape)
+        return bagtools.BagFrame(stamp, header, left, right, calibration, logged)
+
+    def close(self) -> None:
+        """Stop the workers and free the ring (its memory goes when no array is left on it)."""
+        self.pool.shutdown(cancel_futures=True)
+        if self.ring is not None:
+            self.ring.unlink()
+            try:
+                self.ring.close()
+            except BufferError:
+                pass
+
+
+_DECODERS: list[Decoders] = []
+
+
+def _decoders(processes: int, slot_bytes: int, slots: int) -> Decoders:
+    """The workers and ring of this process, made anew where these need more than they
+    have."""
+    if _DECODERS:
+        held = _DECODERS[0]
+        if (held.processes == processes and held.slot_bytes >= slot_bytes
+                and held.wanted >= slots):
+            return held
+        _DECODERS.pop().close()
+    _DECODERS.append(Decoders(processes, slot_bytes, slots))
+    return _DECODERS[0]
+
+
+def _close_decoders() -> None:
+    while _DECODERS:
+        _DECODERS.pop().close()
+
+
+atexit.register(_close_decoders)
+
+
+def _pair_bytes(reader: Any, topics: bagtools.StereoTopics) -> int:
+    """The bytes a slot needs for a pair of the bag's first left image's size."""
+    connections = [c for c in reader.connections if c.topic == topics.left]
+    for connection, _, rawdata in reader.messages(connections=connections):
+        image = deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
+                            bagtools.IMAGE_TYPE)
+        return 2 * _aligned(int(image.height) * int(image.step))
+    return SLOT_ALIGN_BYTES
+
+
+def decoded_frames(reader: Any, topics: bagtools.StereoTopics, config: Config,
+                   span: bagtools.LogSpan | None, processes: int, others: Sequence[str] = (),
+                   collected: list | None = None
+                   ) -> Iterator[bagtools.BagFrame | tuple[bagtools.BagFrame, PotholeError]]:
+    """The frames of the sets of ``span`` (or the whole bag) in order, as
+    :func:`bagtools.frame_results` converts them, read and decoded by ``processes`` worker
+    processes a block at a time (the blocks of :func:`bagtools.read_blocks`), at most
+    ``processes`` + 1 blocks ahead; the ``others`` messages logged in the span go into
+    ``collected``."""
+    blocks, period_ns = bagtools.read_blocks(reader, topics, config, span)
+    lead_sets = math.ceil(max(block.lead_ns for block in blocks[:1]) / period_ns) + 2
+    per_block = math.ceil((blocks[0].stop_ns - blocks[0].start_ns) / period_ns) + 2
+    decoders = _decoders(processes, _pair_bytes(reader, topics),
+                         (processes + 2) * per_block + lead_sets)
+    path = str(Path(list(reader.paths)[0]))
+    values = config.as_dict()
+    ring = decoders.ring.name if decoders.ring is not None else ""
+
+    def submit(index: int, block: bagtools.LogSpan) -> tuple[Future, list[int]]:
+        slots = decoders.grant(per_block + (lead_sets if index == 0 else 0))
+        return decoders.pool.submit(decode_block, path, topics, values, block, index == 0,
+                                    tuple(others), ring, decoders.slot_bytes, slots), slots
+
+    def take(future: Future) -> Iterator[bagtools.BagFrame | tuple]:
+        decoded, messages, unused = future.result()
+        decoders.free.extend(unused)
+        if collected is not None:
+            collected.extend((topic, logged, deserialize(data, types[topic]))
+                             for topic, logged, data in messages)
+        remaining = deque(decoded)
+        try:
+            while remaining:
+                yield decoders.frame(remaining.popleft())
+        finally:
+            decoders.free.extend(pixels[0] for *_, pixels, _, _ in remaining
+                                 if pixels is not None and isinstance(pixels[0], int))
+
+    types = {connection.topic: connection.msgtype for connection in reader.connections}
+    pending: deque[tuple[Future, list[int]]] = deque()
+    try:
+        for index, block in enumerate(blocks):
+            pending.append(submit(index, block))
+            if len(pending) > processes:
+                yield from take(pending.popleft()[0])
+        while pending:
+            yield from take(pending.popleft()[0])
+    except BrokenProcessPool:
+        if decoders in _DECODERS:
+            _DECODERS.remove(decoders)
+            decoders.close()
+        raise
+    finally:
+        for future, slots in pending:
+            future.cancel()
+            future.add_done_callback(lambda _, taken=slots: decoders.free.extend(taken))

@@ -1,0 +1,176 @@
+"""Reading a bag in worker processes: the frames one reader gives, their pixels through the
+shared-memory ring and back to it, pickled where the ring has no room, and a set that cannot
+be converted."""
+
+from __future__ import annotations
+
+import gc
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from pothole_detector import bagtools, decoding  # noqa: E402
+from pothole_detector.errors import InputError  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.synthetic import drive_scenes, render  # noqa: E402
+
+from conftest import rewrite_bag  # noqa: E402
+
+START = 1_700_000_000_000_000_000
+PERIOD_NS = 100_000_000
+STEREO = ["/cam/left/image_rect", "/cam/right/image_rect", "/cam/left/camera_info",
+          "/cam/right/camera_info"]
+TOPICS = bagtools.StereoTopics(*STEREO)
+
+
+@pytest.fixture(scope="module")
+def samples():
+    """Three frames of the driving sequence at 640x360 (mono8)."""
+    return [render(scene) for scene in drive_scenes(frames=3)]
+
+
+def _bag(folder, samples, count, colour=False, infos_from=0):
+    """``count`` sets 0.1 s apart, the right image and both camera_infos logged 30 ms after the
+    left (partners across block edges); no camera_info before set ``infos_from``."""
+    if colour:
+        samples = [replace(s, left=np.repeat(s.left[..., None], 3, 2) // [1, 2, 3],
+                           right=np.repeat(s.right[..., None], 3, 2) // [1, 2, 3])
+                   for s in samples]
+        samples = [replace(s, left=s.left.astype(np.uint8), right=s.right.astype(np.uint8))
+                   for s in samples]
+    source, bag = folder / "source", folder / "bag"
+    frames = [(START + i * PERIOD_NS, samples[i % len(samples)]) for i in range(count)]
+    assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == count
+
+    def logged(topic, timestamp):
+        if topic.endswith("camera_info") and timestamp < START + infos_from * PERIOD_NS:
+            return None
+        return timestamp + (0 if topic == STEREO[0] else 30_000_000)
+
+    rewrite_bag(source, bag, logged)
+    return bag
+
+
+def _one_reader(reader, span):
+    """(stamp, log time, left, right, calibration or the error) as one reader converts them."""
+    sets = []
+    for stamp, logged, left, right, left_info, right_info in bagtools._stereo_sets(
+            reader, TOPICS, Config(), bagtools.ProcessSummary(), span):
+        try:
+            sets.append((stamp, logged, *bagtools.convert_set(TOPICS, left, right, left_info,
+                                                              right_info)))
+        except InputError as exc:
+            sets.append((stamp, logged, None, None, str(exc)))
+    return sets
+
+
+def _as_sets(frames):
+    return [(item[0].stamp, item[0].logged_ns, None, None, str(item[1]))
+            if isinstance(item, tuple) else
+            (item.stamp, item.logged_ns, item.left, item.right, item.calibration)
+            for item in frames]
+
+
+def _assert_same(got, expected):
+    assert [s[:2] for s in got] == [s[:2] for s in expected]
+    for (_, _, left, right, calibration), (_, _, left_0, right_0, calibration_0) in zip(
+            got, expected):
+        assert calibration == calibration_0
+        if left_0 is not None:
+            np.testing.assert_array_equal(left, left_0)
+            np.testing.assert_array_equal(right, right_0)
+            assert left.dtype == left_0.dtype and right.shape == right_0.shape
+
+
+@pytest.fixture
+def fresh_decoders():
+    decoding._close_decoders()
+    yield
+    decoding._close_decoders()
+
+
+@pytest.mark.parametrize("colour", [False, True], ids=["mono8", "rgb8"])
+def test_worker_processes_give_the_frames_one_reader_gives(tmp_path, samples, colour,
+                                                           monkeypatch, fresh_decoders):
+    """Twenty sets read in blocks of three by two worker processes, of the whole bag and of a
+    span with its lead: the sets, pixels and calibrations one reader gives, in order, each
+    set's pixels on a slot of the ring; every slot is back once the frames are gone."""
+    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 3)
+    reader = bagtools.open_bag(_bag(tmp_path, samples, 20, colour))
+    try:
+        for span in (None, bagtools.LogSpan(START + 450_000_000, START + 1_650_000_000,
+                                            250_000_000)):
+            got, on_slots = [], []
+            for frame in decoding.decoded_frames(reader, TOPICS, Config(), span, 2):
+                decoders = decoding._DECODERS[0]
+                on_slots.append(frame.left.base is frame.right.base
+                                and frame.left.base.size == decoders.slot_bytes)
+                got.append((frame.stamp, frame.logged_ns, frame.left.copy(),
+                            frame.right.copy(), frame.calibration))
+                if not got[1:]:
+                    assert frame.header.frame_id == "stereo_left_optical_frame"
+            expected = _one_reader(reader, span)
+            assert len(expected) == (20 if span is None else 15)
+            _assert_same(got, expected)
+            assert all(on_slots)
+            del frame
+            gc.collect()
+            assert len(decoders.free) == decoders.slots
+    finally:
+        reader.close()
+
+
+def test_without_room_in_shared_memory_the_pixels_come_pickled(tmp_path, samples, monkeypatch,
+                                                               fresh_decoders):
+    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 4)
+    monkeypatch.setattr(decoding, "SHARED_MEMORY_SHARE", 0.0)
+    reader = bagtools.open_bag(_bag(tmp_path, samples, 9))
+    try:
+        frames = list(decoding.decoded_frames(reader, TOPICS, Config(), None, 2))
+        assert decoding._DECODERS[0].ring is None
+        _assert_same(_as_sets(frames), _one_reader(reader, None))
+    finally:
+        reader.close()
+
+
+def test_a_set_without_camera_info_comes_back_as_its_error(tmp_path, samples, monkeypatch,
+                                                           fresh_decoders):
+    """No camera_info for the first two of twelve sets: those two are errors that say what is
+    missing, and the sets after them are read."""
+    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 4)
+    reader = bagtools.open_bag(_bag(tmp_path, samples, 12, infos_from=2))
+    try:
+        frames = list(decoding.decoded_frames(reader, TOPICS, Config(), None, 2))
+        got = _as_sets(frames)
+        assert [s[4] for s in got[:2]] == ["no camera_info on /cam/left/camera_info and "
+                                           "/cam/right/camera_info yet"] * 2
+        assert all(isinstance(item, bagtools.BagFrame) for item in frames[2:])
+        _assert_same(got, _one_reader(reader, None))
+    finally:
+        reader.close()
+
+
+def test_a_reading_stopped_early_gives_its_slots_back(tmp_path, samples, monkeypatch,
+                                                      fresh_decoders):
+    """Two frames taken of twenty, then the reading is closed: the blocks read ahead give
+    their slots back as they finish."""
+    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 3)
+    reader = bagtools.open_bag(_bag(tmp_path, samples, 20))
+    try:
+        frames = decoding.decoded_frames(reader, TOPICS, Config(), None, 2)
+        taken = [next(frames).stamp for _ in range(2)]
+        decoders = decoding._DECODERS[0]
+        assert len(decoders.free) < decoders.slots
+        frames.close()
+        gc.collect()
+        deadline = time.monotonic() + 30
+        while len(decoders.free) < decoders.slots and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(decoders.free) == decoders.slots
+        assert taken == [START, START + PERIOD_NS]
+    finally:
+        reader.close()
