@@ -7,7 +7,7 @@ import math
 import pickle
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Iterator, TextIO
 
@@ -371,6 +371,22 @@ class RigTally:
         return precision, recall, 2 * precision * recall / total if total else 0.0
 
 
+def pooled(tallies: Iterable[RigTally]) -> RigTally:
+    """One tally of several rig classes: counts summed, errors together."""
+    total = RigTally()
+    for tally in tallies:
+        for item in fields(RigTally):
+            mine, theirs = getattr(total, item.name), getattr(tally, item.name)
+            if isinstance(mine, PixelCounts):
+                for count in ("tp", "fp", "fn", "tn"):
+                    setattr(mine, count, getattr(mine, count) + getattr(theirs, count))
+            elif isinstance(mine, list):
+                mine.extend(theirs)
+            else:
+                setattr(total, item.name, mine + theirs)
+    return total
+
+
 def truth_roll_deg(sample: Any) -> float:
     """The road model's roll (deg, RoadModel convention) of a rendered scene's flat road: from
     the world's up axis in the left optical frame."""
@@ -512,13 +528,17 @@ def _render_all(scenes: list, cache: Path | None, jobs: int) -> Iterator[Any]:
 
 
 def synthetic_markdown(tallies: dict[str, RigTally]) -> str:
-    """The per-class table of :func:`evaluate_synthetic`."""
+    """The per-class table of :func:`evaluate_synthetic`, with a row of all classes pooled
+    where there are several."""
     lines = ["| rig class | scenes | pixel P / R / F (observed) | pixel F (all) | "
              "pothole P / R / F (observed) | pothole R / F (all) | false on clean roads | "
              "roll error median (deg) | depth / area / volume error median | bad reports | "
              "failed |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for name, t in tallies.items():
+    rows = dict(tallies)
+    if len(rows) > 1:
+        rows["**all**"] = pooled(tallies.values())
+    for name, t in rows.items():
         obs, every = t.pixels_observed, t.pixels_all
         p, r, f = t.pothole_scores(True)
         _, r_all, f_all = t.pothole_scores(False)

@@ -99,3 +99,21 @@ def test_synthetic_evaluation_renders_in_worker_processes_with_the_same_result()
     pooled = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1, jobs=2)
     assert synthetic_markdown(pooled) == synthetic_markdown(alone)
     assert pooled["robot"].volume_errors == alone["robot"].volume_errors
+
+
+def test_the_classes_pooled_sum_their_counts_and_keep_every_error():
+    from pothole_detector.evaluation import PixelCounts, RigTally, pooled, synthetic_markdown
+    small = RigTally(scenes=2, pixels_observed=PixelCounts(tp=10, fp=0, fn=10, tn=80),
+                     detections=2, matched=2, truths_observed=2, matched_observed=2,
+                     depth_errors=[0.1])
+    large = RigTally(scenes=3, pixels_observed=PixelCounts(tp=90, fp=10, fn=0, tn=900),
+                     detections=4, matched=3, truths_observed=5, matched_observed=3,
+                     depth_errors=[0.3, 0.2], false_on_clean=1)
+    total = pooled([small, large])
+    assert (total.scenes, total.detections, total.matched, total.false_on_clean) == (5, 6, 5, 1)
+    assert total.pixels_observed.f_score == pytest.approx(2 * 100 / (200 + 10 + 10))
+    assert total.pothole_scores(True) == pytest.approx((5 / 6, 5 / 7, 10 / 13))
+    assert sorted(total.depth_errors) == [0.1, 0.2, 0.3] and small.depth_errors == [0.1]
+    table = synthetic_markdown({"robot": small, "survey": large})
+    assert table.splitlines()[-1].startswith("| **all** | 5 + 0 clean | 0.91 / 0.91 / 0.91 |")
+    assert "**all**" not in synthetic_markdown({"robot": small})
