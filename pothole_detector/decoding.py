@@ -9,8 +9,8 @@ one, the pixels come back pickled instead."""
 
 from __future__ import annotations
 
-import atexit
 import math
+import multiprocessing.util
 import shutil
 import weakref
 from collections import deque
@@ -178,7 +178,9 @@ def _close_decoders() -> None:
         _DECODERS.pop().close()
 
 
-atexit.register(_close_decoders)
+# At this interpreter's exit, and in a worker process (survey --jobs) before multiprocessing
+# closes its queues and joins its children: before the queues of our own workers close.
+multiprocessing.util.Finalize(None, _close_decoders, exitpriority=100)
 
 
 def _pair_bytes(reader: Any, topics: bagtools.StereoTopics) -> int:

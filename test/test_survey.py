@@ -186,7 +186,8 @@ def test_chunks_in_worker_processes_give_the_sequential_survey(survey_drive_bags
     bags, _, _ = survey_drive_bags
     drives = [bags["none"], REPO / "bags" / "sample_drive"]
     seen = []
-    in_workers = survey(drives, Config({"backend": "cpu", "chunk_frames": 12}), jobs=2,
+    in_workers = survey(drives, Config({"backend": "cpu", "chunk_frames": 12,
+                                             "read_processes": 2}), jobs=2,
                         progress=lambda done, total: seen.append((done, total)))
     here = survey(drives, Config({"backend": "cpu"}))
     assert [len(d.potholes) for d in in_workers] == [6, 5]
