@@ -72,7 +72,16 @@ def main() -> None:
                              "the threads (0: the threads; several: a row each)")
     args = parser.parse_args()
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
-    rows = []
+    if args.backend == "cpu":
+        device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
+    else:
+        from pothole_detector.backend import get_backend
+        device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
+    print(f"survey throughput, {device}, {args.frames} frames a bag, "
+          f"{datetime.date.today().isoformat()}")
+    print("| size | processes | reading ahead (each) | frames | potholes | seconds (decode, "
+          "pipeline, odometry, tracking, outputs) | frames/s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |", flush=True)
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         for size in args.sizes:
@@ -100,20 +109,8 @@ def main() -> None:
                         f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
                     reading = (f"{readers} processes" if readers else
                                f"{threads} thread{'s' if threads > 1 else ''}")
-                    rows.append((size, mode, reading, frames, potholes, seconds))
-    if args.backend == "cpu":
-        device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
-    else:
-        from pothole_detector.backend import get_backend
-        device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
-    print(f"survey throughput, {device}, {args.frames} frames a bag, "
-          f"{datetime.date.today().isoformat()}")
-    print("| size | processes | reading ahead (each) | frames | potholes | seconds (decode, "
-          "pipeline, odometry, tracking, outputs) | frames/s |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    for size, mode, reading, frames, potholes, seconds in rows:
-        print(f"| {size} | {mode} | {reading} | {frames} | {potholes} | {seconds:.1f} | "
-              f"{frames / seconds:.1f} |")
+                    print(f"| {size} | {mode} | {reading} | {frames} | {potholes} | "
+                          f"{seconds:.1f} | {frames / seconds:.1f} |", flush=True)
 
 
 if __name__ == "__main__":
