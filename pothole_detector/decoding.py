@@ -101,21 +101,28 @@ def decode_block(path: str, topics: bagtools.StereoTopics, values: dict[str, Any
     return decoded, messages, list(free)
 
 
-class Decoders:
-    """``processes`` worker processes and a ring of ``slots`` shared-memory slots of
-    ``slot_bytes`` each (fewer, or none, where shared memory is short)."""
+def _ready() -> None:
+    """A worker's first task: it has started and imported what decoding needs."""
 
-    def __init__(self, processes: int, slot_bytes: int, slots: int) -> None:
-        self.processes, self.slot_bytes, self.wanted = processes, slot_bytes, slots
+
+class Ring:
+    """A ring of ``slots`` shared-memory slots of ``slot_bytes`` each (fewer, or none, where
+    shared memory is short) and which of them are free."""
+
+    def __init__(self, slot_bytes: int, slots: int) -> None:
+        self.slot_bytes, self.wanted = slot_bytes, slots
         try:
             free_bytes = shutil.disk_usage("/dev/shm").free
         except OSError:
             free_bytes = slot_bytes * slots
-        slots = min(slots, int(free_bytes * SHARED_MEMORY_SHARE) // slot_bytes)
-        self.ring = SharedMemory(create=True, size=slot_bytes * slots) if slots > 0 else None
-        self.slots = slots
-        self.free: deque[int] = deque(range(slots))
-        self.pool = ProcessPoolExecutor(processes, mp_context=get_context("spawn"))
+        self.slots = max(0, min(slots, int(free_bytes * SHARED_MEMORY_SHARE) // slot_bytes))
+        self.memory = (SharedMemory(create=True, size=slot_bytes * self.slots)
+                       if self.slots > 0 else None)
+        self.free: deque[int] = deque(range(self.slots))
+
+    @property
+    def name(self) -> str:
+        return self.memory.name if self.memory is not None else ""
 
     def grant(self, count: int) -> list[int]:
         """Up to ``count`` free slots, taken off the ring."""
@@ -136,8 +143,9 @@ class Decoders:
             left, right = pixels
         else:
             slot, left_shape, left_dtype, right_shape, right_dtype = pixels
-            assert self.ring is not None
-            whole = np.ndarray(self.slot_bytes, np.uint8, self.ring.buf, slot * self.slot_bytes)
+            assert self.memory is not None
+            whole = np.ndarray(self.slot_bytes, np.uint8, self.memory.buf,
+                               slot * self.slot_bytes)
             weakref.finalize(whole, self.free.append, slot)
             left_bytes = math.prod(left_shape) * np.dtype(left_dtype).itemsize
             right_bytes = math.prod(right_shape) * np.dtype(right_dtype).itemsize
@@ -147,29 +155,50 @@ class Decoders:
         return bagtools.BagFrame(stamp, header, left, right, calibration, logged)
 
     def close(self) -> None:
-        """Stop the workers and free the ring (its memory goes when no array is left on it)."""
-        self.pool.shutdown(cancel_futures=True)
-        if self.ring is not None:
-            self.ring.unlink()
+        """Free the ring (its memory goes when no array is left on it)."""
+        if self.memory is not None:
+            self.memory.unlink()
             try:
-                self.ring.close()
+                self.memory.close()
             except BufferError:
                 pass
+
+
+class Decoders:
+    """``processes`` worker processes, all started at once, and the ring they write into."""
+
+    def __init__(self, processes: int) -> None:
+        self.processes = processes
+        self.pool = ProcessPoolExecutor(processes, mp_context=get_context("spawn"))
+        for _ in range(processes):
+            self.pool.submit(_ready)
+        self.ring: Ring | None = None
+
+    def ring_of(self, slot_bytes: int, slots: int) -> Ring:
+        """This process's ring, made anew where it holds fewer or smaller slots."""
+        if self.ring is None or self.ring.slot_bytes < slot_bytes or self.ring.wanted < slots:
+            if self.ring is not None:
+                self.ring.close()
+            self.ring = Ring(slot_bytes, slots)
+        return self.ring
+
+    def close(self) -> None:
+        """Stop the workers and free the ring."""
+        self.pool.shutdown(cancel_futures=True)
+        if self.ring is not None:
+            self.ring.close()
 
 
 _DECODERS: list[Decoders] = []
 
 
-def _decoders(processes: int, slot_bytes: int, slots: int) -> Decoders:
-    """The workers and ring of this process, made anew where these need more than they
-    have."""
-    if _DECODERS:
-        held = _DECODERS[0]
-        if (held.processes == processes and held.slot_bytes >= slot_bytes
-                and held.wanted >= slots):
-            return held
+def start(processes: int) -> Decoders:
+    """This process's ``processes`` workers, started now where they are not running (those
+    of another count are stopped)."""
+    if _DECODERS and _DECODERS[0].processes != processes:
         _DECODERS.pop().close()
-    _DECODERS.append(Decoders(processes, slot_bytes, slots))
+    if not _DECODERS:
+        _DECODERS.append(Decoders(processes))
     return _DECODERS[0]
 
 
@@ -205,29 +234,28 @@ def decoded_frames(reader: Any, topics: bagtools.StereoTopics, config: Config,
     blocks, period_ns = bagtools.read_blocks(reader, topics, config, span)
     lead_sets = math.ceil(max(block.lead_ns for block in blocks[:1]) / period_ns) + 2
     per_block = math.ceil((blocks[0].stop_ns - blocks[0].start_ns) / period_ns) + 2
-    decoders = _decoders(processes, _pair_bytes(reader, topics),
-                         (processes + 2) * per_block + lead_sets)
+    decoders = start(processes)
+    ring = decoders.ring_of(_pair_bytes(reader, topics), (processes + 2) * per_block + lead_sets)
     path = str(Path(list(reader.paths)[0]))
     values = config.as_dict()
-    ring = decoders.ring.name if decoders.ring is not None else ""
 
     def submit(index: int, block: bagtools.LogSpan) -> tuple[Future, list[int]]:
-        slots = decoders.grant(per_block + (lead_sets if index == 0 else 0))
+        slots = ring.grant(per_block + (lead_sets if index == 0 else 0))
         return decoders.pool.submit(decode_block, path, topics, values, block, index == 0,
-                                    tuple(others), ring, decoders.slot_bytes, slots), slots
+                                    tuple(others), ring.name, ring.slot_bytes, slots), slots
 
     def take(future: Future) -> Iterator[bagtools.BagFrame | tuple]:
         decoded, messages, unused = future.result()
-        decoders.free.extend(unused)
+        ring.free.extend(unused)
         if collected is not None:
             collected.extend((topic, logged, deserialize(data, types[topic]))
                              for topic, logged, data in messages)
         remaining = deque(decoded)
         try:
             while remaining:
-                yield decoders.frame(remaining.popleft())
+                yield ring.frame(remaining.popleft())
         finally:
-            decoders.free.extend(pixels[0] for *_, pixels, _, _ in remaining
+            ring.free.extend(pixels[0] for *_, pixels, _, _ in remaining
                                  if pixels is not None and isinstance(pixels[0], int))
 
     types = {connection.topic: connection.msgtype for connection in reader.connections}
@@ -247,4 +275,4 @@ def decoded_frames(reader: Any, topics: bagtools.StereoTopics, config: Config,
     finally:
         for future, slots in pending:
             future.cancel()
-            future.add_done_callback(lambda _, taken=slots: decoders.free.extend(taken))
+            future.add_done_callback(lambda _, taken=slots: ring.free.extend(taken))

@@ -109,6 +109,9 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     from .backend import get_backend
     from .stages.matching import to_gray8
 
+    if config.read_processes > 0:
+        from .decoding import start
+        start(config.read_processes)
     reader = bagtools.open_bag(bag)
     odometry = StereoOdometry()
     has_odometry = bool(topics.odometry) and bagtools.message_count(reader, topics.odometry) > 0

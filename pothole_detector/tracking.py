@@ -127,11 +127,12 @@ class PotholeTracker:
             return []
         positions = pose.apply(np.array([s.road_xy for s in sightings]))
         candidates = []
+        radii = [existing.radius_m for existing in self._active]
         for i, (sighting, position) in enumerate(zip(sightings, positions)):
             radius = math.sqrt(max(sighting.area_m2, 0.0) / math.pi)
             for j, existing in enumerate(self._active):
                 gap = float(np.linalg.norm(existing.positions[-1] - position))
-                if gap < max(self.match_distance_m, existing.radius_m + radius):
+                if gap < max(self.match_distance_m, radii[j] + radius):
                     candidates.append((gap, i, j))
         joined: dict[int, Track] = {}
         taken: set[int] = set()
