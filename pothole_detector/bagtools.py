@@ -300,10 +300,10 @@ class ProcessSummary:
 INFO_WAIT_NS = 1_000_000_000
 
 
-def _stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
-                 summary: ProcessSummary, span: LogSpan | None = None,
-                 others: Sequence[str] = (), collected: list | None = None
-                 ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
+def stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
+                summary: ProcessSummary, span: LogSpan | None = None,
+                others: Sequence[str] = (), collected: list | None = None
+                ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
     """Synchronized (stamp, left image's log time, left, right, left_info, right_info)
     messages of a bag, or of the sets whose left image was logged before ``span``'s stop
     (reading from its lead before its start), in one pass. Each pair takes the camera_info of
@@ -446,7 +446,7 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                     span: LogSpan | None, threads: int, others: Sequence[str] = (),
                     collected: list | None = None
                     ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
-    """The sets of :func:`_stereo_sets` over ``span`` (or the whole bag) in order, and its
+    """The sets of :func:`stereo_sets` over ``span`` (or the whole bag) in order, and its
     ``others`` messages into ``collected``, read by ``threads`` threads ahead of the caller,
     each with its own reader on the bag: the span's log time is cut into blocks of about
     READ_BLOCK_FRAMES sets (at the bag's mean rate), a thread reads a block with a lead of two
@@ -467,8 +467,8 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
             local.reader = open_bag(path)
             opened.append(local.reader)
         extras: list = []
-        sets = [item for item in _stereo_sets(local.reader, topics, config, ProcessSummary(),
-                                              block, others, extras)
+        sets = [item for item in stereo_sets(local.reader, topics, config, ProcessSummary(),
+                                             block, others, extras)
                 if first or item[1] >= block.start_ns]
         return sets, extras
 
@@ -530,7 +530,7 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
             return
         sets = read_sets_ahead(reader, stereo, config, span, read_threads, others,
                                collected) if read_threads > 1 and streamed_infos \
-            else _stereo_sets(reader, stereo, config, summary, span, others, collected)
+            else stereo_sets(reader, stereo, config, summary, span, others, collected)
         for index, (stamp, logged, left_msg, right_msg, left_cal, right_cal) in enumerate(sets):
             if progress is not None:
                 progress(min(index, total), total)

@@ -76,7 +76,7 @@ def decode_block(path: str, topics: bagtools.StereoTopics, values: dict[str, Any
     free = deque(slots)
     decoded: list[DecodedSet] = []
     extras: list[tuple[str, int, Any]] = []
-    for stamp, logged, left_msg, right_msg, left_info, right_info in bagtools._stereo_sets(
+    for stamp, logged, left_msg, right_msg, left_info, right_info in bagtools.stereo_sets(
             reader, topics, Config(values), bagtools.ProcessSummary(), block, others, extras):
         if not first and logged < block.start_ns:
             continue

@@ -253,16 +253,16 @@ def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp
     topics = bagtools.StereoTopics(*STEREO)
     reader = bagtools.open_bag(latched)
     try:
-        whole = [s[0] for s in bagtools._stereo_sets(reader, topics, config,
-                                                     bagtools.ProcessSummary())]
+        whole = [s[0] for s in bagtools.stereo_sets(reader, topics, config,
+                                                    bagtools.ProcessSummary())]
         assert whole == [stamp for stamp, _ in frames]
         kept = []
         for first, stop in ((START, START + 700_000_000), (START + 700_000_000,
                                                            START + 1_400_000_000),
                             (START + 1_400_000_000, START + 1_800_000_000)):
             span = bagtools.LogSpan(first, stop, 200_000_000)
-            sets = list(bagtools._stereo_sets(reader, topics, config,
-                                              bagtools.ProcessSummary(), span))
+            sets = list(bagtools.stereo_sets(reader, topics, config,
+                                             bagtools.ProcessSummary(), span))
             assert all(s[4] is not None and s[5] is not None for s in sets)
             assert all(first - 200_000_000 <= s[1] < stop for s in sets)
             kept += [s[0] for s in sets if s[1] >= first]
@@ -289,8 +289,8 @@ def test_sets_read_ahead_in_threads_are_the_sets_read_in_one(tmp_path, drive_fra
     try:
         for span in (None, bagtools.LogSpan(START + 450_000_000, START + 1_650_000_000,
                                             250_000_000)):
-            alone = list(bagtools._stereo_sets(reader, topics, config,
-                                               bagtools.ProcessSummary(), span))
+            alone = list(bagtools.stereo_sets(reader, topics, config,
+                                              bagtools.ProcessSummary(), span))
             ahead = list(bagtools.read_sets_ahead(reader, topics, config, span, 3))
             assert [s[:2] for s in ahead] == [s[:2] for s in alone]
             assert len(alone) == (20 if span is None else 15)

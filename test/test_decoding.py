@@ -58,7 +58,7 @@ def _bag(folder, samples, count, colour=False, infos_from=0):
 def _one_reader(reader, span):
     """(stamp, log time, left, right, calibration or the error) as one reader converts them."""
     sets = []
-    for stamp, logged, left, right, left_info, right_info in bagtools._stereo_sets(
+    for stamp, logged, left, right, left_info, right_info in bagtools.stereo_sets(
             reader, TOPICS, Config(), bagtools.ProcessSummary(), span):
         try:
             sets.append((stamp, logged, *bagtools.convert_set(TOPICS, left, right, left_info,
