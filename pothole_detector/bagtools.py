@@ -427,6 +427,16 @@ def read_blocks(reader: AnyReader, topics: StereoTopics, config: Config,
             for index, first in enumerate(starts)], max(period_ns, 1.0)
 
 
+def block_sets(reader: AnyReader, topics: StereoTopics, config: Config, block: LogSpan,
+               first: bool, others: Sequence[str] = (), collected: list | None = None
+               ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
+    """The sets of :func:`stereo_sets` over a block of :func:`read_blocks` whose left image
+    was logged in it (the ``first`` block's also those of its lead)."""
+    return (item for item in stereo_sets(reader, topics, config, ProcessSummary(), block,
+                                         others, collected)
+            if first or item[1] >= block.start_ns)
+
+
 def convert_set(topics: StereoTopics, left_msg: Any, right_msg: Any, left_info: Any,
                 right_info: Any) -> tuple[np.ndarray, np.ndarray, Any]:
     """The left and right pixels (HxW or HxWx3) and the calibration of a synchronized set;
@@ -467,10 +477,8 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
             local.reader = open_bag(path)
             opened.append(local.reader)
         extras: list = []
-        sets = [item for item in stereo_sets(local.reader, topics, config, ProcessSummary(),
-                                             block, others, extras)
-                if first or item[1] >= block.start_ns]
-        return sets, extras
+        return list(block_sets(local.reader, topics, config, block, first, others,
+                               extras)), extras
 
     def take(future: Any) -> list:
         sets, extras = future.result()

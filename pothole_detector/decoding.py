@@ -76,10 +76,8 @@ def decode_block(path: str, topics: bagtools.StereoTopics, values: dict[str, Any
     free = deque(slots)
     decoded: list[DecodedSet] = []
     extras: list[tuple[str, int, Any]] = []
-    for stamp, logged, left_msg, right_msg, left_info, right_info in bagtools.stereo_sets(
-            reader, topics, Config(values), bagtools.ProcessSummary(), block, others, extras):
-        if not first and logged < block.start_ns:
-            continue
+    for stamp, logged, left_msg, right_msg, left_info, right_info in bagtools.block_sets(
+            reader, topics, Config(values), block, first, others, extras):
         frame_id = left_msg.header.frame_id
         try:
             left, right, calibration = bagtools.convert_set(topics, left_msg, right_msg,
