@@ -230,7 +230,7 @@ def decoded_frames(reader: Any, topics: bagtools.StereoTopics, config: Config,
     ``processes`` + 1 blocks ahead; the ``others`` messages logged in the span go into
     ``collected``."""
     blocks, period_ns = bagtools.read_blocks(reader, topics, config, span)
-    lead_sets = math.ceil(max(block.lead_ns for block in blocks[:1]) / period_ns) + 2
+    lead_sets = math.ceil(blocks[0].lead_ns / period_ns) + 2
     per_block = math.ceil((blocks[0].stop_ns - blocks[0].start_ns) / period_ns) + 2
     decoders = start(processes)
     ring = decoders.ring_of(_pair_bytes(reader, topics), (processes + 2) * per_block + lead_sets)
@@ -254,7 +254,7 @@ def decoded_frames(reader: Any, topics: bagtools.StereoTopics, config: Config,
                 yield ring.frame(remaining.popleft())
         finally:
             ring.free.extend(pixels[0] for *_, pixels, _, _ in remaining
-                                 if pixels is not None and isinstance(pixels[0], int))
+                             if pixels is not None and isinstance(pixels[0], int))
 
     types = {connection.topic: connection.msgtype for connection in reader.connections}
     pending: deque[tuple[Future, list[int]]] = deque()
