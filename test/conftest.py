@@ -33,6 +33,15 @@ def bowl_sample():
     return render(scene)
 
 
+@pytest.fixture(scope="session")
+def near_rim_sample():
+    """A robot's camera 0.4 m up, pitched 30 deg, over a steep-walled pothole 1.6 m ahead whose
+    near rim hides part of the floor."""
+    hole = PotholeShape(0.05, 1.6, 0.15, 0.12, 0.06, 15.0, wall_power=6.0)
+    return render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.08,
+                        camera_height_m=0.4, pitch_deg=30.0, potholes=(hole,)))
+
+
 def shared_data(*parts: str) -> Path:
     path = SHARED_DATA.joinpath(*parts)
     if not path.exists():

@@ -470,6 +470,25 @@ def test_measure_kernel_matches_the_reference(gpu, demo_sample):
                 rtol=1e-4)
 
 
+def test_measure_kernel_estimates_hidden_floors_like_the_reference(gpu, near_rim_sample):
+    from pothole_detector.stages import refine, road_model
+    labels = near_rim_sample.labels.astype(np.int32)
+    road = road_model.fit_road(np, np.where(labels > 0, np.nan, near_rim_sample.disparity))
+    _, smoothed = refine.smooth(CPU, near_rim_sample.disparity.astype(np.float32))
+    v, u = np.nonzero(labels)
+    _, edge_on = measure.surface_patches(np, u, v, smoothed,
+                                         measure.road_normal(road, near_rim_sample.calibration),
+                                         near_rim_sample.calibration)
+    assert edge_on.sum() > 100
+    (cpu,) = measure.measure_potholes(CPU, labels, 1, smoothed, road,
+                                      near_rim_sample.calibration)
+    (dev,) = measure.measure_potholes(gpu, gpu.upload(labels), 1, gpu.upload(smoothed), road,
+                                      near_rim_sample.calibration)
+    np.testing.assert_allclose([dev.area_m2, dev.max_depth_m, dev.mean_depth_m, dev.volume_m3],
+                               [cpu.area_m2, cpu.max_depth_m, cpu.mean_depth_m, cpu.volume_m3],
+                               rtol=1e-4)
+
+
 @pytest.mark.parametrize("kind", ["planar", "quadratic"])
 def test_transform_kernel_matches_the_reference_exactly(gpu, kind):
     from pothole_detector.stages.road_model import RoadModel

@@ -166,3 +166,72 @@ def test_a_flat_floored_pothole_at_a_grazing_angle_has_its_floor_depth():
     (pothole,) = measure_potholes(CPU, labels, 1, disparity, road, sample.calibration)
     assert pothole.mean_depth_m == pytest.approx(hole.mean_depth_m, rel=0.05)
     assert pothole.volume_m3 == pytest.approx(hole.volume_m3, rel=0.05)
+
+
+def test_a_hidden_floor_takes_the_depth_halfway_to_the_floor_seen_beyond_it():
+    """One column of a pothole on a flat road (disparity 0.5 v px): the edge-on pixel at row
+    40 sees 1 cm deep, the floor 2 and 5 rows farther up 3 and 4 cm, a pixel 7 rows up (out of
+    reach) 9 cm and one of another pothole 6 cm; pixels not edge-on keep their depth."""
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.stages.measure import (HIDDEN_FLOOR_BLEND, HIDDEN_FLOOR_ROWS,
+                                                 hidden_floor_depth)
+    from pothole_detector.stages.road_model import RoadModel
+    assert HIDDEN_FLOOR_ROWS == 7
+    calibration = StereoCalibration.from_focal_baseline(500.0, 0.1, 80, 60)
+    road = RoadModel(a0=0.0, a1=0.5, roll_rad=0.0)
+    labels = np.zeros((60, 80), np.int32)
+    labels[30:45, 10] = 1
+    labels[34, 10] = 2
+    depth_m = np.zeros((60, 80))
+    depth_m[[38, 35, 34, 33], 10] = [0.03, 0.04, 0.06, 0.09]
+    v, u = np.mgrid[30:45, 0:80].astype(np.float64)
+    normal = road_normal(road, calibration)
+    incidence = normal[0] * (u - calibration.cx) / calibration.f \
+        + normal[1] * (v - calibration.cy) / calibration.f + normal[2]
+    road_d = road.at(np, u, v)
+    disparity = np.full((60, 80), np.nan, np.float32)
+    disparity[30:45] = calibration.fb / (calibration.fb / road_d + depth_m[30:45] / incidence)
+    rows, cols = np.nonzero(labels)
+    label = labels[rows, cols]
+    depth, _ = depth_below_road(np, cols, rows, disparity[rows, cols], road, calibration)
+    np.testing.assert_allclose(depth, depth_m[rows, cols], atol=1e-6)
+    depth = np.where(rows == 40, np.float32(0.01), depth).astype(np.float32)
+    edge_on = rows == 40
+    estimate = hidden_floor_depth(np, labels, rows, cols, label, depth, edge_on, disparity,
+                                  road, calibration)
+    at = int(np.nonzero(edge_on)[0][0])
+    assert estimate[at] == pytest.approx(0.01 + HIDDEN_FLOOR_BLEND * (0.04 - 0.01), rel=1e-4)
+    np.testing.assert_array_equal(np.delete(estimate, at), np.delete(depth, at))
+    assert hidden_floor_depth(np, labels, rows, cols, label, depth, np.zeros_like(edge_on),
+                              disparity, road, calibration) is depth
+
+
+def test_the_near_rim_hides_floor_seen_edge_on_and_the_volume_estimate_takes_it_in(
+        monkeypatch, near_rim_sample):
+    """From the pipeline's smoothed disparities of a pothole whose near rim hides floor: the
+    patches that the near rim's step is spread over are seen edge-on (the road away from the
+    pothole is not), and estimating the floor behind them brings the volume nearer the
+    shape's than the depths seen do; depth and area stay as they were."""
+    from scipy import ndimage
+
+    from pothole_detector.stages import measure
+    from pothole_detector.stages.refine import SMOOTHING_PX, smooth
+    sample = near_rim_sample
+    labels = sample.labels.astype(np.int32)
+    road = fit_road(np, np.where(labels > 0, np.nan, sample.disparity), rounds=2)
+    _, smoothed = smooth(CPU, sample.disparity.astype(np.float32))
+    v, u = np.mgrid[0:labels.shape[0], 0:labels.shape[1]]
+    _, edge_on = measure.surface_patches(np, u, v, smoothed,
+                                         road_normal(road, sample.calibration),
+                                         sample.calibration)
+    far_road = ~ndimage.binary_dilation(labels > 0, iterations=SMOOTHING_PX)
+    far_road &= ndimage.binary_erosion(np.ones_like(far_road), iterations=SMOOTHING_PX)
+    hidden_rows = np.nonzero(edge_on & (labels > 0))[0]
+    rows = np.nonzero((labels > 0).any(axis=1))[0]
+    assert hidden_rows.size > 100 and not (edge_on & far_road).any()
+    assert np.median(hidden_rows) > (rows[0] + rows[-1]) / 2  # the near half of the pothole
+    (estimated,) = measure.measure_potholes(CPU, labels, 1, smoothed, road, sample.calibration)
+    monkeypatch.setattr(measure, "HIDDEN_FLOOR_BLEND", 0.0)
+    (seen,) = measure.measure_potholes(CPU, labels, 1, smoothed, road, sample.calibration)
+    assert seen.volume_m3 < estimated.volume_m3 < sample.potholes[0].volume_m3
+    assert estimated.max_depth_m == seen.max_depth_m and estimated.area_m2 == seen.area_m2

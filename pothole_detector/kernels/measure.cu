@@ -1,10 +1,12 @@
 // Per-pothole sums in one pass over the label image. Reference: stages/measure.py
-// (measure, depth_below_road, floor_area). sums: float64 [count + 1][8] = pixels, footprint
-// area, valid area, floor area, depth x floor area, x, y, z x area (valid pixels); extremes: int32
+// (measure, depth_below_road, surface_patches, hidden_floor_depth). sums: float64
+// [count + 1][8] = pixels, footprint area, valid area, floor area, depth x floor area (the
+// depth hidden_floor_depth estimates), x, y, z x area (valid pixels); extremes: int32
 // [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
 // Warps whose labelled pixels share one label add once per warp.
-// Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS and the road
-// parameters' layout and constants (ROAD_*, stages/road_model.ROAD_DEFINES).
+// Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS, HIDDEN_FLOOR_*
+// (measure.HIDDEN_FLOOR_CONSTANTS) and the road parameters' layout and constants (ROAD_*,
+// stages/road_model.ROAD_DEFINES).
 
 #include "road_disparity.cuh"
 
@@ -28,11 +30,13 @@ __device__ __forceinline__ void point_at(int u, int v, float d, double f, double
     point[2] = z;
 }
 
-// measure.floor_area: n . (dQ/du x dQ/dv) by central differences, 0 where it is not positive,
-// a neighbour lies off the image or has no disparity.
-__device__ double floor_area(const float* disparity, int u, int v, int height, int width,
-                             double f, double cx, double cy, double fb, double nx, double ny,
-                             double nz) {
+// measure.surface_patches: n . (dQ/du x dQ/dv) by central differences, 0 where it is not
+// positive, a neighbour lies off the image or has no disparity; edge_on: the patch is seen at a
+// grazing angle (sine) under HIDDEN_FLOOR_GRAZING_PERCENT % of the road's.
+__device__ double surface_patch(const float* disparity, int u, int v, int height, int width,
+                                double f, double cx, double cy, double fb, const double* normal,
+                                bool* edge_on) {
+    *edge_on = false;
     if (u <= 0 || u >= width - 1 || v <= 0 || v >= height - 1) return 0.0;
     const long long at = (long long)v * width + u;
     double right[3], left[3], below[3], above[3];
@@ -45,10 +49,44 @@ __device__ double floor_area(const float* disparity, int u, int v, int height, i
         du[k] = 0.5 * (right[k] - left[k]);
         dv[k] = 0.5 * (below[k] - above[k]);
     }
-    const double area = nx * (du[1] * dv[2] - du[2] * dv[1])
-                        + ny * (du[2] * dv[0] - du[0] * dv[2])
-                        + nz * (du[0] * dv[1] - du[1] * dv[0]);
+    const double cross[3] = {du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2],
+                             du[0] * dv[1] - du[1] * dv[0]};
+    const double area = normal[0] * cross[0] + normal[1] * cross[1] + normal[2] * cross[2];
+    const double ray_x = (u - cx) / f, ray_y = (v - cy) / f;
+    const double seen = fabs(cross[0] * ray_x + cross[1] * ray_y + cross[2]);
+    const double incidence = normal[0] * ray_x + normal[1] * ray_y + normal[2];
+    const double size = sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]);
+    *edge_on = seen < HIDDEN_FLOOR_GRAZING_PERCENT / 100.0 * incidence * size;
     return isfinite(area) && area > 0.0 ? area : 0.0;
+}
+
+// measure.depth_below_road of one pixel: NaN where its ray does not meet the road plane in
+// front of the camera or d is not positive.
+__device__ float depth_below(const double* road, const double* normal, int u, int v, float d,
+                             double f, double cx, double cy, double fb) {
+    const double road_d = road_disparity(road, (double)u, (double)v);
+    const double incidence = normal[0] * (u - cx) / f + normal[1] * (v - cy) / f + normal[2];
+    if (!(road_d > 0.0 && incidence > 0.0 && d > 0.0f))
+        return __int_as_float(0x7fffffff);
+    return fmaxf((float)((fb / (double)d - fb / road_d) * incidence), 0.0f);
+}
+
+// measure.hidden_floor_depth of an edge-on pixel (u, v) of pothole label with depth: halfway
+// (HIDDEN_FLOOR_BLEND_PERCENT) to the deepest floor of the same pothole seen within
+// HIDDEN_FLOOR_ROWS - 1 rows farther up the column, where that is deeper.
+__device__ float hidden_floor_depth(const int* labels, const float* disparity, int u, int v,
+                                    int width, int label, float depth, double f, double cx,
+                                    double cy, double fb, const double* road,
+                                    const double* normal) {
+    float beyond = __int_as_float(0xff800000);
+    for (int step = 1; step < HIDDEN_FLOOR_ROWS && v - step >= 0; ++step) {
+        const long long at = (long long)(v - step) * width + u;
+        if (labels[at] != label) continue;
+        const float seen = depth_below(road, normal, u, v - step, disparity[at], f, cx, cy, fb);
+        if (finite(seen)) beyond = fmaxf(beyond, seen);
+    }
+    return beyond > depth ? depth + HIDDEN_FLOOR_BLEND_PERCENT / 100.0f * (beyond - depth)
+                          : depth;
 }
 
 extern "C" __global__ void measure_reset(double* sums, int* extremes, int count) {
@@ -94,11 +132,16 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         values[0] = 1.0;
         values[1] = footprint;
         if (on_road && d > 0.0f && finite(depth)) {
-            const double floor = floor_area(disparity, u, v, height, width, f, cx, cy, fb,
-                                            normal[0], normal[1], normal[2]);
+            bool edge_on;
+            const double floor = surface_patch(disparity, u, v, height, width, f, cx, cy, fb,
+                                               normal, &edge_on);
+            const float volume_depth =
+                edge_on ? hidden_floor_depth(labels, disparity, u, v, width, label, depth, f, cx,
+                                             cy, fb, road, normal)
+                        : depth;
             values[2] = footprint;
             values[3] = floor;
-            values[4] = (double)depth * floor;
+            values[4] = (double)volume_depth * floor;
             values[5] = (uu - cx) * z / f * footprint;
             values[6] = (vv - cy) * z / f * footprint;
             values[7] = z * footprint;

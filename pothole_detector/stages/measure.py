@@ -11,7 +11,18 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
 from .components import relabel
+from .refine import SMOOTHING_PX
 from .road_model import ROAD_DEFINES, RoadModel, device_params, road_plane
+
+# A surface patch seen at a grazing angle (sine) under GRAZING_PERCENT % of the road's there is
+# seen edge-on: the floor behind it is hidden (surface_patches). Its depth is taken BLEND_PERCENT
+# % of the way from the ray past the near rim to the floor seen beyond it, within ROWS rows:
+# those the pipeline's smoothing spreads a near rim's step over.
+HIDDEN_FLOOR_CONSTANTS = {"HIDDEN_FLOOR_GRAZING_PERCENT": 50, "HIDDEN_FLOOR_BLEND_PERCENT": 50,
+                          "HIDDEN_FLOOR_ROWS": SMOOTHING_PX}
+HIDDEN_FLOOR_GRAZING = HIDDEN_FLOOR_CONSTANTS["HIDDEN_FLOOR_GRAZING_PERCENT"] / 100.0
+HIDDEN_FLOOR_BLEND = HIDDEN_FLOOR_CONSTANTS["HIDDEN_FLOOR_BLEND_PERCENT"] / 100.0
+HIDDEN_FLOOR_ROWS = HIDDEN_FLOOR_CONSTANTS["HIDDEN_FLOOR_ROWS"]
 
 
 @dataclass(frozen=True)
@@ -69,14 +80,17 @@ def depth_below_road(xp: Any, u: Any, v: Any, disparity: Any, model: RoadModel,
     return depth, xp.where(on_road, footprint, xp.float32(0))
 
 
-def floor_area(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
-               calibration: StereoCalibration) -> Any:
+def surface_patches(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
+                    calibration: StereoCalibration) -> tuple[Any, Any]:
     """The area (m^2, float64) that the surface seen by pixels at columns ``u``, rows ``v``
     (int arrays of one shape) covers on the road plane: n . (dQ/du x dQ/dv) of the 3D points Q
     of the HxW float32 ``disparity`` (px, NaN invalid), central differences, ``normal`` the
     road's unit normal (road_normal). A floor parallel to the road covers what the road
     would; a wall seen edge-on covers little; a fold (an occlusion edge) and a pixel with a
-    neighbour off the image or without a disparity cover nothing (0)."""
+    neighbour off the image or without a disparity cover nothing (0). Also bool: whether the
+    patch is seen edge-on, at a grazing angle (its sine) under HIDDEN_FLOOR_GRAZING of the
+    road's there: its points run along the rays, as where the pipeline's smoothing spreads the
+    step from a near rim to the floor beyond what it hides."""
     height, width = disparity.shape
     inside = (u > 0) & (u < width - 1) & (v > 0) & (v < height - 1)
     cu, cv = xp.clip(u, 1, width - 2), xp.clip(v, 1, height - 2)
@@ -93,7 +107,44 @@ def floor_area(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
                  along_u[2] * along_v[0] - along_u[0] * along_v[2],
                  along_u[0] * along_v[1] - along_u[1] * along_v[0])
         area = normal[0] * cross[0] + normal[1] * cross[1] + normal[2] * cross[2]
-    return xp.where(inside & xp.isfinite(area) & (area > 0), area, 0.0)
+        ray = ((cu - calibration.cx) / calibration.f, (cv - calibration.cy) / calibration.f)
+        seen = xp.abs(cross[0] * ray[0] + cross[1] * ray[1] + cross[2])
+        incidence = normal[0] * ray[0] + normal[1] * ray[1] + normal[2]
+        size = xp.sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2])
+        edge_on = inside & (seen < HIDDEN_FLOOR_GRAZING * incidence * size)
+    return xp.where(inside & xp.isfinite(area) & (area > 0), area, 0.0), edge_on
+
+
+def floor_area(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
+               calibration: StereoCalibration) -> Any:
+    """The area (m^2, float64) on the road plane of :func:`surface_patches`."""
+    return surface_patches(xp, u, v, disparity, normal, calibration)[0]
+
+
+def hidden_floor_depth(xp: Any, labels: Any, rows: Any, cols: Any, label: Any, depth: Any,
+                       edge_on: Any, disparity: Any, model: RoadModel,
+                       calibration: StereoCalibration) -> Any:
+    """The depth (m) that a pothole's volume takes at labelled pixels ``rows``, ``cols`` of
+    label ``label`` with finite ``depth`` (depth_below_road): where the pixel's patch is seen
+    edge-on (``edge_on``, :func:`surface_patches`) the floor behind it is hidden; it lies
+    between the ray past the near rim (the depth seen, the least it can be) and the deepest
+    floor the camera sees beyond it (a flat floor), within HIDDEN_FLOOR_ROWS - 1 rows farther
+    up the column in the same pothole, and is taken HIDDEN_FLOOR_BLEND of the way from the one
+    to the other. Elsewhere ``depth``. float32 arrays of one shape (labelled pixels);
+    ``labels`` int32 HxW, ``disparity`` float32 HxW px."""
+    if not bool(edge_on.any()):
+        return depth
+    at = xp.nonzero(edge_on)[0]
+    beyond = xp.full(at.shape, -xp.inf, dtype=xp.float32)
+    for step in range(1, HIDDEN_FLOOR_ROWS):
+        row = xp.maximum(rows[at] - step, 0)
+        same = (rows[at] >= step) & (labels[row, cols[at]] == label[at])
+        seen, _ = depth_below_road(xp, cols[at], row, disparity[row, cols[at]], model,
+                                   calibration)
+        beyond = xp.where(same & xp.isfinite(seen), xp.maximum(beyond, seen), beyond)
+    out = depth.copy()
+    out[at] += HIDDEN_FLOOR_BLEND * xp.maximum(beyond - depth[at], 0)
+    return out
 
 
 def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
@@ -106,7 +157,8 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     largest depth (order-preserving float32 bits), u min, v min, u max, v max; row 0 unused;
     written into ``sums`` and ``extremes`` where given. The mean depth is taken over the
     floor that the camera sees, each point weighted by the area it covers on the road, so
-    that a far wall seen at grazing angles does not make a pothole shallow. ``road``: a
+    that a far wall seen at grazing angles does not make a pothole shallow; where the near rim
+    hides the floor, at the depth :func:`hidden_floor_depth` estimates. ``road``: a
     RoadModel, or on the GPU also road_model.device_params. On the GPU one pass of
     kernels/measure.cu over the label image (per-warp sums, atomics per label)."""
     if backend.is_gpu:
@@ -124,8 +176,11 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     pixel_disparity = disparity[rows, cols]
     depth, footprint = depth_below_road(xp, cols, rows, pixel_disparity, road, calibration)
     valid = xp.isfinite(depth)
-    floor = xp.where(valid, floor_area(xp, cols, rows, disparity,
-                                       road_normal(road, calibration), calibration), 0.0)
+    floor, edge_on = surface_patches(xp, cols, rows, disparity, road_normal(road, calibration),
+                                     calibration)
+    floor = xp.where(valid, floor, 0.0)
+    volume_depth = hidden_floor_depth(xp, labels, rows, cols, label, depth, edge_on & valid,
+                                      disparity, road, calibration)
     index = xp.arange(1, count + 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         x, y, z = calibration.back_project(cols, rows, pixel_disparity)
@@ -138,7 +193,7 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
 
     sums[1:count + 1] = xp.stack([
         total(xp.ones_like(footprint)), total(footprint), total(xp.where(valid, footprint, 0)),
-        total(floor), total(xp.where(valid, depth, 0) * floor),
+        total(floor), total(xp.where(valid, volume_depth, 0) * floor),
         total(xp.where(valid, x * footprint, 0)), total(xp.where(valid, y * footprint, 0)),
         total(xp.where(valid, z * footprint, 0)),
     ], axis=1)
@@ -197,7 +252,7 @@ MEASURE_SUMS = 8
 MEASURE_EXTREMES = 5
 MEASURE_THREADS = 256
 _MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
-                    "THREADS": MEASURE_THREADS, **ROAD_DEFINES}
+                    "THREADS": MEASURE_THREADS, **HIDDEN_FLOOR_CONSTANTS, **ROAD_DEFINES}
 
 
 def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
