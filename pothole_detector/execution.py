@@ -324,7 +324,7 @@ class FrameExecutor:
         graph = self.graphs.get(key, pipeline.matcher.generation, self._capture) \
             if graphed else None
         if graph is None:
-            frame = self._frame(pair, levels, clock, self._send_header)
+            frame = self._frame(pair, levels, clock, self._send_header, seeding)
             if graphed:
                 self.graphs.ran(key, pipeline.matcher.generation)
         else:
@@ -339,8 +339,9 @@ class FrameExecutor:
         return frame
 
     def _frame(self, pair: tuple[Any, Any, Any, Any], levels: int, clock: StageClock,
-               after_fit: Callable[[_Frame], None]) -> _Frame:
-        """The pipeline's stages from SGM on, into a new report."""
+               after_fit: Callable[[_Frame], None], seeded: bool = False) -> _Frame:
+        """The pipeline's stages from SGM on, into a new report (``seeded``: the seed pass ran
+        on the pair)."""
         config = self.pipeline.config
         n_sp = superpixels.grid_count(pair[0].shape,
                                       self.pipeline.region_size(pair[0].shape[1]),
@@ -348,7 +349,7 @@ class FrameExecutor:
         frame = _Frame(FrameReport(self.backend.xp, components.device_capacity(n_sp)),
                        pixels=int(pair[0].size))
         frame.arrays = self.pipeline.stages(*pair, levels, frame.report, clock,
-                                            _Checkpoint(self, frame, after_fit))
+                                            _Checkpoint(self, frame, after_fit), seeded)
         return frame
 
     def _send_header(self, frame: _Frame) -> None:

@@ -168,14 +168,17 @@ class Pipeline:
         xp = self.backend.xp
         images = [self.backend.upload(matching.to_gray8(image)) for image in (left, right)]
         clock = StageClock(self.backend)
+        seeded = self.road is None
         (*pair, prior), _, levels = self.prepare(
             lambda shifts, prior: (*images, xp.asarray(shifts), xp.asarray(prior)),
             images[0].shape, clock)
         disparity = self.matcher(*pair, levels, self.config)
         if self.config.gpt_enabled:
+            report, _ = self.fit_road(disparity, prior, seeded)
             try:
-                self.road = self._fit(disparity, stride=self.config.road_fit_stride,
-                                      prior=prior)
+                self.road = road_model.model_from_report(to_host(report),
+                                                         self.config.road_model,
+                                                         self.config.road_quadratic_gain)
             except NoRoadError:
                 self.reset()
         return disparity, levels
@@ -216,11 +219,13 @@ class Pipeline:
             self.config.min_road_inlier_fraction)
 
     def stages(self, left: Any, right: Any, shifts: Any, prior: Any, levels: int,
-               report: FrameReport, clock: StageClock, checkpoint: Checkpoint) -> FrameArrays:
+               report: FrameReport, clock: StageClock, checkpoint: Checkpoint,
+               seeded: bool = False) -> FrameArrays:
         """SGM to measure on a prepared pair (``prior``: the road fit's, see :meth:`prior`).
         Small results go into ``report`` (valid count,
         road fit, threshold search, component counts, pothole sums); nothing is read back but
-        what ``checkpoint`` reads."""
+        what ``checkpoint`` reads. On a frame the seed pass ``seeded``, the road is fitted
+        twice (:meth:`fit_road`)."""
         config, backend = self.config, self.backend
         xp = backend.xp
         with clock.stage("sgm"):
@@ -228,10 +233,7 @@ class Pipeline:
         valid = xp.isfinite(disparity)
         with clock.stage("road"):
             report.valid_count[...] = xp.count_nonzero(valid)
-            road_model.fit(backend, disparity, stride=config.road_fit_stride,
-                           rounds=config.road_fit_rounds, outlier_k=config.road_outlier_k,
-                           kind=config.road_model, quadratic_gain=config.road_quadratic_gain,
-                           report=report.road, params=report.road_params, prior=prior)
+            self.fit_road(disparity, prior, seeded, report.road, report.road_params)
         road = checkpoint.road_fitted(report)
         with clock.stage("dt"):
             transformed = transform_disparity(backend, disparity, road, config.delta_dt_px)
@@ -358,12 +360,24 @@ class Pipeline:
             return mode
         return "pixel" if self.matcher.kind(self.config) == "census" else "row"
 
-    def _fit(self, disparity: Any, stride: int, prior: Any = None) -> road_model.RoadModel:
+    def fit_road(self, disparity: Any, prior: Any, seeded: bool, report: Any = None,
+                 params: Any = None) -> tuple[Any, Any]:
+        """The road fit stage on a frame's backend D1 with the backend ``prior``: the fit report
+        and parameters (road_model.fit), in ``report`` and ``params`` where given. On a frame
+        the seed pass ``seeded`` the fit runs again with its own road as the prior: the coarse
+        seed only finds the road, and where the frame's road lies off it (curvature the coarse
+        pass made up, a plane tilted by its noise) the pixels near the seed hold part of the
+        road only; the second fit takes those near the first fit's road."""
         config = self.config
-        return road_model.fit_model(
-            self.backend, disparity, stride=stride, rounds=config.road_fit_rounds,
-            outlier_k=config.road_outlier_k, kind=config.road_model,
-            quadratic_gain=config.road_quadratic_gain, prior=prior)
+        options = dict(stride=config.road_fit_stride, rounds=config.road_fit_rounds,
+                       outlier_k=config.road_outlier_k, kind=config.road_model,
+                       quadratic_gain=config.road_quadratic_gain, report=report, params=params)
+        report, params = road_model.fit(self.backend, disparity, prior=prior, **options)
+        if seeded:
+            report, params = road_model.fit(
+                self.backend, disparity, prior=road_model.refit_prior(self.backend.xp, params,
+                                                                      prior), **options)
+        return report, params
 
     def _seed(self, left: Any, right: Any) -> road_model.RoadModel:
         """The seed pass (stages/seed.py) on the (backend) pair."""

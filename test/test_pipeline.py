@@ -388,3 +388,29 @@ def test_a_refused_frame_keeps_the_last_accepted_road_once(demo_sample):
     with pytest.raises(NoRoadError):
         strict.run(demo_sample.left, demo_sample.right)
     assert strict.road is None
+
+
+@pytest.mark.parametrize("backend_name", BACKENDS)
+def test_a_seeded_frame_fits_its_road_again_from_its_own_first_fit(backend_name):
+    """A seed whose slope is a third too steep: within the prior's 2 px lie the rows of the top
+    42 % of the frame only, and the fit from the seed takes those; on a frame the seed pass
+    ran on, the fit runs again from its own road and takes in the whole road."""
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.stages.road_model import RoadModel, model_from_report, prior_params
+    backend = get_backend(backend_name)
+    rng = np.random.default_rng(5)
+    v, u = np.mgrid[0:120, 0:230].astype(np.float64)
+    truth = RoadModel(20.0, 0.12, 0.03)
+    disparity = (truth.at(np, u, v) + rng.normal(0, 0.2, u.shape)).astype(np.float32)
+    seed = RoadModel(20.0, 0.16, 0.03)
+    prior = backend.upload(prior_params(seed, 2.0, 0.2))
+    pipeline = Pipeline(Config({"road_model": "planar", "road_fit_stride": 2}),
+                        StereoCalibration.from_focal_baseline(500.0, 0.1, 230, 120), backend)
+    fits = {}
+    for seeded in (False, True):
+        report, _ = pipeline.fit_road(backend.upload(disparity), prior, seeded)
+        fits[seeded] = model_from_report(to_host(report), "planar", 0.1)
+    assert fits[False].inlier_fraction == pytest.approx(0.42, abs=0.04)
+    assert fits[True].inlier_fraction > 0.95
+    for fit in fits.values():
+        assert abs(fit.roll_deg - truth.roll_deg) < 0.2 and fit.a1 == pytest.approx(0.12, 0.02)

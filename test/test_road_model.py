@@ -176,3 +176,20 @@ def test_prior_tolerance_follows_the_rig():
     expected = 0.1 * 1000.0 * math.tan(math.radians(2.0))
     assert prior_tolerance_px(road, calibration, 2.0) == pytest.approx(expected)
     assert prior_tolerance_px(road, calibration, 0.5) == 2.0  # the narrowest band
+
+
+def test_a_refit_prior_is_the_first_fit_with_the_first_prior_s_band():
+    """The first fit's parameters and the prior's tolerance and share; where the first fit
+    failed (NaN), no pixel lies near it and the second fit takes every valid pixel."""
+    from pothole_detector.stages.road_model import (PRIOR_MIN_SHARE, PRIOR_TOLERANCE,
+                                                    ROAD_PARAMS, fit_report, prior_params,
+                                                    refit_prior)
+    first = RoadModel(20.0, 0.12, 0.03)
+    prior = prior_params(RoadModel(19.0, 0.13, 0.0), 3.0, 0.25)
+    again = refit_prior(np, first.kernel_params(), prior)
+    np.testing.assert_array_equal(again, prior_params(first, 3.0, 0.25))
+    failed = refit_prior(np, np.full(ROAD_PARAMS, np.nan), prior)
+    assert failed[PRIOR_TOLERANCE] == 3.0 and failed[PRIOR_MIN_SHARE] == 0.25
+    v, u = np.mgrid[0:60, 0:80].astype(np.float64)
+    road = first.at(np, u, v).astype(np.float32)
+    np.testing.assert_array_equal(fit_report(np, road, prior=failed), fit_report(np, road))

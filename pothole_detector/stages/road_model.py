@@ -501,6 +501,15 @@ def prior_params(model: RoadModel | None, tolerance_px: float,
     return prior
 
 
+def refit_prior(xp: Any, params: Any, prior: Any) -> Any:
+    """The prior of a second fit (float64 (PRIOR_PARAMS,), on the backend): the first fit's
+    kernel parameters ``params`` (float64 (ROAD_PARAMS,); NaN where it failed, which leaves
+    no pixel near it, so the second fit takes every valid pixel) with the tolerance and share
+    of the first fit's ``prior``."""
+    return xp.concatenate([xp.asarray(params, dtype=xp.float64),
+                           xp.asarray(prior, dtype=xp.float64)[ROAD_PARAMS:]])
+
+
 def prior_tolerance_px(model: RoadModel, calibration: Any, change_deg: float) -> float:
     """How far (px) the road may lie from ``model`` in the next frame: the disparity by which a
     turn of the camera by ``change_deg`` about its x axis moves the road (a1 f tan(change)), at
