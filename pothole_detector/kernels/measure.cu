@@ -60,15 +60,20 @@ __device__ double surface_patch(const float* disparity, int u, int v, int height
     return isfinite(area) && area > 0.0 ? area : 0.0;
 }
 
-// measure.depth_below_road of one pixel: NaN where its ray does not meet the road plane in
-// front of the camera or d is not positive.
+// measure.depth_below_road of one pixel: its depth below the road, NaN where its ray does not
+// meet the road plane in front of the camera or d is not positive; and where footprint is
+// given, the pixel's footprint on the road (0 where its ray does not meet the road plane).
 __device__ float depth_below(const double* road, const double* normal, int u, int v, float d,
-                             double f, double cx, double cy, double fb) {
+                             double f, double cx, double cy, double fb,
+                             double* footprint = nullptr) {
     const double road_d = road_disparity(road, (double)u, (double)v);
     const double incidence = normal[0] * (u - cx) / f + normal[1] * (v - cy) / f + normal[2];
-    if (!(road_d > 0.0 && incidence > 0.0 && d > 0.0f))
-        return __int_as_float(0x7fffffff);
-    return fmaxf((float)((fb / (double)d - fb / road_d) * incidence), 0.0f);
+    const bool on_road = road_d > 0.0 && incidence > 0.0;
+    const double road_z = fb / road_d;
+    if (footprint != nullptr)
+        *footprint = on_road ? (double)(float)(road_z * road_z / (f * f * incidence)) : 0.0;
+    if (!(on_road && d > 0.0f)) return __int_as_float(0x7fffffff);
+    return fmaxf((float)((fb / (double)d - road_z) * incidence), 0.0f);
 }
 
 // measure.hidden_floor_depth of an edge-on pixel (u, v) of pothole label with depth: halfway
@@ -117,21 +122,13 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
     if (label > 0) {
         double normal[3];
         road_unit_normal(road, f, cx, cy, normal);
-        const double uu = u, vv = v;
-        const double road_d = road_disparity(road, uu, vv);
-        const double incidence = normal[0] * (uu - cx) / f + normal[1] * (vv - cy) / f
-                                 + normal[2];
-        // measured only where the pixel's ray meets the road plane in front of the camera
-        const bool on_road = road_d > 0.0 && incidence > 0.0;
-        const double road_z = fb / road_d;
-        const float d = disparity[index];
-        const double z = fb / (double)d;
-        const float depth = fmaxf((float)((z - road_z) * incidence), 0.0f);
-        const double footprint =
-            on_road ? (double)(float)(road_z * road_z / (f * f * incidence)) : 0.0;
+        double footprint;
+        const float depth = depth_below(road, normal, u, v, disparity[index], f, cx, cy, fb,
+                                        &footprint);
         values[0] = 1.0;
         values[1] = footprint;
-        if (on_road && d > 0.0f && finite(depth)) {
+        if (finite(depth)) {
+            const double uu = u, vv = v, z = fb / (double)disparity[index];
             bool edge_on;
             const double floor = surface_patch(disparity, u, v, height, width, f, cx, cy, fb,
                                                normal, &edge_on);
