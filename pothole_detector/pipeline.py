@@ -224,8 +224,8 @@ class Pipeline:
         """SGM to measure on a prepared pair (``prior``: the road fit's, see :meth:`prior`).
         Small results go into ``report`` (valid count,
         road fit, threshold search, component counts, pothole sums); nothing is read back but
-        what ``checkpoint`` reads. On a frame the seed pass ``seeded``, the road is fitted
-        twice (:meth:`fit_road`)."""
+        what ``checkpoint`` reads. Where the seed pass ran on the pair (``seeded``), the road is
+        fitted twice (:meth:`fit_road`)."""
         config, backend = self.config, self.backend
         xp = backend.xp
         with clock.stage("sgm"):
@@ -363,11 +363,12 @@ class Pipeline:
     def fit_road(self, disparity: Any, prior: Any, seeded: bool, report: Any = None,
                  params: Any = None) -> tuple[Any, Any]:
         """The road fit stage on a frame's backend D1 with the backend ``prior``: the fit report
-        and parameters (road_model.fit), in ``report`` and ``params`` where given. On a frame
-        the seed pass ``seeded`` the fit runs again with its own road as the prior: the coarse
-        seed only finds the road, and where the frame's road lies off it (curvature the coarse
-        pass made up, a plane tilted by its noise) the pixels near the seed hold part of the
-        road only; the second fit takes those near the first fit's road."""
+        and parameters (road_model.fit), in ``report`` and ``params`` where given. Where the
+        seed pass ran on the frame (``seeded``) the fit runs again with its own road as the
+        prior: the coarse seed only finds the road, and where the frame's road lies off it
+        (curvature the coarse pass made up, a plane tilted by its noise) the pixels near the
+        seed hold part of the road only; the second fit takes those near the first fit's
+        road."""
         config = self.config
         options = dict(stride=config.road_fit_stride, rounds=config.road_fit_rounds,
                        outlier_k=config.road_outlier_k, kind=config.road_model,

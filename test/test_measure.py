@@ -132,7 +132,7 @@ def test_reports_need_a_depth_between_the_bounds_and_no_deeper_than_wide():
 
 
 def test_floor_area_is_the_footprint_on_the_road_and_nothing_at_the_border():
-    from pothole_detector.stages.measure import floor_area
+    from pothole_detector.stages.measure import surface_patches
     hole, sample, disparity, labels, road = _grazing(15.0, 3.0)
     height, width = disparity.shape
     v, u = np.mgrid[0:height, 0:width]
@@ -140,15 +140,15 @@ def test_floor_area_is_the_footprint_on_the_road_and_nothing_at_the_border():
     # the road away from the pothole, nearer than about 25 m
     road_pixels = ~ndimage.binary_dilation(labels > 0) & (np.nan_to_num(disparity) > 2.5)
     normal = road_normal(road, sample.calibration)
-    floor = floor_area(np, u[road_pixels], v[road_pixels], disparity, normal,
-                       sample.calibration)
+    floor, _ = surface_patches(np, u[road_pixels], v[road_pixels], disparity, normal,
+                               sample.calibration)
     _, footprint = depth_below_road(np, u[road_pixels], v[road_pixels],
                                     disparity[road_pixels], road, sample.calibration)
     inner = floor > 0
     assert inner.mean() > 0.99
     np.testing.assert_allclose(floor[inner], footprint[inner], rtol=0.02)
-    border = floor_area(np, np.array([0, width - 1, 5]), np.array([5, 5, 0]), disparity,
-                        normal, sample.calibration)
+    border, _ = surface_patches(np, np.array([0, width - 1, 5]), np.array([5, 5, 0]),
+                                disparity, normal, sample.calibration)
     assert (border == 0).all()
 
 

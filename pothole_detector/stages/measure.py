@@ -115,12 +115,6 @@ def surface_patches(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
     return xp.where(inside & xp.isfinite(area) & (area > 0), area, 0.0), edge_on
 
 
-def floor_area(xp: Any, u: Any, v: Any, disparity: Any, normal: np.ndarray,
-               calibration: StereoCalibration) -> Any:
-    """The area (m^2, float64) on the road plane of :func:`surface_patches`."""
-    return surface_patches(xp, u, v, disparity, normal, calibration)[0]
-
-
 def hidden_floor_depth(xp: Any, labels: Any, rows: Any, cols: Any, label: Any, depth: Any,
                        edge_on: Any, disparity: Any, model: RoadModel,
                        calibration: StereoCalibration) -> Any:
@@ -152,7 +146,7 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
             extremes: Any = None) -> tuple[Any, Any]:
     """The measure stage: per-label sums of labels 1..capacity of the int32 HxW ``labels``
     with the HxW float32 disparity D1 (px, NaN invalid), nothing read back: backend float64
-    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, floor area (:func:`floor_area`),
+    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, floor area (:func:`surface_patches`),
     depth x floor area, x, y, z x valid area and int32 (capacity + 1, MEASURE_EXTREMES)
     largest depth (order-preserving float32 bits), u min, v min, u max, v max; row 0 unused;
     written into ``sums`` and ``extremes`` where given. The mean depth is taken over the
