@@ -42,6 +42,15 @@ def near_rim_sample():
                         camera_height_m=0.4, pitch_deg=30.0, potholes=(hole,)))
 
 
+@pytest.fixture(scope="session")
+def high_survey_sample():
+    """A survey rig 1.74 m up, pitched 51 deg, baseline 0.48 m, at 520x260 (focal 462 px): the
+    road's disparity grows from 60 px at the top to 124 px at the bottom."""
+    return render(Scene(width=520, height=260, focal_px=462.3, baseline_m=0.484,
+                        camera_height_m=1.742, pitch_deg=51.2, roll_deg=-2.0, supersample=1,
+                        noise_grey=1.8, right_gain=0.96))
+
+
 def shared_data(*parts: str) -> Path:
     path = SHARED_DATA.joinpath(*parts)
     if not path.exists():

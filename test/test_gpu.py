@@ -16,8 +16,8 @@ from pothole_detector.backend import (CPU, Readback, StageClock, UploadBuffer, g
 from pothole_detector.errors import BackendError, InputError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
-from pothole_detector.stages import (census_sgm, components, measure, perspective, superpixels,
-                                     threshold)
+from pothole_detector.stages import (census_sgm, components, matching, measure, perspective,
+                                     seed, superpixels, threshold)
 from pothole_detector.stages.matching import to_gray8
 from pothole_detector.stages.road_model import fit_road
 from pothole_detector.stages.transform import transform_disparity
@@ -1046,3 +1046,19 @@ def test_refinement_on_the_gpu_matches_the_reference(gpu):
                             gpu.upload(observed), 10, 0.25)
         assert (to_host(got) != want).mean() < 1e-3
     assert (want > labels).sum() > 1000
+
+
+def test_the_widest_seed_try_on_the_gpu_finds_the_road_the_reference_does(gpu,
+                                                                          high_survey_sample):
+    """max_disparity_px leaves the near road beyond the seed's range: both capped tries fail,
+    the one over half the reduced width (144 levels) finds the road's roll as the
+    census reference does."""
+    sample = high_survey_sample
+    config = Config({"matcher": "census", "max_disparity_px": 96, "coarse_scale": 2,
+                     "lr_max_diff_px": -1})
+    roads = [seed.seed_road(backend, matching.Matcher(backend), backend.upload(sample.left),
+                            backend.upload(sample.right), config, sample.calibration)
+             for backend in (gpu, CPU)]
+    assert roads[0].roll_deg == pytest.approx(-2.0, abs=0.2)
+    assert roads[0].roll_deg == pytest.approx(roads[1].roll_deg, abs=0.02)
+    assert roads[0].a0 == pytest.approx(roads[1].a0, abs=0.5)

@@ -7,11 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from pothole_detector.backend import CPU
 from pothole_detector.calibration import StereoCalibration
 from pothole_detector.errors import NoRoadError, NoTextureError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
-from pothole_detector.stages import seed
+from pothole_detector.stages import matching, seed
 from pothole_detector.stages.road_model import RoadModel
 from pothole_detector.stages.seed import seed_scale
 
@@ -22,18 +23,20 @@ def test_a_failed_seed_tries_again_without_the_check_then_at_half_the_scale(demo
     tries: list = []
     seed_at = seed.seed_at
 
-    def failing(backend, matcher, left, right, config, scale, checked, calibration):
+    def failing(backend, matcher, left, right, config, scale, checked, calibration, widest):
         tries.append((scale, checked))
+        assert not widest  # 384 px reach past half the reduced width already
         if len(tries) < 3:
             raise NoTextureError("no disparities")
-        return seed_at(backend, matcher, left, right, config, scale, checked, calibration)
+        return seed_at(backend, matcher, left, right, config, scale, checked, calibration,
+                       widest)
 
     monkeypatch.setattr(seed, "seed_at", failing)
     assert pipeline.run(demo_sample.left, demo_sample.right).seeded
     assert tries == [(4, True), (4, False), (2, False)]
     tries.clear()
 
-    def refusing(backend, matcher, left, right, config, scale, checked, calibration):
+    def refusing(backend, matcher, left, right, config, scale, checked, calibration, widest):
         tries.append((scale, checked))
         raise NoRoadError("no road")
 
@@ -42,6 +45,34 @@ def test_a_failed_seed_tries_again_without_the_check_then_at_half_the_scale(demo
     with pytest.raises(NoRoadError):
         pipeline.run(demo_sample.left, demo_sample.right)
     assert tries == [(4, True), (4, False), (2, False)]
+
+
+@pytest.mark.parametrize("matcher", ["opencv", "census"])
+def test_a_near_road_beyond_max_disparity_is_seeded_over_the_widest_range(high_survey_sample,
+                                                                          matcher, monkeypatch):
+    """max_disparity_px 96 leaves the lower rows' road out of the seed's range: matched at
+    random there, they hide the road's plane (with no left-right check, which alone would
+    drop some of them). The try over half the reduced width finds it."""
+    sample = high_survey_sample
+    config = Config({"matcher": matcher, "max_disparity_px": 96, "coarse_scale": 2,
+                     "lr_max_diff_px": -1})
+    matcher_for = matching.Matcher(CPU)
+    with pytest.raises(NoRoadError):
+        seed.seed_at(CPU, matcher_for, sample.left, sample.right, config, 2, False,
+                     sample.calibration)
+    tries: list = []
+    seed_at = seed.seed_at
+
+    def recording(backend, matcher, left, right, config, scale, checked, calibration, widest):
+        tries.append((scale, checked, widest))
+        return seed_at(backend, matcher, left, right, config, scale, checked, calibration,
+                       widest)
+
+    monkeypatch.setattr(seed, "seed_at", recording)
+    road = seed.seed_road(CPU, matcher_for, sample.left, sample.right, config,
+                          sample.calibration)
+    assert tries == [(2, True, False), (2, False, False), (2, False, True)]
+    assert road.roll_deg == pytest.approx(-2.0, abs=0.2)
 
 
 def test_seed_scale_follows_the_image_width_when_asked():

@@ -30,18 +30,22 @@ MAX_ROLL_DEG = 45.0
 def seed_road(backend: Backend, matcher: matching.Matcher, left: Any, right: Any,
               config: Config, calibration: StereoCalibration) -> road_model.RoadModel:
     """Road model from a full-range match of the (backend, uint8 HxW) pair reduced by the
-    seed scale (``coarse_scale``, or from the image width where it is 0). Where that finds too
-    few disparities or no road, it tries again without the left-right check (over a range near
-    half the image width the check leaves few pixels whose partner was matched; the robust
-    road fit rejects the outliers it would), then on the pair reduced half as much. Raises the
-    last try's NoTextureError or NoRoadError."""
+    seed scale (``coarse_scale``, or from the image width where it is 0), matched up to
+    ``max_disparity_px``. Where that finds too few disparities or no road, it tries again
+    without the left-right check (over a range near half the image width the check leaves few
+    pixels whose partner was matched; the robust road fit rejects the outliers it would), then
+    over the widest range, half the reduced width (a rig whose near road lies beyond
+    ``max_disparity_px`` matches it at random there, which can hide the road's plane), then on
+    the pair reduced half as much. Raises the last try's NoTextureError or NoRoadError."""
     scale = seed_scale(left.shape[1], config.coarse_scale)
-    tries = dict.fromkeys(((scale, True), (scale, False), (max(1, scale // 2), False)))
+    capped = config.max_disparity_px / scale < (left.shape[1] // scale) // 2
+    tries = dict.fromkeys(((scale, True, False), (scale, False, False), (scale, False, capped),
+                           (max(1, scale // 2), False, False)))
     failure: PotholeError | None = None
-    for factor, checked in tries:
+    for factor, checked, widest in tries:
         try:
             return seed_at(backend, matcher, left, right, config, factor, checked,
-                           calibration)
+                           calibration, widest)
         except (NoTextureError, NoRoadError) as exc:
             failure = exc
     assert failure is not None
@@ -49,16 +53,18 @@ def seed_road(backend: Backend, matcher: matching.Matcher, left: Any, right: Any
 
 
 def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, config: Config,
-            scale: int, checked: bool, calibration: StereoCalibration
+            scale: int, checked: bool, calibration: StereoCalibration, widest: bool = False
             ) -> road_model.RoadModel:
-    """One try of the seed: the pair reduced by ``scale``, matched over up to half the reduced
-    width, with the left-right check where ``checked``. Enough valid disparities are asked of
-    the columns that the range lets match."""
+    """One try of the seed: the pair reduced by ``scale``, matched up to ``max_disparity_px``
+    (over half the reduced width at most, or at least where ``widest``), with the left-right
+    check where ``checked``. Enough valid disparities are asked of the columns that the range
+    lets match."""
     xp = backend.xp
     small_left = matching.downsample(xp, left, scale)
     small_right = matching.downsample(xp, right, scale)
     half_width = small_left.shape[1] // 2
-    levels = perspective.round_up_levels(min(config.max_disparity_px / scale, half_width))
+    reach = half_width if widest else min(config.max_disparity_px / scale, half_width)
+    levels = perspective.round_up_levels(reach)
     shifts = xp.asarray(perspective.no_shifts(small_left.shape[0]))
     coarse = matcher(small_left, small_right, shifts, levels,
                      config if checked else config.replace(lr_max_diff_px=-1),
