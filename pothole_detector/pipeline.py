@@ -36,8 +36,9 @@ class PipelineResult:
     ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW; ``observed``
     bool (superpixel count,): where the road is observed, i.e. a pothole ``delta_pd_m`` deep
     would stand out of the disparity noise (``host("observed")`` gives it as a bool HxW mask);
-    ``observed_range_m`` (near, far): the distance along the road (m, from the point below the
-    camera) that the observed superpixels span, NaN where none is;
+    ``observed_range_m`` (near, far): the distance ahead along the road (m, from the point below
+    the camera, along the optical axis's direction on the road plane) that the observed
+    superpixels span, NaN where none is;
     ``band`` (lowest GPT shift, levels) and ``disparity_range`` (lowest, highest disparity the
     matcher could report, px). ``timings_ms``: per stage (CUDA events on the GPU, where the
     threshold search runs beside SLIC on a second stream and ``threshold`` times what is left

@@ -217,9 +217,10 @@ __device__ __forceinline__ double block_reduce(double value, bool minimum, doubl
 // road plane in front of the camera, the model is the road (road_modelled) and the threshold
 // depth is at most max_depth_m. With drop_px > 0 (the pixel threshold mode) the drop is
 // drop_px, observed where d > drop_px >= sigma, the ray meets the plane in front and the model
-// is the road. range: nearest and farthest distance (m) along the road plane from the point
-// below the camera of an observed superpixel, NaN where none is. road: the kernel parameters
-// (ROAD_*); fit: the fit report (FIT_*).
+// is the road. range: nearest and farthest distance (m) ahead along the road of an observed
+// superpixel, NaN where none is: from the point below the camera along the optical axis's
+// direction on the road plane. road: the kernel parameters (ROAD_*); fit: the fit report
+// (FIT_*).
 extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_observation(const double* road, const double* fit, int count, int cells_x, int step,
                       int width, int height, int downsample, double f, double cx, double cy,
@@ -260,9 +261,8 @@ threshold_observation(const double* road, const double* fit, int count, int cell
         }
         observed[k] = seen;
         if (seen) {
-            const double z = fb / safe, ray_u = (u - cx) / f, ray_v = (v - cy) / f;
-            const double ray2 = z * z * (ray_u * ray_u + ray_v * ray_v + 1.0);
-            const double along = sqrt(fmax(ray2 - height_m * height_m, 0.0));
+            const double along = (fb / safe - normal[2] * height_m)
+                                 / sqrt(fmax(1.0 - normal[2] * normal[2], 1e-12));
             nearest = fmin(nearest, along);
             farthest = fmax(farthest, along);
         }

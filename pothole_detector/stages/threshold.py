@@ -230,9 +230,11 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
     ``drop_px``, observed where d > ``drop_px`` >= sigma, the ray meets the plane in front of the
     camera and the curvature is within that share. Returns bool (count,) observed and
     float64 (count,) drops, and writes into ``observed_range`` (float64 (2,), where given) the
-    nearest and farthest distance (m) along the road plane, from the point below the camera,
-    of an observed superpixel, NaN where none is. On the GPU one single-block kernel
-    (kernels/threshold.cu)."""
+    nearest and farthest distance (m) ahead along the road of an observed superpixel, NaN
+    where none is: from the point below the camera along the optical axis's direction on the
+    road plane (motion.road_frame's forward axis), (z - n_z h) / sqrt(1 - n_z^2) for the
+    road point at depth z, n the plane's unit normal, h the camera's height. On the GPU one
+    single-block kernel (kernels/threshold.cu)."""
     xp = backend.xp
     count = superpixels.grid_count(shape, region_size_px, downsample)
     observed_range = xp.empty(2, dtype=xp.float64) if observed_range is None \
@@ -283,10 +285,8 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
         threshold_m = xp.maximum(resolvable, depth_m)
         observed = near_road & (threshold_m <= max_depth_m)
         drops = safe - fb / (fb / safe + threshold_m / xp.where(near_road, incidence, 1.0))
-    z = fb / safe
-    ray_m2 = z * z * (((u - calibration.cx) / f) ** 2 + ((v - calibration.cy) / f) ** 2 + 1.0)
     height_m = road_model.params_height(xp, road_params, calibration)
-    along = xp.sqrt(xp.maximum(ray_m2 - height_m * height_m, 0.0))
+    along = (fb / safe - nz * height_m) / xp.sqrt(xp.maximum(1.0 - nz * nz, 1e-12))
     span = xp.stack([xp.where(observed, along, xp.inf).min(),
                      xp.where(observed, along, -xp.inf).max()])
     observed_range[...] = xp.where(xp.isfinite(span), span, xp.nan)
