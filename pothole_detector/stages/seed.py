@@ -56,9 +56,9 @@ def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, 
             scale: int, checked: bool, calibration: StereoCalibration, widest: bool = False
             ) -> road_model.RoadModel:
     """One try of the seed: the pair reduced by ``scale``, matched up to ``max_disparity_px``
-    (over half the reduced width at most, or at least where ``widest``), with the left-right
-    check where ``checked``. Enough valid disparities are asked of the columns that the range
-    lets match."""
+    but over half the reduced width at most (over all of that where ``widest``), with the
+    left-right check where ``checked``. Enough valid disparities are asked of the columns
+    that the range lets match."""
     xp = backend.xp
     small_left = matching.downsample(xp, left, scale)
     small_right = matching.downsample(xp, right, scale)
