@@ -285,6 +285,8 @@ class Pipeline:
                 backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
                 frame.observed, refine.radius(frame.region_px),
                 config.refine_depth_fraction)
+            labels = refine.extend_occluded(backend, labels, filled, smoothed, road,
+                                            found.labels, frame.observed)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, smoothed, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)

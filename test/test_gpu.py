@@ -1046,6 +1046,17 @@ def test_refinement_on_the_gpu_matches_the_reference(gpu):
                             gpu.upload(observed), 10, 0.25)
         assert (to_host(got) != want).mean() < 1e-3
     assert (want > labels).sum() > 1000
+    from pothole_detector.stages.refine import extend_occluded
+    grown = want.copy()
+    want_smoothed = smoothed.copy()
+    want = extend_occluded(CPU, grown, filled, want_smoothed, road, superpixel_labels, observed)
+    for params in (road, road_model.device_params(gpu, road)):
+        got_smoothed = gpu.upload(smoothed)
+        got = extend_occluded(gpu, gpu.upload(grown), gpu.upload(filled), got_smoothed, params,
+                              gpu.upload(superpixel_labels), gpu.upload(observed))
+        assert (to_host(got) != want).mean() < 1e-3
+        assert (np.isnan(to_host(got_smoothed)) != np.isnan(want_smoothed)).mean() < 1e-3
+    assert (want > grown).sum() > 50
 
 
 def test_the_widest_seed_try_on_the_gpu_finds_the_road_the_reference_does(gpu,

@@ -16,7 +16,7 @@ def test_fan_potholes_pixel_f_score_accuracy_and_no_false_pothole(tmp_path):
     report = evaluate(shared_data("fan_potholes"), Config(), CPU)
     assert not report.errors
     assert len(report.pothole_rows) == 8
-    assert report.pixels.f_score >= 0.85
+    assert report.pixels.f_score >= 0.90
     assert report.pixels.accuracy >= 0.995
     assert report.objects.incorrect == 0 and report.objects.missed == 0
     assert all(row["incorrect"] == 0 for row in report.pothole_rows)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.refine import SMOOTHING_PX, radius, refine_labels, smooth
+from pothole_detector.stages.refine import (SMOOTHING_PX, extend_occluded, radius,
+                                            refine_labels, smooth)
 from pothole_detector.stages.road_model import RoadModel
 
 # a road at 32 px everywhere with delta_DT 32: the transformed disparity is the disparity
@@ -72,3 +73,31 @@ def test_smooth_averages_the_valid_neighbours():
     assert filled[0, 0] == pytest.approx(square[np.isfinite(square)].mean())
     assert np.array_equal(filled[1:], smoothed[1:]) and np.isfinite(filled).all()
     assert np.isnan(smooth(CPU, np.full((6, 6), np.nan, np.float32))[0]).all()
+
+
+def test_the_strip_only_the_left_camera_sees_beside_a_right_rim_joins_the_pothole():
+    """A floor at 26 px in a road at 32 px: left of the right rim the left camera sees 6 px
+    that the right camera does not (the matcher gives them the road's 32 px). Rows 2-5: the
+    labels stop at column 19, columns 20-25 join. Row 6: a second pothole at column 23 stops
+    the strip at 22. Row 7: columns 24-29 lie in an unobserved superpixel. Row 8: the run's
+    end lies within half a smoothing square of the border, no floor to read: nothing joins."""
+    disparity = np.full((12, 40), 32.0, np.float32)
+    disparity[2:9, 8:20] = 26.0
+    disparity[8, 0:3] = 26.0
+    labels = np.zeros((12, 40), np.int32)
+    labels[2:8, 8:20] = 1
+    labels[6, 23:33] = 2                # as deep as the road reads there: no strip
+    labels[8, 0:2] = 3
+    superpixel_labels = np.zeros((12, 40), np.int32)
+    superpixel_labels[7, 24:30] = 1
+    filled, smoothed = smooth(CPU, np.where(labels > 0, disparity, 32.0).astype(np.float32))
+    filled[2:9, 8:20] = 26.0
+    out = extend_occluded(CPU, labels, filled, smoothed, FLAT, superpixel_labels,
+                          np.array([True, False]))
+    assert out.dtype == np.int32
+    assert (out[2:6, 20:26] == 1).all() and not out[2:6, 26:].any()
+    assert (out[6, 20:23] == 1).all() and (out[6, 23:33] == 2).all() and not out[6, 33:].any()
+    assert (out[7, 20:24] == 1).all() and not out[7, 24:].any()
+    assert (out[8] == labels[8]).all() and (out[:2] == 0).all() and (out[9:] == 0).all()
+    joined = (out > 0) & (labels == 0)
+    assert np.isnan(smoothed[joined]).all() and np.isfinite(smoothed[~joined]).all()

@@ -7,6 +7,11 @@
 //   and whose transformed filled disparity (as kernels/transform.cu computes it) lies more
 //   than fraction x its superpixel's drop below delta takes the largest label within `radius`
 //   (a square, clipped); else 0.
+// refine_occluded: out holds a copy of labels; the thread of the right end u of a labelled run
+//   of a row (its right neighbour unlabelled) labels in out the unlabelled pixels u + k,
+//   0 < k <= road disparity at u + 1 less filled at u - (SMOOTHING - 1), up to the next
+//   labelled pixel, whose superpixel is observed, and sets smoothed NaN there (no other thread
+//   writes those pixels).
 // Defined by the launcher (stages/refine.py, _kernel): SMOOTHING and the road parameters'
 // layout (ROAD_*).
 #include "road_disparity.cuh"
@@ -57,4 +62,26 @@ extern "C" __global__ void refine_grow(const int* labels, const float* filled,
                 found = max(found, labels[(long long)r * width + c]);
     }
     out[index] = found;
+}
+
+extern "C" __global__ void refine_occluded(const int* labels, const float* filled,
+                                           float* smoothed, const int* superpixels,
+                                           const bool* observed, const double* road,
+                                           int height, int width, int* out) {
+    const int col = blockIdx.x * blockDim.x + threadIdx.x;
+    const int row = blockIdx.y * blockDim.y + threadIdx.y;
+    if (col >= width - 1 || row >= height) return;
+    const long long index = (long long)row * width + col;
+    const int label = labels[index];
+    const int inside = col - (SMOOTHING - 1);
+    if (label <= 0 || labels[index + 1] != 0 || inside < 0) return;
+    const double step = road_disparity(road, (double)(col + 1), (double)row)
+                        - (double)filled[(long long)row * width + inside];
+    for (int k = 1; col + k < width && k <= step; ++k) {
+        const long long at = index + k;
+        if (labels[at] != 0) break;
+        if (!observed[superpixels[at]]) continue;
+        out[at] = label;
+        smoothed[at] = __int_as_float(0x7fc00000);
+    }
 }

@@ -1,7 +1,8 @@
 """Pixel-level refinement of the pothole labels: superpixels decide where potholes are; the
 pixels around them that lie below the road join them, so that rims which straddle a
-superpixel's edge are not cut off. Works on the disparity averaged over a small square
-(:func:`smooth`), which measuring uses too."""
+superpixel's edge are not cut off, and so does the strip beside a right rim that only the
+left camera sees. Works on the disparity averaged over a small square (:func:`smooth`), which
+measuring uses too."""
 
 from __future__ import annotations
 
@@ -79,6 +80,54 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
         & xp.take(observed, superpixel_labels)
     near = ndimage.maximum_filter(labels, size=2 * radius_px + 1, mode="constant")
     return xp.where(labels > 0, labels, xp.where(deep, near, 0)).astype(xp.int32)
+
+
+def extend_occluded(backend: Backend, labels: Any, filled: Any, smoothed: Any,
+                    road: RoadModel | Any, superpixel_labels: Any, observed: Any) -> Any:
+    """The occlusion stage: int32 HxW labels where the strip that only the left camera sees
+    beside each pothole's right rim joins the pothole, and ``smoothed`` NaN there (in place).
+
+    Left of a right rim (floor, then road going right) the right camera's view of the floor
+    is cut off by the rim: the Dd = d_road - d_floor pixels of the left image just left of the
+    rim have no match, and the matcher gives them the road's disparity, so the labels stop Dd
+    pixels short. At the right end u of each labelled run of a row, d_floor is ``filled`` (the
+    7x7 mean of :func:`smooth`) a smoothing square's width inside, at u - (SMOOTHING_PX - 1):
+    the mean there takes in neither the strip nor the half square by which the smoothing, and
+    so the refinement, carries the labels past the floor's edge; d_road is the road model's at
+    u + 1. The unlabelled pixels u + k, 0 < k <= Dd, up to the next labelled one, whose
+    superpixel is observed, take the run's label. Their disparity is the matcher's guess:
+    ``smoothed`` (float32 HxW, what measuring reads) becomes NaN there, so they add to a
+    pothole's area, not to its depth.
+    ``labels``, ``superpixel_labels`` int32 HxW; ``observed`` bool per superpixel; ``road`` a
+    RoadModel, or on the GPU also its device parameters. On the GPU one kernel
+    (kernels/refine.cu) on a copy of the labels."""
+    xp = backend.xp
+    height, width = labels.shape
+    if backend.is_gpu:
+        labels = xp.ascontiguousarray(labels, dtype=xp.int32)
+        out = labels.copy()
+        _kernel(backend, "refine_occluded")(
+            _grid(height, width), _BLOCK,
+            (labels, filled, smoothed, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32),
+             xp.ascontiguousarray(observed, dtype=xp.bool_), device_params(backend, road),
+             np.int32(height), np.int32(width), out))
+        return out
+    labelled = labels > 0
+    cols = xp.arange(width)
+    last = xp.maximum.accumulate(xp.where(labelled, cols[None, :], -1), axis=1)
+    ends = xp.nonzero(labelled[:, :-1] & ~labelled[:, 1:])
+    inside = ends[1] - (SMOOTHING_PX - 1)
+    floor = xp.where(inside >= 0, filled[ends[0], xp.maximum(inside, 0)], xp.nan)
+    step = road.at(xp, (ends[1] + 1).astype(xp.float64), ends[0].astype(xp.float64)) - floor
+    strip = xp.full((height, width), xp.nan)
+    strip[ends] = step
+    end = xp.maximum(last, 0)
+    with np.errstate(invalid="ignore"):
+        joins = ~labelled & (last >= 0) \
+            & (cols[None, :] - last <= xp.take_along_axis(strip, end, axis=1)) \
+            & xp.take(observed, superpixel_labels)
+    smoothed[joins] = xp.nan
+    return xp.where(joins, xp.take_along_axis(labels, end, axis=1), labels).astype(xp.int32)
 
 
 def radius(region_size_px: int) -> int:
