@@ -80,7 +80,7 @@ def test_the_strip_only_the_left_camera_sees_beside_a_right_rim_joins_the_pothol
     that the right camera does not (the matcher gives them the road's 32 px). Rows 2-5: the
     labels stop at column 19, columns 20-25 join. Row 6: a second pothole at column 23 stops
     the strip at 22. Row 7: columns 24-29 lie in an unobserved superpixel. Row 8: the run's
-    end lies within half a smoothing square of the border, no floor to read: nothing joins."""
+    end lies within a smoothing square of the border, no floor to read: nothing joins."""
     disparity = np.full((12, 40), 32.0, np.float32)
     disparity[2:9, 8:20] = 26.0
     disparity[8, 0:3] = 26.0

@@ -122,10 +122,9 @@ def extend_occluded(backend: Backend, labels: Any, filled: Any, smoothed: Any,
     strip = xp.full((height, width), xp.nan)
     strip[ends] = step
     end = xp.maximum(last, 0)
-    with np.errstate(invalid="ignore"):
-        joins = ~labelled & (last >= 0) \
-            & (cols[None, :] - last <= xp.take_along_axis(strip, end, axis=1)) \
-            & xp.take(observed, superpixel_labels)
+    joins = ~labelled & (last >= 0) \
+        & (cols[None, :] - last <= xp.take_along_axis(strip, end, axis=1)) \
+        & xp.take(observed, superpixel_labels)
     smoothed[joins] = xp.nan
     return xp.where(joins, xp.take_along_axis(labels, end, axis=1), labels).astype(xp.int32)
 
