@@ -19,6 +19,7 @@ setup(
     ],
     python_requires=">=3.10",
     install_requires=[
+        "numba>=0.60",
         "numpy>=1.24",
         "opencv-python-headless>=4.8",
         "scipy>=1.10",

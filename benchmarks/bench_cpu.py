@@ -1,7 +1,7 @@
 """CPU speed of the whole pipeline, per stage, at 1280x720 (synthetic road) and on the real
 2079x1040 pothole frames (when ../shared/data is present). Prints a Markdown table.
 
-    python benchmarks/bench_cpu.py [--repeat N] [--threads T]
+    python benchmarks/bench_cpu.py [--repeat N] [--threads T] [--matcher census|opencv]
 """
 
 from __future__ import annotations
@@ -20,11 +20,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pothole_detector.backend import CPU  # noqa: E402
 from pothole_detector.calibration import StereoCalibration  # noqa: E402
 from pothole_detector.imageio import read_image  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E402
+from pothole_detector.stages import census_cpu  # noqa: E402
+from pothole_detector.stages.matching import Matcher, to_gray8  # noqa: E402
+from pothole_detector.stages.perspective import no_shifts  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
 
 STAGES = ("seed", "gpt", "sgm", "road", "dt", "slic", "threshold", "components", "refine",
@@ -47,14 +50,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeat", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--matcher", choices=("census", "opencv"), default=Config().matcher)
     args = parser.parse_args()
     cv2.setNumThreads(args.threads)
-    config = Config()
+    census_cpu.set_threads(args.threads)
+    config = Config({"matcher": args.matcher})
     print(f"CPU benchmark, {date.today()}, {platform.processor() or platform.machine()}, "
-          f"{os.cpu_count()} cores, OpenCV {cv2.__version__} on {args.threads} threads, "
-          f"NumPy {np.__version__}; median ms over {args.repeat} runs after one warm-up "
-          "(a fresh pipeline each run, so 'seed' runs every time)\n")
-    print("| frame | " + " | ".join(STAGES) + " | SGBM full range alone |")
+          f"{os.cpu_count()} cores, matcher {args.matcher}, OpenCV {cv2.__version__} and Numba "
+          f"on {args.threads} threads, NumPy {np.__version__}; median ms over {args.repeat} "
+          "runs after one warm-up (a fresh pipeline each run, so 'seed' runs every time)\n")
+    print("| frame | " + " | ".join(STAGES) + " | matcher alone, full range |")
     print("| --- |" + " --- |" * (len(STAGES) + 1))
     for name, left, right, calibration in frames():
         runs = []
@@ -64,10 +69,10 @@ def main() -> None:
                 runs.append(result.timings_ms)
         gray_left, gray_right = to_gray8(left), to_gray8(right)
         levels = 256 if left.shape[1] > 1500 else 128
-        plain = []
+        plain, matcher = [], Matcher(CPU)
         for _ in range(3):
             start = time.perf_counter()
-            sgm_disparity(gray_left, gray_right, levels, config.replace(lr_max_diff_px=-1))
+            matcher(gray_left, gray_right, no_shifts(left.shape[0]), levels, config)
             plain.append((time.perf_counter() - start) * 1e3)
         medians = [np.median([r[s] for r in runs]) for s in STAGES]
         print(f"| {name} | " + " | ".join(f"{m:.0f}" for m in medians)

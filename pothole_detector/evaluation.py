@@ -310,7 +310,8 @@ def _evaluate_potholes(sample: Sample, config: Config, backend: Backend,
 
 def _evaluate_disparity(sample: Sample, config: Config, backend: Backend,
                         report: EvaluationReport) -> None:
-    """GPT-SGM (our matcher) and plain SGBM over the full range with the same settings."""
+    """The configured matcher on the GPT band (our pipeline) and over the full range of the
+    ground truth without GPT, with the same settings."""
     left, right = read_image(sample.left), read_image(sample.right)
     truth = sample.ground_truth_disparity()
     if truth.shape != left.shape[:2]:
@@ -323,14 +324,18 @@ def _evaluate_disparity(sample: Sample, config: Config, backend: Backend,
     start = time.perf_counter()
     ours, levels = pipeline.match_pair(left, right)
     ours_ms = (time.perf_counter() - start) * 1e3
-    gray_left, gray_right = matching.to_gray8(left), matching.to_gray8(right)
+    gray_left = backend.upload(matching.to_gray8(left))
+    gray_right = backend.upload(matching.to_gray8(right))
+    shifts = backend.upload(perspective.no_shifts(left.shape[0]))
     start = time.perf_counter()
-    plain = matching.sgm_disparity(gray_left, gray_right, levels_full, full_config)
+    plain = backend.to_host(matching.Matcher(backend)(gray_left, gray_right, shifts,
+                                                      levels_full, full_config))
     plain_ms = (time.perf_counter() - start) * 1e3
     ours = backend.to_host(ours)
     road = road_region(truth)
-    for matcher, estimate, n_levels, ms in (("GPT-SGM (ours)", ours, levels, ours_ms),
-                                            ("OpenCV SGBM", plain, levels_full, plain_ms)):
+    for matcher, estimate, n_levels, ms in ((f"{config.matcher}, GPT band", ours, levels, ours_ms),
+                                            (f"{config.matcher}, full range", plain, levels_full,
+                                             plain_ms)):
         for region_name, region in (("road", road), ("all", None)):
             errors = disparity_errors(estimate, truth, region)
             report.disparity_rows.append({"name": sample.name, "matcher": matcher,
@@ -516,8 +521,10 @@ def _render_all(scenes: list, cache: Path | None, jobs: int) -> Iterator[Any]:
         return
     from collections import deque
     from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
 
-    with ProcessPoolExecutor(jobs) as pool:
+    # started afresh, not forked: a fork of a process whose matcher's threads ran is unsafe
+    with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
         waiting: deque = deque()
         for scene in scenes:
             waiting.append(pool.submit(_rendered, scene, cache))

@@ -320,7 +320,7 @@ class FrameExecutor:
             lambda table, prior: _send(staged, table, prior), (height, width), clock)
         key = (height, width, levels, pipeline.region_size(width))
         graphed = backend.is_gpu and config.cuda_graph and not seeding \
-            and pipeline.matcher.kind(config) == "census"
+            and config.matcher == "census"
         graph = self.graphs.get(key, pipeline.matcher.generation, self._capture) \
             if graphed else None
         if graph is None:

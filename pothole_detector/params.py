@@ -83,10 +83,10 @@ PARAMETERS: tuple[Param, ...] = (
           "Band margin above the road (px), for bumps and noise.",
           0, 512),
     # matching
-    Param("matcher", str, "auto",
-          "Stereo matcher: census (our census SGM: CUDA kernels on the GPU, a slow NumPy "
-          "reference on the CPU), opencv (OpenCV SGBM, on the host), or auto (census on the "
-          "GPU, opencv on the CPU).", choices=("auto", "census", "opencv")),
+    Param("matcher", str, "census",
+          "Stereo matcher: census (our census SGM: CUDA kernels on the GPU, Numba kernels on "
+          "the CPU, the same disparities on both) or opencv (OpenCV SGBM, on the host).",
+          choices=("census", "opencv")),
     Param("census_p1", int, 3, "Census SGM penalty for |dd| = 1 (census bits: 0 .. 31); low "
           "penalties keep pothole rims sharp.", 0, 95),
     Param("census_p2", int, 20, "Census SGM penalty for |dd| > 1 (> census_p1).", 1, 96),
@@ -109,8 +109,9 @@ PARAMETERS: tuple[Param, ...] = (
           "The seed pass takes no plane for the road that puts the camera higher above it "
           "than this (m): walls, far trees and sky are not the road.", 0.1, 1000),
     Param("min_valid_fraction", float, 0.05,
-          "Fewer valid disparities than this fraction of the image means no texture: an error.",
-          0, 1),
+          "Fewer valid disparities than this fraction of the image means no texture, and "
+          "a road plane holding less of the seed pass's pixels is scattered matches, not a "
+          "road: errors.", 0, 1),
     # road model and disparity transformation
     Param("road_model", str, "auto",
           "planar (paper), quadratic in the rotated row, or auto (quadratic only where it "

@@ -356,12 +356,12 @@ class Pipeline:
                                        self._axis_sine)
 
     def shift_mode(self) -> str:
-        """pixel or row: the GPT shifts ``gpt_shift`` asks for on this backend (auto: pixel
-        with the census matcher, row with OpenCV SGBM)."""
+        """pixel or row: the GPT shifts ``gpt_shift`` asks for (auto: pixel with the census
+        matcher, row with OpenCV SGBM)."""
         mode = self.config.gpt_shift
         if mode != "auto":
             return mode
-        return "pixel" if self.matcher.kind(self.config) == "census" else "row"
+        return "pixel" if self.config.matcher == "census" else "row"
 
     def fit_road(self, disparity: Any, prior: Any, seeded: bool, report: Any = None,
                  params: Any = None) -> tuple[Any, Any]:

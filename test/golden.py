@@ -74,8 +74,8 @@ def cases() -> dict[str, list[dict]]:
         pipeline = Pipeline(config, calibration)
         out[name] = [result_digest(pipeline.run(left, right)) for _ in range(2)]
     demo = render(demo_scene(480, 270))
-    census = Pipeline(Config({"matcher": "census"}), demo.calibration)
-    out["demo_census"] = [result_digest(census.run(demo.left, demo.right)) for _ in range(2)]
+    opencv = Pipeline(Config({"matcher": "opencv"}), demo.calibration)
+    out["demo_opencv"] = [result_digest(opencv.run(demo.left, demo.right)) for _ in range(2)]
     drive_calibration = render(drive_scenes(frames=1)[0]).calibration
     stream = Pipeline(Config(), drive_calibration).run_stream(
         _bag_pairs(REPO / "bags" / "sample_drive"))

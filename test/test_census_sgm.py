@@ -9,10 +9,13 @@ from pothole_detector.errors import ConfigError
 from pothole_detector.params import Config
 from pothole_detector.stages import census_sgm, perspective
 from pothole_detector.stages.census_sgm import (
-    CENSUS_BITS, CENSUS_OFFSETS, DIRECTION_PAIRS, INVALID_COST, MAX_P2, _path_step, aggregate,
-    aggregate_path, census_transform, matching_cost, reference_disparity, select_disparities)
+    CENSUS_BITS, CENSUS_OFFSETS, DIRECTION_PAIRS, INVALID_COST, MAX_P2, census_transform,
+    cpu_disparity)
 from pothole_detector.stages.perspective import no_shifts, row_shifts
 from pothole_detector.stages.road_model import RoadModel
+
+from census_reference import (
+    _path_step, aggregate, aggregate_path, matching_cost, reference_disparity, select_disparities)
 
 
 def textured_pair(height: int, width: int, shift: np.ndarray, seed: int = 0):
@@ -60,13 +63,13 @@ def test_path_starts_where_the_predecessor_is_outside():
 
 
 @pytest.mark.parametrize("with_gpt", [False, True])
-def test_reference_recovers_a_road_like_shift_with_gpt_row_shifts(with_gpt):
+def test_cpu_matcher_recovers_a_road_like_shift_with_gpt_row_shifts(with_gpt):
     """Disparity grows by one every 6 rows, like a road; GPT's kappa follows it."""
     height, width = 24, 64
     true_shift = 9 + np.arange(height) // 6
     left, right = textured_pair(height, width, true_shift, seed=2)
     shifts = row_shifts(np.arange(height) // 6) if with_gpt else no_shifts(height)
-    disparity = reference_disparity(left, right, shifts, 16, 7, 86, 5, 1, True)
+    disparity = cpu_disparity(left, right, shifts, 16, 7, 86, 5, 1, True)
     error = np.abs(disparity - true_shift[:, None])[6:-6, 24:-8]
     assert np.isfinite(error).mean() > 0.9
     assert np.nanmedian(error) < 0.2 and np.nanmean(error > 1.0) < 0.02
@@ -74,7 +77,7 @@ def test_reference_recovers_a_road_like_shift_with_gpt_row_shifts(with_gpt):
 
 
 @pytest.mark.parametrize("slope", [0.07, -0.07])
-def test_reference_recovers_a_rolled_road_with_gpt_pixel_shifts(slope):
+def test_cpu_matcher_recovers_a_rolled_road_with_gpt_pixel_shifts(slope):
     """Disparity changes along the rows too (a rolled rig): 6.6 px over the row, which the
     pixel shifts follow, so 16 levels hold it with a 4 px margin on either side."""
     height, width = 24, 96
@@ -86,7 +89,7 @@ def test_reference_recovers_a_rolled_road_with_gpt_pixel_shifts(slope):
     model = RoadModel(15.5 - 48 * slope, math.hypot(1 / 6, slope), math.atan2(-slope, 1 / 6))
     shifts, levels = perspective.band(np, model, height, width, 4.0, 4.0, 64, "pixel")
     assert levels == 16
-    disparity = reference_disparity(left, right, shifts, levels, 7, 86, 5, 1, True)
+    disparity = cpu_disparity(left, right, shifts, levels, 7, 86, 5, 1, True)
     error = np.abs(disparity - true_d)[6:-6, 30:-6]
     assert np.isfinite(error).mean() > 0.9
     assert np.nanmedian(error) < 0.2 and np.nanmean(error > 1.0) < 0.03
@@ -112,9 +115,9 @@ def test_uniqueness_and_left_right_check_invalidate():
 def test_settings_the_matcher_cannot_run_are_refused():
     image = np.zeros((8, 8), np.uint8)
     with pytest.raises(ConfigError, match="multiple of 16"):
-        reference_disparity(image, image, no_shifts(8), 24, 5, 50, 5, 1, True)
+        cpu_disparity(image, image, no_shifts(8), 24, 5, 50, 5, 1, True)
     with pytest.raises(ConfigError, match="P1 < P2"):
-        reference_disparity(image, image, no_shifts(8), 16, 50, 250, 5, 1, True)
+        cpu_disparity(image, image, no_shifts(8), 16, 50, 250, 5, 1, True)
 
 
 def test_path_costs_stay_within_the_byte_pair_bound():
@@ -135,7 +138,7 @@ def test_textureless_patches_are_invalid_and_textured_ones_are_not():
     left, right = textured_pair(40, 90, np.full(40, 6), seed=4)
     left[10:30, 40:70] = 120
     right[10:30, 34:64] = 120
-    disparity = reference_disparity(left, right, no_shifts(40), 16, 3, 20, 5, 1, True)
+    disparity = cpu_disparity(left, right, no_shifts(40), 16, 3, 20, 5, 1, True)
     # windows (9x7) that lie inside the flat patch, and their 3x3 neighbourhoods
     assert not np.isfinite(disparity[15:25, 46:64]).any()
     textured = disparity[5:35, 16:36]
@@ -223,8 +226,39 @@ def test_pixels_whose_band_reaches_left_of_the_image_are_invalid():
     """Left of column levels - 1 a pixel's true match may lie off the image while the levels
     left to it are the shallow ones: such pixels are invalid, the rest match the truth."""
     left, right = textured_pair(40, 90, np.full(40, 12), seed=5)
-    disparity = reference_disparity(left, right, no_shifts(40), 32, 3, 20, 5, 1, True)
+    disparity = cpu_disparity(left, right, no_shifts(40), 32, 3, 20, 5, 1, True)
     assert not np.isfinite(disparity[:, :31]).any()
     valid = np.isfinite(disparity)
     assert valid[5:35, 31:85].mean() > 0.9
     assert np.all(np.abs(disparity[valid] - 12) <= 1)
+
+
+PARITY_CASES = [
+    # height, width, levels, p1, p2, uniqueness, left-right tolerance, median, shift pattern
+    (24, 64, 16, 3, 20, 5, 1, True, "none"),
+    (31, 77, 32, 7, 86, 5, 1, True, "rows"),
+    (40, 90, 48, 0, 1, 0, -1, False, "rows"),
+    (17, 120, 32, 1, 4, 10, 0, True, "pixels"),
+    (50, 140, 64, 3, MAX_P2, 25, 2, False, "pixels"),
+]
+
+
+@pytest.mark.parametrize("height,width,levels,p1,p2,uniqueness,lr,median,pattern", PARITY_CASES)
+def test_cpu_matcher_gives_the_reference_disparities_exactly(height, width, levels, p1, p2,
+                                                             uniqueness, lr, median, pattern):
+    """The compiled CPU kernels (stages/census_cpu.py) against the plain NumPy statement of
+    the algorithm (census_reference.py): costs, penalties small and large, uniqueness and
+    left-right settings, the GPT row and pixel shifts with rows whose first columns differ."""
+    rng = np.random.default_rng(height * width + levels)
+    left, right = textured_pair(height, width, rng.integers(4, 12, height), seed=levels)
+    if pattern == "rows":
+        shifts = row_shifts(rng.integers(0, 6, height))
+    elif pattern == "pixels":
+        model = RoadModel(6.0, 0.15, 0.1)
+        shifts, _ = perspective.band(np, model, height, width, 4.0, 4.0, levels, "pixel")
+    else:
+        shifts = no_shifts(height)
+    expected = reference_disparity(left, right, shifts, levels, p1, p2, uniqueness, lr, median)
+    actual = cpu_disparity(left, right, shifts, levels, p1, p2, uniqueness, lr, median)
+    np.testing.assert_array_equal(actual, expected)
+    assert np.isfinite(actual).mean() > 0.2

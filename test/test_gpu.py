@@ -23,6 +23,8 @@ from pothole_detector.stages.road_model import fit_road
 from pothole_detector.stages.transform import transform_disparity
 from pothole_detector.synthetic import drive_scenes, render
 
+import census_reference
+
 pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")]
 
@@ -98,8 +100,8 @@ def transformed_census(census_right, shifts):
 def reference_pair_sums(census_left, census_right, shifts, levels, p1, p2):
     """NumPy reference: matching cost (HxWxlevels), the 8 path costs and their DIRECTION_PAIRS
     sums (int32 4xHxWxlevels, the GPU path volume's real levels)."""
-    cost = census_sgm.matching_cost(census_left, census_right, shifts, levels)
-    paths = census_sgm.aggregate(cost, p1, p2)
+    cost = census_reference.matching_cost(census_left, census_right, shifts, levels)
+    paths = census_reference.aggregate(cost, p1, p2)
     pair_sums = np.stack([paths[a].astype(np.int32) + paths[b]
                           for a, b in census_sgm.DIRECTION_PAIRS])
     return cost, paths, pair_sums
@@ -122,7 +124,7 @@ def test_census_sgm_kernels_match_the_reference_exactly(gpu, height, width, leve
     assert buffers["raw"].data.ptr == buffers["census"][1].data.ptr
     _, paths, pair_sums = reference_pair_sums(census_left, census_right, shifts, levels, P1, P2)
     np.testing.assert_array_equal(to_host(buffers["paths"])[..., :levels], pair_sums)
-    raw = census_sgm.select_disparities(paths, 5, 1)
+    raw = census_reference.select_disparities(paths, 5, 1)
     np.testing.assert_array_equal(to_host(buffers["raw"]), raw)
     expected = census_sgm.finish(raw, shifts, True, census_left, levels)
     np.testing.assert_array_equal(disparity, expected)
@@ -150,12 +152,12 @@ def test_penalties_below_the_largest_cost_match_the_reference(gpu, height, width
     np.testing.assert_array_equal(paths_held[..., :levels], pair_sums)
     np.testing.assert_array_equal(
         to_host(disparity),
-        census_sgm.reference_disparity(left, right, shifts, levels, p1, p2, 5, 1, True))
+        census_reference.reference_disparity(left, right, shifts, levels, p1, p2, 5, 1, True))
     # along the rows (direction 0): some step's least cost + P2 below its least path cost
     # without the jump (the reference step with a P2 no cost reaches)
     previous = paths[0][:, :-1].reshape(-1, levels).astype(np.int32)
     step_cost = cost[:, 1:].reshape(-1, levels)
-    without_jump = census_sgm._path_step(step_cost, previous, p1, 1 << 20).min(axis=1)
+    without_jump = census_reference._path_step(step_cost, previous, p1, 1 << 20).min(axis=1)
     assert (step_cost.min(axis=1) + p2 < without_jump).any()
 
 
@@ -180,7 +182,7 @@ def test_default_penalties_add_slot_pairs_as_bytes_and_match_the_reference(gpu, 
     assert int(pair_sums.max()) > 2 * census_sgm.INVALID_COST
     np.testing.assert_array_equal(
         to_host(disparity),
-        census_sgm.reference_disparity(left, right, shifts, levels, p1, p2, 5, 1, True))
+        census_reference.reference_disparity(left, right, shifts, levels, p1, p2, 5, 1, True))
 
 
 def test_largest_penalty_fits_the_byte_pairs(gpu):
@@ -192,8 +194,8 @@ def test_largest_penalty_fits_the_byte_pairs(gpu):
     matcher = census_sgm.GpuMatcher(gpu)
     device = matcher(gpu.upload(left), gpu.upload(right), gpu.upload(shifts), 32, 0,
                      census_sgm.MAX_P2, 0, -1, False)
-    expected = census_sgm.reference_disparity(left, right, shifts, 32, 0, census_sgm.MAX_P2, 0,
-                                              -1, False)
+    expected = census_reference.reference_disparity(left, right, shifts, 32, 0,
+                                                    census_sgm.MAX_P2, 0, -1, False)
     np.testing.assert_array_equal(to_host(device), expected)
     assert int(to_host(matcher.buffers(20, 48, 32)["paths"]).max()) > 160
 
@@ -203,8 +205,8 @@ def test_census_sgm_settings_match_the_reference(gpu, uniqueness, lr, median):
     left, right = random_pair(30, 70, 8, seed=7)
     shifts = perspective.no_shifts(30)
     _, _, disparity = run_both(gpu, left, right, shifts, 32, uniqueness, lr, median)
-    expected = census_sgm.reference_disparity(left, right, shifts, 32, P1, P2, uniqueness, lr,
-                                              median)
+    expected = census_reference.reference_disparity(left, right, shifts, 32, P1, P2,
+                                                    uniqueness, lr, median)
     np.testing.assert_array_equal(disparity, expected)
 
 
@@ -212,7 +214,7 @@ def test_textureless_pair_gives_the_same_ties_on_both(gpu):
     flat = np.full((20, 50), 90, np.uint8)
     shifts = perspective.no_shifts(20)
     _, _, disparity = run_both(gpu, flat, flat, shifts, 16)
-    expected = census_sgm.reference_disparity(flat, flat, shifts, 16, P1, P2, 5, 1, True)
+    expected = census_reference.reference_disparity(flat, flat, shifts, 16, P1, P2, 5, 1, True)
     np.testing.assert_array_equal(disparity, expected)
     # a flat window has a zero census word: no texture, so nothing is valid
     assert not np.isfinite(expected).any()
@@ -231,14 +233,14 @@ def test_buffers_are_reused_across_frames_and_level_counts(gpu):
     np.testing.assert_array_equal(match(32), first)
     fewer = match(16)
     np.testing.assert_array_equal(
-        fewer, census_sgm.reference_disparity(left, right, shifts, 16, P1, P2, 5, 1, True))
+        fewer, census_reference.reference_disparity(left, right, shifts, 16, P1, P2, 5, 1, True))
     for levels in (32, 16):
         assert matcher.buffers(24, 64, levels)["paths"].data.ptr == buffers["paths"].data.ptr
     assert matcher.generation == generation
     more = match(48)  # the volume grows: new buffers, a new generation
     assert matcher.generation == generation + 1
     np.testing.assert_array_equal(
-        more, census_sgm.reference_disparity(left, right, shifts, 48, P1, P2, 5, 1, True))
+        more, census_reference.reference_disparity(left, right, shifts, 48, P1, P2, 5, 1, True))
     np.testing.assert_array_equal(match(32), first)
 
 

@@ -86,7 +86,7 @@ def test_gpt_shift_auto_follows_the_matcher(demo_sample):
     def mode(settings):
         return Pipeline(Config(settings), demo_sample.calibration).shift_mode()
 
-    assert mode({}) == "row" and mode({"matcher": "census"}) == "pixel"
+    assert mode({}) == "pixel" and mode({"matcher": "opencv"}) == "row"
     assert mode({"gpt_shift": "pixel"}) == "pixel"
     assert mode({"gpt_shift": "row", "matcher": "census"}) == "row"
 
@@ -206,8 +206,9 @@ def test_blank_frame_after_a_road_is_refused_not_matched_to_the_prior(flat_sampl
         pipeline.run(blank, blank)
 
 
-def test_bad_inputs_raise_clear_errors(demo_sample):
-    pipeline = Pipeline(Config(), demo_sample.calibration)
+@pytest.mark.parametrize("matcher", ["census", "opencv"])
+def test_bad_inputs_raise_clear_errors(demo_sample, matcher):
+    pipeline = Pipeline(Config({"matcher": matcher}), demo_sample.calibration)
     with pytest.raises(InputError, match="equal sizes"):
         pipeline.run(demo_sample.left, demo_sample.right[:, :-2])
     with pytest.raises(InputError, match="8- or 16-bit"):

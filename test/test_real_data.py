@@ -22,12 +22,13 @@ def test_fan_potholes_pixel_f_score_accuracy_and_no_false_pothole(tmp_path):
     assert all(row["incorrect"] == 0 for row in report.pothole_rows)
 
 
-def test_kitti_gpt_sgm_against_plain_sgbm():
-    report = evaluate(shared_data("kitti"), Config(), CPU)
+@pytest.mark.parametrize("matcher", ["census", "opencv"])
+def test_kitti_gpt_band_against_the_full_range(matcher):
+    report = evaluate(shared_data("kitti"), Config({"matcher": matcher}), CPU)
     assert not report.errors
     rows = [row for row in report.disparity_rows if row["region"] == "road"]
-    ours = [row for row in rows if row["matcher"].startswith("GPT-SGM")]
-    plain = [row for row in rows if row["matcher"] == "OpenCV SGBM"]
+    ours = [row for row in rows if row["matcher"] == f"{matcher}, GPT band"]
+    plain = [row for row in rows if row["matcher"] == f"{matcher}, full range"]
     assert len(ours) == len(plain) == 4
     mean = {name: sum(r["pep3"] for r in group) / len(group)
             for name, group in (("ours", ours), ("plain", plain))}

@@ -1,4 +1,5 @@
-"""Census semi-global matching: the GPU matcher, with its NumPy reference.
+"""Census semi-global matching, the default matcher: CUDA kernels on the GPU (kernels/sgm.cu),
+Numba kernels on the CPU (stages/census_cpu.py).
 
 The algorithm, the same on both backends to the integer disparity:
 
@@ -33,6 +34,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
+import cv2
 import numpy as np
 
 from ..backend import Backend, StageClock
@@ -54,11 +56,10 @@ MAX_P2 = 127 - INVALID_COST
 # Pairs of directions (indices into DIRECTIONS) that share one byte volume on the GPU: the first
 # of each pair runs in the first launch, the second adds to it in the second.
 DIRECTION_PAIRS: tuple[tuple[int, int], ...] = ((0, 2), (1, 3), (4, 6), (5, 7))
-_OUTSIDE = np.int32(1 << 20)
 
 
 def census_transform(image: np.ndarray) -> np.ndarray:
-    """uint32 HxW census words of a uint8 HxW image (NumPy reference)."""
+    """uint32 HxW census words of a uint8 HxW image (on the host)."""
     height, width = image.shape
     ry, rx = CENSUS_RADIUS_Y, CENSUS_RADIUS_X
     padded = np.pad(image, ((ry, ry), (rx, rx)), mode="edge")
@@ -68,95 +69,6 @@ def census_transform(image: np.ndarray) -> np.ndarray:
         behind = padded[ry - dy:ry - dy + height, rx - dx:rx - dx + width]
         words |= (ahead > behind).astype(np.uint32) << np.uint32(bit)
     return words
-
-
-def matching_cost(census_left: np.ndarray, census_right: np.ndarray, shifts: np.ndarray,
-                  levels: int) -> np.ndarray:
-    """int32 HxWxD Hamming costs of left (v, u) against column u - d of the right census
-    transformed by the GPT ``shifts`` (int32 (3, H), stages/perspective.py)."""
-    height, width = census_left.shape
-    transformed = perspective.transform_right(np, census_right, shifts)
-    column = np.arange(width)[None, :, None] - np.arange(levels)[None, None, :]
-    inside = column >= shifts[perspective.SHIFT_FIRST].astype(np.int64)[:, None, None]
-    right = transformed[np.arange(height)[:, None, None], np.clip(column, 0, width - 1)]
-    cost = np.bitwise_count(census_left[:, :, None] ^ right).astype(np.int32)
-    return np.where(inside, cost, np.int32(INVALID_COST))
-
-
-def _path_step(cost: np.ndarray, previous: np.ndarray, p1: int, p2: int) -> np.ndarray:
-    """One step of the path recurrence for N pixels: cost and previous are int32 (N, D)."""
-    least = previous.min(axis=1, keepdims=True)
-    lower = np.full_like(previous, _OUTSIDE)
-    lower[:, 1:] = previous[:, :-1]
-    upper = np.full_like(previous, _OUTSIDE)
-    upper[:, :-1] = previous[:, 1:]
-    best = np.minimum(np.minimum(previous, np.minimum(lower, upper) + p1), least + p2)
-    return cost + best - least
-
-
-def aggregate_path(cost: np.ndarray, dx: int, dy: int, p1: int, p2: int) -> np.ndarray:
-    """int32 HxWxD path cost L_r along direction (dx, dy) (NumPy reference)."""
-    height, width, _ = cost.shape
-    paths = np.empty_like(cost)
-    if dy == 0:
-        columns = range(width) if dx > 0 else range(width - 1, -1, -1)
-        for index, u in enumerate(columns):
-            paths[:, u] = cost[:, u] if index == 0 else \
-                _path_step(cost[:, u], paths[:, u - dx], p1, p2)
-        return paths
-    rows = range(height) if dy > 0 else range(height - 1, -1, -1)
-    for index, v in enumerate(rows):
-        if index == 0:
-            paths[v] = cost[v]
-            continue
-        previous = paths[v - dy]
-        if dx == 0:
-            paths[v] = _path_step(cost[v], previous, p1, p2)
-        elif dx > 0:
-            paths[v, 0] = cost[v, 0]
-            paths[v, 1:] = _path_step(cost[v, 1:], previous[:-1], p1, p2)
-        else:
-            paths[v, -1] = cost[v, -1]
-            paths[v, :-1] = _path_step(cost[v, :-1], previous[1:], p1, p2)
-    return paths
-
-
-def aggregate(cost: np.ndarray, p1: int, p2: int) -> np.ndarray:
-    """uint8 8xHxWxD path costs in the order of DIRECTIONS (NumPy reference)."""
-    return np.stack([aggregate_path(cost, dx, dy, p1, p2).astype(np.uint8)
-                     for dx, dy in DIRECTIONS])
-
-
-def select_disparities(paths: np.ndarray, uniqueness_percent: int,
-                       lr_max_diff_px: int) -> np.ndarray:
-    """float32 HxW winner-take-all disparity with subpixel offset, -1 where invalid
-    (uniqueness, left of the image, left-right check), from uint8 8xHxWxD path costs."""
-    total = paths.sum(axis=0, dtype=np.int32)
-    height, width, levels = total.shape
-    best = total.argmin(axis=2)
-    least = np.take_along_axis(total, best[..., None], axis=2)[..., 0]
-    far = np.abs(np.arange(levels)[None, None, :] - best[..., None]) > 1
-    second = np.where(far, total, _OUTSIDE).min(axis=2)
-    unique = (uniqueness_percent == 0) | (second == _OUTSIDE) \
-        | (100 * least < (100 - uniqueness_percent) * second)
-    below = np.take_along_axis(total, np.maximum(best - 1, 0)[..., None], axis=2)[..., 0]
-    above = np.take_along_axis(total, np.minimum(best + 1, levels - 1)[..., None], axis=2)[..., 0]
-    denominator = np.maximum(below + above - 2 * least, 1)
-    offset = (below - above).astype(np.float32) / (np.float32(2) * denominator.astype(np.float32))
-    inner = (best > 0) & (best < levels - 1)
-    disparity = best.astype(np.float32) + np.where(inner, offset, np.float32(0))
-    target = np.arange(width)[None, :] - best
-    valid = unique & (target >= 0)
-    if lr_max_diff_px >= 0:
-        column = np.arange(width)[:, None] + np.arange(levels)[None, :]
-        rows = np.arange(height)[:, None, None]
-        right_total = np.where(column[None] < width,
-                               total[rows, np.minimum(column, width - 1)[None],
-                                     np.arange(levels)[None, None, :]], _OUTSIDE)
-        right_best = right_total.argmin(axis=2)
-        partner = np.take_along_axis(right_best, np.maximum(target, 0), axis=1)
-        valid &= np.abs(partner - best) <= lr_max_diff_px
-    return np.where(valid, disparity, np.float32(-1)).astype(np.float32)
 
 
 def textureless(census_left: np.ndarray) -> np.ndarray:
@@ -176,12 +88,10 @@ def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
     pixels whose band of ``levels`` reaches left of the right image dropped, and textureless
     pixels dropped: those whose left census word is 0 together with their 8 neighbours'
     (edge-replicated), i.e. no pair of the window differs upwards anywhere in 3x3 windows
-    (NumPy reference)."""
+    (on the host)."""
     height, width = raw.shape
     if median:
-        padded = np.pad(raw, 1, mode="edge")
-        stack = np.stack([padded[a:a + height, b:b + width] for a in range(3) for b in range(3)])
-        raw = np.sort(stack, axis=0)[4]
+        raw = cv2.medianBlur(raw, 3)
     disparity = perspective.add_shifts(np, raw, shifts)
     columns = np.arange(width)[None, :]
     band_outside = columns - (levels - 1) < shifts[perspective.SHIFT_FIRST][:, None]
@@ -192,15 +102,22 @@ def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
     return np.where(invalid, np.float32(np.nan), disparity).astype(np.float32)
 
 
-def reference_disparity(left: np.ndarray, right: np.ndarray, shifts: np.ndarray, levels: int,
-                        p1: int, p2: int, uniqueness_percent: int, lr_max_diff_px: int,
-                        median: bool) -> np.ndarray:
-    """The whole census SGM in NumPy on uint8 HxW images; float32 HxW D1 (px, NaN invalid).
-    Slow (seconds per megapixel): for tests and for checking the GPU matcher."""
+def cpu_disparity(left: np.ndarray, right: np.ndarray, shifts: np.ndarray, levels: int,
+                  p1: int, p2: int, uniqueness_percent: int, lr_max_diff_px: int,
+                  median: bool) -> np.ndarray:
+    """The whole census SGM on the host: float32 HxW D1 (px, NaN invalid) of uint8 HxW images
+    and the int32 (3, H) GPT ``shifts``, with stages/census_cpu.py's compiled kernels (the same
+    integers as the GPU's)."""
+    from . import census_cpu
+
     check_settings(left.shape, levels, p1, p2)
     census_left = census_transform(left)
-    cost = matching_cost(census_left, census_transform(right), shifts, levels)
-    raw = select_disparities(aggregate(cost, p1, p2), uniqueness_percent, lr_max_diff_px)
+    transformed = perspective.transform_right(np, census_transform(right), shifts)
+    cost = census_cpu.matching_cost(census_left, transformed, shifts[perspective.SHIFT_FIRST],
+                                    levels, INVALID_COST)
+    total = census_cpu.path_sums(cost, p1, p2)
+    del cost
+    raw = census_cpu.select_disparities(total, uniqueness_percent, lr_max_diff_px)
     return finish(raw, shifts, median, census_left, levels)
 
 

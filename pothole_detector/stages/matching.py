@@ -1,7 +1,7 @@
 """Dense matching: semi-global matching with subpixel refinement and left-right check.
 
 Two matchers (``matcher`` parameter): ``census`` is our census SGM (stages/census_sgm.py), on
-the GPU in CUDA kernels, on the CPU as its slow NumPy reference; ``opencv`` runs OpenCV's
+the GPU in CUDA kernels, on the CPU in Numba kernels, the same integers; ``opencv`` runs OpenCV's
 StereoSGBM (Birchfield-Tomasi cost on Sobel-prefiltered images, path aggregation with P1/P2,
 parabola subpixel, uniqueness, speckle filter) on the pair and on the mirrored pair for our own
 left-right check (OpenCV's own, disp12MaxDiff, is left off); a 3x3 median follows.
@@ -116,8 +116,8 @@ def sgm_disparity(left: np.ndarray, right: np.ndarray, levels: int, config: Conf
 
 
 class Matcher:
-    """D1 of a rectified pair on one backend: census SGM or OpenCV SGBM (``config.matcher``;
-    auto = census on the GPU, OpenCV on the CPU). Keeps the GPU buffers between frames."""
+    """D1 of a rectified pair on one backend: census SGM or OpenCV SGBM (``config.matcher``).
+    Keeps the GPU buffers between frames."""
 
     def __init__(self, backend: Backend, lender: Matcher | None = None) -> None:
         """``lender``: a matcher never run at the same time whose GPU path volume this one may
@@ -132,26 +132,20 @@ class Matcher:
         """Counts the replacements of the GPU matcher's device buffers (0 on the CPU)."""
         return self._gpu.generation if self._gpu is not None else 0
 
-    def kind(self, config: Config) -> str:
-        """census or opencv: what ``config.matcher`` means on this backend."""
-        if config.matcher != "auto":
-            return config.matcher
-        return "census" if self.backend.is_gpu else "opencv"
-
     def __call__(self, left: Any, right: Any, shifts: Any, levels: int, config: Config,
                  block_size: int | None = None) -> Any:
         """D1 (float32 HxW px, NaN invalid) of uint8 HxW images on the backend, matched over
         levels [0, levels) of the pair with the right image transformed by the GPT shift table
         ``shifts`` (int32 (3, H), stages/perspective.py): left pixel u at level d against the
         right pixel x - kappa(x, v) of x = u - d."""
-        kind = self.kind(config)
+        kind = config.matcher
         if kind == "census" and self._gpu is not None:
             return self._gpu(left, right, shifts, levels, config.census_p1, config.census_p2,
                              config.sgm_uniqueness_percent, config.lr_max_diff_px,
                              config.median_filter)
         left, right, shifts = to_host(left), to_host(right), to_host(shifts)
         if kind == "census":
-            disparity = census_sgm.reference_disparity(
+            disparity = census_sgm.cpu_disparity(
                 left, right, shifts, levels, config.census_p1, config.census_p2,
                 config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter)
         else:

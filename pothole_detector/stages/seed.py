@@ -58,7 +58,9 @@ def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, 
     """One try of the seed: the pair reduced by ``scale``, matched up to ``max_disparity_px``
     but over half the reduced width at most (over all of that where ``widest``), with the
     left-right check where ``checked``. Enough valid disparities are asked of the columns
-    that the range lets match."""
+    that the range lets match, and a road plane that holds enough of them and, as a share of
+    those columns' pixels, at least ``min_valid_fraction`` (an unrelated pair's scattered
+    matches meet some plane too)."""
     xp = backend.xp
     small_left = matching.downsample(xp, left, scale)
     small_right = matching.downsample(xp, right, scale)
@@ -70,7 +72,8 @@ def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, 
                      config if checked else config.replace(lr_max_diff_px=-1),
                      block_size=min(config.sgm_block_size, 5))
     matchable = coarse[:, min(levels, coarse.shape[1] - 1):]
-    if float(xp.isfinite(matchable).mean()) < config.min_valid_fraction:
+    valid_fraction = float(xp.isfinite(matchable).mean())
+    if valid_fraction < config.min_valid_fraction:
         raise NoTextureError(
             "the coarse seed pass found almost no disparities: the images lack texture, "
             "are not a rectified pair, or the road is beyond max_disparity_px"
@@ -79,11 +82,12 @@ def seed_at(backend: Backend, matcher: matching.Matcher, left: Any, right: Any, 
     region = road_region(to_host(coarse), float(scale), offset, calibration,
                          config.max_camera_height_m)
     need = config.min_road_inlier_fraction * REGION_MIN_SHARE
-    if region is None or region.inlier_fraction < need:
-        share = 0.0 if region is None else region.inlier_fraction
+    share = 0.0 if region is None else region.inlier_fraction
+    if share < need or share * valid_fraction < config.min_valid_fraction:
         raise NoRoadError(
             f"no road plane in the coarse seed pass: {share:.0%} of the disparities lie on one "
-            f"(need {need:.0%}); is the camera looking at the road?")
+            f"(need {need:.0%}), {share * valid_fraction:.1%} of the matchable pixels (need "
+            f"{config.min_valid_fraction:.0%}); is the camera looking at the road?")
     prior = road_model.prior_params(region, 2.0 * REGION_TOLERANCE_PX * scale)
     return road_model.fit_model(
         backend, coarse, stride=1, rounds=config.road_fit_rounds,
