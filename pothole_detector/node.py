@@ -40,6 +40,7 @@ from .errors import ConfigError, PotholeError
 from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
+from .stages import census_sgm
 from .sync import StereoSynchronizer
 from .motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
 from .tracking import MAX_ID, PotholeTracker, sightings_of
@@ -233,6 +234,10 @@ class PotholeDetectorNode(Node):
         self._synchronizer = StereoSynchronizer.from_config(self._config)
         self._inputs: list[Any] = []
         self._outputs: dict[str, Any] = {}
+        if self._config.matcher == "census" and self._config.backend != "gpu" \
+                and not self._backend_for(self._config).is_gpu:
+            # before the subscriptions: the first frames need not wait for the compiler
+            census_sgm.compile_cpu_kernels()
         self._make_io(self._config)
         self._diagnostics_timer = self._wall_timer(self._config.diagnostics_period_seconds)
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -460,15 +465,19 @@ class PotholeDetectorNode(Node):
         for name, message in failure_messages(job.left.header, reason).items():
             self._outputs[name].publish(message)
 
+    def _backend_for(self, config: Config) -> Backend:
+        """The backend ``config`` asks for, made on first use and when the choice changes."""
+        if self._backend is None or self._backend_choice != config.backend:
+            self._backend = get_backend(config.backend)
+            self._backend_choice = config.backend
+            self.get_logger().info(f"backend: {self._backend.name}")
+        return self._backend
+
     def _pipeline_for(self, config: Config, calibration: StereoCalibration) -> Pipeline:
         key = (tuple(sorted((k, v) for k, v in config.as_dict().items()
                             if k in PIPELINE_PARAMETERS or k == "backend")), calibration)
         if self._pipeline is None or key != self._pipeline_key:
-            if self._backend is None or self._backend_choice != config.backend:
-                self._backend = get_backend(config.backend)
-                self._backend_choice = config.backend
-                self.get_logger().info(f"backend: {self._backend.name}")
-            self._pipeline = Pipeline(config, calibration, self._backend)
+            self._pipeline = Pipeline(config, calibration, self._backend_for(config))
             self._pipeline_key = key
             gc.freeze()  # the backend's modules and the pipeline, as at start-up (main)
         return self._pipeline

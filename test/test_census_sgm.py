@@ -262,3 +262,18 @@ def test_cpu_matcher_gives_the_reference_disparities_exactly(height, width, leve
     actual = cpu_disparity(left, right, shifts, levels, p1, p2, uniqueness, lr, median)
     np.testing.assert_array_equal(actual, expected)
     assert np.isfinite(actual).mean() > 0.2
+
+
+def test_compiling_the_cpu_kernels_ahead_covers_what_a_frame_needs(demo_sample):
+    """The node compiles the CPU kernels before it subscribes: a frame afterwards finds every
+    kernel compiled for its argument types and compiles nothing more."""
+    from pothole_detector.pipeline import Pipeline
+    from pothole_detector.stages import census_cpu
+
+    census_sgm.compile_cpu_kernels()
+    kernels = (census_cpu._cost_volume, census_cpu._write_row_paths,
+               census_cpu._add_crossing_row, census_cpu._select)
+    compiled = [list(kernel.signatures) for kernel in kernels]
+    assert all(compiled)
+    Pipeline(Config(), demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    assert [list(kernel.signatures) for kernel in kernels] == compiled
