@@ -4,11 +4,12 @@ optional extra: ``pip install .[fleet]``."""
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
+from .bagtools import LogSpan
 from .errors import InputError
 from .params import Config
-from .survey import ChunkResult, Plan, observe_chunk
+from .survey import ChunkResult, DriveTopics, Plan, limit_threads, observe_chunk
 
 
 def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = None,
@@ -31,7 +32,7 @@ def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = 
             "cpu" if config.backend == "auto" else config.backend)
         values = {**config.as_dict(), "backend": backend}
         task = ray.remote(num_gpus=1 if backend == "gpu" else 0,
-                          num_cpus=1)(observe_chunk)
+                          num_cpus=1)(observe_chunk if backend == "gpu" else _observe_on_one_core)
         refs = [[task.remote(str(bag), topics, values, span) for span in spans]
                 for bag, topics, spans in plans]
         flat = [ref for per_bag in refs for ref in per_bag]
@@ -45,3 +46,11 @@ def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = 
     finally:
         if started_here:
             ray.shutdown()
+
+
+def _observe_on_one_core(bag: str, topics: DriveTopics, values: dict[str, Any],
+                         span: LogSpan) -> ChunkResult:
+    """:func:`~pothole_detector.survey.observe_chunk` in a CPU task, which holds one core:
+    OpenCV and the CPU matcher on one thread, so that a node's tasks do not crowd its cores."""
+    limit_threads(1)
+    return observe_chunk(bag, topics, values, span)

@@ -427,7 +427,7 @@ def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
     return observe(bag, topics, Config(values), span)
 
 
-def _limit_threads(count: int) -> None:
+def limit_threads(count: int) -> None:
     """A worker process's share of the cores: OpenCV's and the CPU matcher's threads."""
     from .stages import census_cpu
 
@@ -447,7 +447,7 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
     values = config.as_dict()
     threads = max(1, (os.cpu_count() or 1) // jobs)
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_limit_threads, initargs=(threads,)) as pool:
+                             initializer=limit_threads, initargs=(threads,)) as pool:
         futures = [[pool.submit(observe_chunk, str(bag), topics, values, span)
                     for span in spans] for bag, topics, spans in plans]
         flat = [future for per_bag in futures for future in per_bag]
