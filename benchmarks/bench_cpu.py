@@ -25,8 +25,7 @@ from pothole_detector.calibration import StereoCalibration  # noqa: E402
 from pothole_detector.imageio import read_image  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from pothole_detector.stages import census_cpu  # noqa: E402
-from pothole_detector.stages.matching import Matcher, to_gray8  # noqa: E402
+from pothole_detector.stages.matching import Matcher, set_host_threads, to_gray8  # noqa: E402
 from pothole_detector.stages.perspective import no_shifts  # noqa: E402
 from pothole_detector.synthetic import demo_scene, render  # noqa: E402
 
@@ -52,8 +51,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--matcher", choices=("census", "opencv"), default=Config().matcher)
     args = parser.parse_args()
-    cv2.setNumThreads(args.threads)
-    census_cpu.set_threads(args.threads)
+    set_host_threads(args.threads)
     config = Config({"matcher": args.matcher})
     print(f"CPU benchmark, {date.today()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cores, matcher {args.matcher}, OpenCV {cv2.__version__} and Numba "

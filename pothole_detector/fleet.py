@@ -9,7 +9,8 @@ from typing import Any, Callable, Sequence
 from .bagtools import LogSpan
 from .errors import InputError
 from .params import Config
-from .survey import ChunkResult, DriveTopics, Plan, limit_threads, observe_chunk
+from .stages.matching import set_host_threads
+from .survey import ChunkResult, DriveTopics, Plan, observe_chunk
 
 
 def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = None,
@@ -52,5 +53,5 @@ def _observe_on_one_core(bag: str, topics: DriveTopics, values: dict[str, Any],
                          span: LogSpan) -> ChunkResult:
     """:func:`~pothole_detector.survey.observe_chunk` in a CPU task, which holds one core:
     OpenCV and the CPU matcher on one thread, so that a node's tasks do not crowd its cores."""
-    limit_threads(1)
+    set_host_threads(1)
     return observe_chunk(bag, topics, values, span)

@@ -427,14 +427,6 @@ def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
     return observe(bag, topics, Config(values), span)
 
 
-def limit_threads(count: int) -> None:
-    """A worker process's share of the cores: OpenCV's and the CPU matcher's threads."""
-    from .stages import census_cpu
-
-    cv2.setNumThreads(count)
-    census_cpu.set_threads(count)
-
-
 def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
                          progress: Callable[[int, int], None] | None = None
                          ) -> list[list[ChunkResult]]:
@@ -444,10 +436,12 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
+    from .stages.matching import set_host_threads
+
     values = config.as_dict()
     threads = max(1, (os.cpu_count() or 1) // jobs)
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=limit_threads, initargs=(threads,)) as pool:
+                             initializer=set_host_threads, initargs=(threads,)) as pool:
         futures = [[pool.submit(observe_chunk, str(bag), topics, values, span)
                     for span in spans] for bag, topics, spans in plans]
         flat = [future for per_bag in futures for future in per_bag]

@@ -159,6 +159,15 @@ class Matcher:
         return self.backend.upload(disparity)
 
 
+def set_host_threads(count: int) -> None:
+    """Run the host's matchers (OpenCV and the census SGM's CPU kernels) on at most ``count``
+    threads: a worker process's or task's share of the cores."""
+    from . import census_cpu
+
+    cv2.setNumThreads(count)
+    census_cpu.set_threads(count)
+
+
 def downsample(xp: Any, image: Any, factor: int) -> Any:
     """Area-averaged reduction of a uint8 image by an integer factor (H//factor x W//factor):
     the block mean rounded half up, the same on both backends."""
