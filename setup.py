@@ -22,6 +22,7 @@ setup(
         "numba>=0.60",
         "numpy>=1.24",
         "opencv-python-headless>=4.8",
+        "Pillow>=10",
         "scipy>=1.10",
         "PyYAML>=6.0",
         "rosbags>=0.10",
@@ -55,7 +56,7 @@ setup(
     entry_points={
         "console_scripts": [
             "pothole-detector = pothole_detector.cli:main",
-            "pothole_detector_node = pothole_detector.node:main",
+            "pothole_detector_node = pothole_detector.node_main:main",
         ],
     },
 )

@@ -50,7 +50,7 @@ def bench(bag: Path, config: Config, use_ray: bool, jobs: int, out: Path
     surveys = survey([bag], config, use_ray=use_ray, jobs=jobs)
     write_csv(surveys, out / "survey.csv")
     write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
-        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px))
+        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px, config))
     return time.perf_counter() - start, surveys[0].frames, len(surveys[0].potholes)
 
 

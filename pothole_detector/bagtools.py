@@ -1,13 +1,13 @@
-"""Bags on rosbags: our typestore, play into the live graph, record, offline processing."""
+"""Bags on rosbags: play into the live graph, record, offline processing, our own drives."""
 
 from __future__ import annotations
 
-import bisect
 import itertools
+import logging
 import math
+import re
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
@@ -17,45 +17,25 @@ from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
+from . import conversions
+from .backend import get_backend
 from .errors import InputError, PotholeError
-from .msgtypes import deserialize, message, serialize, typestore
-from .outputs import OFFLINE_OUTPUTS, OUTPUT_TYPES
-from .transport import large_image_transport
+from .imageio import write_rgb
+from .motion import latlon_of
+from .msgtypes import message, serialize, typestore
+from .outputs import OFFLINE_OUTPUTS, OUTPUT_TYPES, failure_messages, output_messages
 from .params import Config
+from .pipeline import Pipeline
+from .recordings.bags import (BagFrame, LogSpan, SetCounts, cdr_bytes, convert_set,
+                              message_count, open_bag, read_sets_ahead, stereo_sets)
+from .recordings.camera import pipeline_inputs
+from .calibration import StereoCamera
+from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, encode_raw
+from .recordings.readahead import decoded_frames
+from .recordings.topics import INFO_TYPE, StereoTopics, find_stereo_topics
+from .transport import large_image_transport
 
-IMAGE_TYPE = "sensor_msgs/msg/Image"
-INFO_TYPE = "sensor_msgs/msg/CameraInfo"
-
-
-def open_bag(path: str | Path) -> AnyReader:
-    """An opened AnyReader on a ROS 2 bag directory (mcap or sqlite3) or a ROS 1 .bag."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"bag {path} does not exist")
-    try:
-        reader = AnyReader([path], default_typestore=typestore())
-        reader.open()
-    except Exception as exc:  # rosbags raises several unrelated error types
-        raise InputError(f"{path} is not a bag that can be read ({exc}): give a ROS 2 bag "
-                         "directory (mcap or sqlite3) or a ROS 1 .bag file") from None
-    return reader
-
-
-_CONVERTERS: dict[tuple[str, str], Callable[[bytes], Any]] = {}
-
-
-def cdr_bytes(reader: AnyReader, connection: Connection, rawdata: bytes) -> bytes:
-    """The message as ROS 2 (Jazzy) CDR bytes, whatever the bag's own serialization; ROS 1
-    messages are migrated field by field (Header.seq dropped, CameraInfo.D -> d ...)."""
-    if reader.is2:
-        return bytes(rawdata)
-    key = (connection.msgtype, connection.msgdef.data)
-    if key not in _CONVERTERS:
-        from rosbags.convert.converter import generate_message_converter
-        _CONVERTERS[key] = generate_message_converter(
-            reader.typestore, typestore(), connection.msgtype, connection.msgtype, {},
-            src_is2=False, dst_is2=True)
-    return bytes(_CONVERTERS[key](rawdata))
+_log = logging.getLogger(__name__)
 
 
 def parse_remaps(remaps: Sequence[str]) -> dict[str, str]:
@@ -209,295 +189,67 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
 
 # --- process -----------------------------------------------------------------------------
 
-@dataclass
-class StereoTopics:
-    """The four input topics of one stereo camera."""
+def _reason_kind(reason: str) -> str:
+    """A failure's reason with its numbers left out: failures alike count together."""
+    return re.sub(r"-?\d+(\.\d+)?(e-?\d+)?", "#", reason)
 
-    left: str
-    right: str
-    left_info: str
-    right_info: str
+
+@dataclass
+class FailureTally:
+    """Frames that could not be processed: per kind of reason (the reason with its numbers
+    left out) how many, the first one's reason and stamp (ns)."""
+
+    kinds: dict[str, list[Any]] = field(default_factory=dict)
+
+    def add(self, stamp_ns: int, reason: str) -> None:
+        entry = self.kinds.setdefault(_reason_kind(reason), [0, reason, stamp_ns])
+        entry[0] += 1
+
+    def merge(self, other: "FailureTally") -> None:
+        for kind, (count, reason, stamp) in other.kinds.items():
+            entry = self.kinds.setdefault(kind, [0, reason, stamp])
+            entry[0] += count
 
     @property
-    def namespace(self) -> str:
-        """The common parent of the left and right image topics ('' for the root)."""
-        left, right = self.left.strip("/").split("/"), self.right.strip("/").split("/")
-        common = []
-        for a, b in zip(left, right):
-            if a != b:
-                break
-            common.append(a)
-        return "/" + "/".join(common) if common else ""
+    def total(self) -> int:
+        return sum(entry[0] for entry in self.kinds.values())
 
+    def rows(self) -> list[tuple[int, str, int]]:
+        """(count, first reason, first stamp ns) per kind, most frequent first."""
+        return sorted(((count, reason, stamp) for count, reason, stamp in self.kinds.values()),
+                      key=lambda row: (-row[0], row[2]))
 
-def find_stereo_topics(topics: dict[str, str], left: str | None = None,
-                       right: str | None = None, left_info: str | None = None,
-                       right_info: str | None = None) -> StereoTopics:
-    """The stereo topics of a bag (``topics``: name -> type): given ones are checked, missing
-    ones are found when the bag holds one image and one camera_info topic per side."""
-
-    def pick(given: str | None, side: str, msgtype: str, what: str) -> str:
-        if given is not None:
-            if topics.get(given) != msgtype:
-                raise InputError(f"the bag has no {msgtype} topic {given}; it has "
-                                 f"{', '.join(sorted(topics))}")
-            return given
-        found = [t for t, k in topics.items() if k == msgtype and f"/{side}" in t
-                 and not t.rstrip("/").endswith(tuple(OUTPUT_TYPES))]
-        if len(found) != 1:
-            option = f"--{side}-topic" if what == "image" else f"--{side}-info-topic"
-            raise InputError(f"cannot tell the {side} {what} topic among {found or 'none'}; "
-                             f"name it with {option}")
-        return found[0]
-
-    return StereoTopics(pick(left, "left", IMAGE_TYPE, "image"),
-                        pick(right, "right", IMAGE_TYPE, "image"),
-                        pick(left_info, "left", INFO_TYPE, "camera_info"),
-                        pick(right_info, "right", INFO_TYPE, "camera_info"))
-
-
-@dataclass(frozen=True)
-class BagFrame:
-    """One synchronized stereo set of a bag, converted: images as arrays (HxW or HxWxC); None
-    where the set could not be converted."""
-
-    stamp: int
-    header: Any
-    left: np.ndarray | None
-    right: np.ndarray | None
-    calibration: Any
-    logged_ns: int = 0
-
-
-@dataclass(frozen=True)
-class LogSpan:
-    """A part of a bag by log time (ns): the sets whose left image was logged in
-    [``start_ns``, ``stop_ns``), read with ``lead_ns`` more on both sides (earlier sets, for
-    visual odometry, and partners logged after the span)."""
-
-    start_ns: int
-    stop_ns: int
-    lead_ns: int
+    def lines(self) -> list[str]:
+        """One line per kind of reason."""
+        return [f"{count} frame{'s' if count != 1 else ''} failed: {reason} (first at stamp "
+                f"{stamp})" for count, reason, stamp in self.rows()]
 
 
 @dataclass
 class ProcessSummary:
-    """What :func:`process` did."""
+    """What :func:`process` did: frames processed, failed (by reason), potholes found, images
+    without a partner, messages that could not be read, time per processed frame."""
 
     frames: int = 0
-    failed: int = 0
     potholes: int = 0
-    unpaired: int = 0
+    counts: SetCounts = field(default_factory=SetCounts)
+    failures: FailureTally = field(default_factory=FailureTally)
     milliseconds: list[float] = field(default_factory=list)
-    errors: list[str] = field(default_factory=list)
+
+    @property
+    def failed(self) -> int:
+        return self.failures.total
+
+    @property
+    def unpaired(self) -> int:
+        return self.counts.unpaired
 
     def text(self) -> str:
         per_frame = float(np.mean(self.milliseconds)) if self.milliseconds else 0.0
+        corrupt = (f", {self.counts.corrupt} corrupt messages skipped"
+                   if self.counts.corrupt else "")
         return (f"{self.frames} frames, {self.potholes} potholes found, {per_frame:.0f} ms per "
-                f"frame, {self.failed} failed, {self.unpaired} unpaired images")
-
-
-INFO_WAIT_NS = 1_000_000_000
-
-
-def stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
-                summary: ProcessSummary, span: LogSpan | None = None,
-                others: Sequence[str] = (), collected: list | None = None
-                ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
-    """Synchronized (stamp, left image's log time, left, right, left_info, right_info)
-    messages of a bag, or of the sets whose left image was logged before ``span``'s stop
-    (reading from its lead before its start), in one pass. Each pair takes the camera_info of
-    its own stamp where the bag holds it (logged before the images or up to INFO_WAIT_NS
-    after), else the newest one before it (for a span, also one logged before it: a latched
-    camera_info); the infos are None for a pair before any. Images that found no partner
-    are counted in ``summary``. The messages of the ``others`` topics logged in the span (not
-    its lead) go into ``collected`` as (topic, log time ns, message), in the same pass."""
-    from . import conversions
-    from .sync import StereoSynchronizer
-
-    roles = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
-             topics.right_info: "right_info"}
-    roles.update({topic: "other" for topic in others if topic not in roles})
-    connections = [c for c in reader.connections if c.topic in roles]
-    window = {} if span is None else {"start": span.start_ns - span.lead_ns,
-                                      "stop": span.stop_ns + span.lead_ns}
-    infos: dict[str, dict[int, Any]] = {"left_info": {}, "right_info": {}}
-    stamps: dict[str, list[int]] = {"left_info": [], "right_info": []}
-    latched: dict[str, Any] = {}
-
-    def logged_before_window(role: str) -> Any:
-        """The newest info of ``role`` logged before the span's window: looked for in the
-        INFO_WAIT_NS before it, then anywhere before it."""
-        if role not in latched:
-            newest = None
-            ends = (window["start"] - INFO_WAIT_NS, None) if span is not None else ()
-            for start in ends:
-                for connection, _, rawdata in reader.messages(
-                        connections=[c for c in connections if roles[c.topic] == role],
-                        start=start, stop=window["start"]):
-                    newest = (connection, rawdata)
-                if newest is not None:
-                    break
-            latched[role] = None if newest is None else deserialize(
-                cdr_bytes(reader, *newest), INFO_TYPE)
-        return latched[role]
-
-    def info_at(role: str, stamp: int) -> Any:
-        if stamp in infos[role]:
-            return infos[role][stamp]
-        before = bisect.bisect_right(stamps[role], stamp)
-        if before:
-            return infos[role][stamps[role][before - 1]]
-        return logged_before_window(role)
-
-    waiting: deque[tuple[int, int, Any, Any]] = deque()
-
-    def release(now_ns: int | None) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
-        """The waiting pairs whose infos have come (both streams past their stamp), waited
-        INFO_WAIT_NS of log time, or all (``now_ns`` None: the end of the bag)."""
-        while waiting:
-            pair_stamp, logged, left, right = waiting[0]
-            if now_ns is not None and now_ns - logged < INFO_WAIT_NS and not all(
-                    stamps[role] and stamps[role][-1] >= pair_stamp for role in stamps):
-                return
-            waiting.popleft()
-            left_info, right_info = (info_at(role, pair_stamp)
-                                     for role in ("left_info", "right_info"))
-            if left_info is None or right_info is None:
-                left_info = right_info = None
-            yield pair_stamp, logged, left, right, left_info, right_info
-            for role, kept in stamps.items():
-                while len(kept) > 1 and kept[1] <= pair_stamp:
-                    del infos[role][kept.pop(0)]
-
-    synchronizer: StereoSynchronizer[Any] = StereoSynchronizer.from_config(config)
-    for connection, logged, rawdata in reader.messages(connections=connections, **window):
-        role = roles[connection.topic]
-        if role == "other":
-            if collected is not None and (span is None
-                                          or span.start_ns <= logged < span.stop_ns):
-                collected.append((connection.topic, logged, deserialize(
-                    cdr_bytes(reader, connection, rawdata), connection.msgtype)))
-            continue
-        if role in infos:
-            info = deserialize(cdr_bytes(reader, connection, rawdata), INFO_TYPE)
-            stamp = conversions.stamp_ns(info.header)
-            if stamp not in infos[role]:
-                bisect.insort(stamps[role], stamp)
-            infos[role][stamp] = info
-        else:
-            msg = deserialize(cdr_bytes(reader, connection, rawdata), IMAGE_TYPE)
-            outcome = synchronizer.add(role, conversions.stamp_ns(msg.header), (logged, msg))
-            summary.unpaired += outcome.dropped
-            waiting.extend((pair_stamp, left_logged, left, right)
-                           for pair_stamp, (left_logged, left), (_, right) in outcome.pairs
-                           if span is None or left_logged < span.stop_ns)
-        yield from release(logged)
-    yield from release(None)
-    summary.unpaired += synchronizer.reset()
-
-
-# Sets per slice of log time that a read thread takes at a time (read_sets_ahead).
-READ_BLOCK_FRAMES = 24
-
-
-def message_count(reader: AnyReader, topic: str) -> int:
-    """How many messages the bag holds on ``topic`` (0 where it has no such topic)."""
-    return sum(c.msgcount for c in reader.connections if c.topic == topic)
-
-
-def mean_period_ns(reader: AnyReader, topic: str) -> float:
-    """The mean time (ns) between the bag's messages on ``topic``, over its whole log time."""
-    return (reader.end_time - reader.start_time) / max(message_count(reader, topic) - 1, 1)
-
-
-def read_blocks(reader: AnyReader, topics: StereoTopics, config: Config,
-                span: LogSpan | None) -> tuple[list[LogSpan], float]:
-    """``span``'s log time (or the whole bag's) cut into blocks of about READ_BLOCK_FRAMES
-    sets at the bag's mean rate, each with a lead of two frames and the sync tolerance (for
-    partners logged across its edges; the first block at least the span's own lead), and the
-    mean period (ns) of the left images."""
-    outer = span or LogSpan(reader.start_time, reader.end_time + 1, 0)
-    period_ns = mean_period_ns(reader, topics.left)
-    block_ns = max(1, math.ceil(period_ns * READ_BLOCK_FRAMES))
-    lead_ns = math.ceil(2 * period_ns + config.approximate_sync_tolerance_seconds * 1e9)
-    starts = list(range(outer.start_ns, outer.stop_ns, block_ns)) or [outer.start_ns]
-    return [LogSpan(first, min(first + block_ns, outer.stop_ns),
-                    max(outer.lead_ns, lead_ns) if index == 0 else lead_ns)
-            for index, first in enumerate(starts)], max(period_ns, 1.0)
-
-
-def block_sets(reader: AnyReader, topics: StereoTopics, config: Config, block: LogSpan,
-               first: bool, others: Sequence[str] = (), collected: list | None = None
-               ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
-    """The sets of :func:`stereo_sets` over a block of :func:`read_blocks` whose left image
-    was logged in it (the ``first`` block's also those of its lead)."""
-    return (item for item in stereo_sets(reader, topics, config, ProcessSummary(), block,
-                                         others, collected)
-            if first or item[1] >= block.start_ns)
-
-
-def convert_set(topics: StereoTopics, left_msg: Any, right_msg: Any, left_info: Any,
-                right_info: Any) -> tuple[np.ndarray, np.ndarray, Any]:
-    """The left and right pixels (HxW or HxWx3) and the calibration of a synchronized set;
-    raises InputError where it cannot be converted."""
-    from . import conversions
-
-    if left_info is None:
-        raise InputError(f"no camera_info on {topics.left_info} and {topics.right_info} yet")
-    left = conversions.image_to_array(left_msg)
-    right = conversions.image_to_array(right_msg)
-    height, width = left.shape[:2]
-    return left, right, conversions.calibration_from_camera_info(left_info, right_info, width,
-                                                                 height)
-
-
-def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
-                    span: LogSpan | None, threads: int, others: Sequence[str] = (),
-                    collected: list | None = None
-                    ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
-    """The sets of :func:`stereo_sets` over ``span`` (or the whole bag) in order, and its
-    ``others`` messages into ``collected``, read by ``threads`` threads ahead of the caller,
-    each with its own reader on the bag: the span's log time is cut into blocks of about
-    READ_BLOCK_FRAMES sets (at the bag's mean rate), a thread reads a block with a lead of two
-    frames and the sync tolerance on both sides (for partners logged across its edges) and
-    keeps the sets whose left image was logged in it (the first block also its span's lead).
-    The bag's decompression, which releases the GIL, runs beside the pipeline; at most
-    ``threads`` + 1 blocks are held. Unpaired images are not counted."""
-    import threading
-    from concurrent.futures import ThreadPoolExecutor
-
-    blocks, _ = read_blocks(reader, topics, config, span)
-    path = list(reader.paths)[0]
-    local = threading.local()
-    opened: list[AnyReader] = []
-
-    def read(block: LogSpan, first: bool) -> tuple[list, list]:
-        if not hasattr(local, "reader"):
-            local.reader = open_bag(path)
-            opened.append(local.reader)
-        extras: list = []
-        return list(block_sets(local.reader, topics, config, block, first, others,
-                               extras)), extras
-
-    def take(future: Any) -> list:
-        sets, extras = future.result()
-        if collected is not None:
-            collected.extend(extras)
-        return sets
-
-    try:
-        with ThreadPoolExecutor(threads, thread_name_prefix="bag-read") as pool:
-            pending: deque = deque()
-            for index, block in enumerate(blocks):
-                pending.append(pool.submit(read, block, index == 0))
-                if len(pending) > threads:
-                    yield from take(pending.popleft())
-            while pending:
-                yield from take(pending.popleft())
-    finally:
-        for own in opened:
-            own.close()
+                f"frame, {self.failed} failed, {self.unpaired} unpaired images{corrupt}")
 
 
 def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backend: Any,
@@ -508,18 +260,19 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
                   read_processes: int = 0) -> Iterator[tuple[BagFrame, Any]]:
     """(frame, PipelineResult or the PotholeError that stopped it) for the synchronized sets
     of a bag, or of a :class:`LogSpan` of it (with the sets of its lead before it: their
-    ``logged_ns`` is before the span's start), in order. One pipeline per run of frames with
-    the same calibration; within a run the host prepares the next pair while the device works
-    (Pipeline.run_stream). ``progress(done, total)`` is called per set (of the whole bag's
-    left images, or of a span's share of them). ``read_threads`` > 1: the bag is read ahead
-    in that many threads (:func:`read_sets_ahead`; ``summary`` then counts no unpaired
-    images) where its camera_info topics hold a message per image or so (a block then finds
-    its infos in itself; a bag with latched infos is read in this thread); ``read_processes``
-    > 0: read and decoded by that many worker processes instead (:mod:`.decoding`, on the
-    same condition). The messages of the ``others`` topics logged in the span go into
-    ``collected`` in the same pass (complete once the frames are)."""
-    from .pipeline import Pipeline
-
+    ``logged_ns`` is before the span's start), in order; each frame carries the rectified
+    pair's calibration and, where its images come raw, the rectification (the ``rectify``
+    parameter). One pipeline per run of frames with the same stereo camera (its notes and
+    whether it rectifies are logged once); within a run the host prepares the next pair while
+    the device works (Pipeline.run_stream). ``progress(done, total)`` is called per set (of
+    the whole bag's left images, or of a span's share of them). ``read_threads`` > 1: the bag
+    is read ahead in that many threads (recordings.bags.read_sets_ahead; ``summary`` then
+    counts no unpaired images) where its camera_info topics hold a message per image or so (a
+    block then finds its infos in itself; a bag with latched infos is read in this thread);
+    ``read_processes`` > 0: read and decoded by that many worker processes instead
+    (recordings.readahead, on the same condition). The messages of the ``others`` topics
+    logged in the span go into ``collected`` in the same pass (complete once the frames
+    are)."""
     images = total = message_count(reader, stereo.left)
     if span is not None:
         bag_ns = max(reader.end_time - reader.start_time + 1, 1)
@@ -529,39 +282,52 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
         streamed_infos = all(2 * message_count(reader, topic) >= images
                              for topic in (stereo.left_info, stereo.right_info))
         if read_processes > 0 and streamed_infos:
-            from .decoding import decoded_frames
             for index, item in enumerate(decoded_frames(reader, stereo, config, span,
-                                                        read_processes, others, collected)):
+                                                        read_processes, others, collected,
+                                                        summary.counts)):
                 if progress is not None:
                     progress(min(index, total), total)
                 yield item
             return
         sets = read_sets_ahead(reader, stereo, config, span, read_threads, others,
-                               collected) if read_threads > 1 and streamed_infos \
-            else stereo_sets(reader, stereo, config, summary, span, others, collected)
+                               collected, summary.counts) \
+            if read_threads > 1 and streamed_infos \
+            else stereo_sets(reader, stereo, config, summary.counts, span, others, collected)
         for index, (stamp, logged, left_msg, right_msg, left_cal, right_cal) in enumerate(sets):
             if progress is not None:
                 progress(min(index, total), total)
             try:
-                left_px, right_px, calibration = convert_set(stereo, left_msg, right_msg,
-                                                             left_cal, right_cal)
+                left_px, right_px, camera = convert_set(stereo, left_msg, right_msg, left_cal,
+                                                        right_cal, config)
             except PotholeError as exc:
                 yield BagFrame(stamp, left_msg.header, None, None, None, logged), exc
                 continue
-            yield BagFrame(stamp, left_msg.header, left_px, right_px, calibration, logged)
+            yield BagFrame(stamp, left_msg.header, left_px, right_px, camera, logged)
 
     def key(item: BagFrame | tuple[BagFrame, PotholeError]) -> Any:
-        return None if isinstance(item, tuple) else item.calibration
+        return None if isinstance(item, tuple) else item.camera
 
-    for calibration, run in itertools.groupby(prepared(), key):
-        if calibration is None:
+    for camera, run in itertools.groupby(prepared(), key):
+        if camera is None:
             yield from run
             continue
+        try:
+            calibration, rectification = pipeline_inputs(camera, config.rectify)
+        except PotholeError as exc:
+            for frame in run:
+                yield frame, exc
+            continue
+        for note in camera.notes():
+            _log.info(note)
+        if rectification is not None:
+            _log.info(f"raw images ({camera.left.distortion_model}): rectifying them from "
+                      "camera_info")
         frames, streamed = itertools.tee(run)
-        outcomes = Pipeline(config, calibration, backend).run_stream(
+        outcomes = Pipeline(config, calibration, backend, rectification).run_stream(
             (frame.left, frame.right) for frame in streamed)
         for frame in frames:
-            yield frame, next(outcomes)
+            yield replace(frame, calibration=calibration, rectification=rectification), \
+                next(outcomes)
     if progress is not None:
         progress(total, total)
 
@@ -573,16 +339,16 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             pictures: str | Path | None = None) -> ProcessSummary:
     """Run the pipeline on every synchronized stereo set of ``bag`` and write a new bag at
     ``out`` with the inputs (``keep_inputs``) and every output topic of the node, stamped with
-    the input stamps, under the input's namespace. ``pictures``: also write overlay PNGs."""
-    from .backend import get_backend
-    from .imageio import write_rgb
-    from .outputs import failure_messages, output_messages
-
+    the input stamps, under the input's namespace (raw inputs: the outputs are in the
+    rectified frame). ``pictures``: also write overlay PNGs. The topics used are logged in one
+    line. A bag damaged part way keeps the frames before the damage; the InputError that
+    says where is raised once they are written."""
     reader = open_bag(bag)
     summary = ProcessSummary()
     try:
         bag_topics = {c.topic: c.msgtype for c in reader.connections}
         stereo = find_stereo_topics(bag_topics, left, right, left_info, right_info)
+        _log.info(stereo.describe())
         namespace = stereo.namespace
         writer = writer_for(out, storage)
         writer.open()
@@ -591,15 +357,9 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             output = {name: writer.add_connection(f"{namespace}/{name}", msgtype,
                                                   typestore=store)
                       for name, msgtype in OUTPUT_TYPES.items() if name in OFFLINE_OUTPUTS}
-            inputs = {}
             if keep_inputs:
-                for topic in (stereo.left, stereo.right, stereo.left_info, stereo.right_info):
-                    inputs[topic] = writer.add_connection(topic, bag_topics[topic],
-                                                          typestore=store)
-                for connection, timestamp, rawdata in reader.messages(
-                        connections=[c for c in reader.connections if c.topic in inputs]):
-                    writer.write(inputs[connection.topic], timestamp,
-                                 cdr_bytes(reader, connection, rawdata))
+                copy_messages(reader, writer, (stereo.left, stereo.right, stereo.left_info,
+                                               stereo.right_info))
             backend = get_backend(config.backend)
             if pictures is not None:
                 Path(pictures).mkdir(parents=True, exist_ok=True)
@@ -607,16 +367,15 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             for frame, outcome in frame_results(reader, stereo, config, backend, summary,
                                                 progress):
                 if isinstance(outcome, PotholeError):
-                    summary.failed += 1
-                    summary.errors.append(f"stamp {frame.stamp}: {outcome}")
+                    summary.failures.add(frame.stamp, str(outcome))
                     for name, made in failure_messages(frame.header, str(outcome)).items():
                         writer.write(output[name], frame.stamp,
                                      serialize(made, OUTPUT_TYPES[name]))
                     started = time.perf_counter()
                     continue
                 result = outcome
-                made = output_messages(result, frame.left, frame.calibration, frame.header,
-                                       OFFLINE_OUTPUTS)
+                made = output_messages(result, frame.left_view(), frame.calibration,
+                                       frame.header, OFFLINE_OUTPUTS)
                 summary.frames += 1
                 summary.potholes += len(result.potholes)
                 for name, msg in made.messages.items():
@@ -632,32 +391,24 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
     return summary
 
 
-def topics_of(bag: str | Path) -> dict[str, str]:
-    """Topic name -> type of a bag."""
-    reader = open_bag(bag)
-    try:
-        return {c.topic: c.msgtype for c in reader.connections}
-    finally:
-        reader.close()
-
-
-def read_messages(bag: str | Path, topics: Iterable[str] | None = None,
-                  span: LogSpan | None = None) -> Iterator[tuple[str, int, Any]]:
-    """(topic, bag time ns, message) of a bag, or of those logged in a span (its lead
-    left out), in time order."""
-
-    reader = open_bag(bag)
-    try:
-        wanted = None if topics is None else set(topics)
-        connections = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        window = {} if span is None else {"start": span.start_ns, "stop": span.stop_ns}
-        for connection, timestamp, rawdata in reader.messages(connections=connections,
-                                                              **window):
-            yield connection.topic, timestamp, deserialize(
-                cdr_bytes(reader, connection, rawdata), connection.msgtype)
-    finally:
-        reader.close()
-
+def copy_messages(reader: AnyReader, writer: Writer, topics: Sequence[str]) -> None:
+    """Copy the messages of ``topics`` from a bag into a new one (ROS 2 CDR), up to where
+    the bag is damaged, if it is."""
+    store = typestore()
+    bag_topics = {c.topic: c.msgtype for c in reader.connections}
+    connections = {topic: writer.add_connection(topic, bag_topics[topic], typestore=store)
+                   for topic in topics}
+    messages = reader.messages(connections=[c for c in reader.connections
+                                            if c.topic in connections])
+    while True:
+        try:
+            connection, timestamp, rawdata = next(messages)
+        except StopIteration:
+            return
+        except Exception:  # noqa: BLE001 - a damaged bag: reading the sets will say where
+            return
+        writer.write(connections[connection.topic], timestamp,
+                     cdr_bytes(reader, connection, rawdata))
 
 
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
@@ -667,8 +418,6 @@ GNSS_TYPE = "sensor_msgs/msg/NavSatFix"
 def odometry_message(stamp_ns: int, x: float, y: float, yaw: float,
                      frame_id: str = "odom", child_frame_id: str = "base_link") -> Any:
     """nav_msgs/Odometry of a planar pose (m, rad)."""
-    from . import conversions
-
     msg = message(ODOMETRY_TYPE)(header=conversions.header_at(stamp_ns, frame_id),
                                  child_frame_id=child_frame_id)
     msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
@@ -680,8 +429,6 @@ def odometry_message(stamp_ns: int, x: float, y: float, yaw: float,
 def gnss_message(stamp_ns: int, lat_deg: float, lon_deg: float,
                  frame_id: str = "gnss") -> Any:
     """sensor_msgs/NavSatFix of a fix (status FIX, GPS)."""
-    from . import conversions
-
     msg = message(GNSS_TYPE)(header=conversions.header_at(stamp_ns, frame_id),
                              latitude=float(lat_deg), longitude=float(lon_deg))
     msg.status.status, msg.status.service = 0, 1
@@ -699,8 +446,6 @@ def write_drive_bag(out: str | Path, forward_m: Sequence[float], samples: Sequen
     ``forward_m[i]`` m along the road from the first, at ``rate_hz``; with ``motion`` "odom"
     also /odom (the road point below the camera, x forward), with "gnss" /gnss/fix (driving
     north from ``origin_latlon``); the label images as write_stereo_bag's ``ground_truth``."""
-    from .motion import latlon_of
-
     if motion not in DRIVE_MOTIONS:
         raise ValueError(f"motion must be one of {DRIVE_MOTIONS}")
 
@@ -717,32 +462,61 @@ def write_drive_bag(out: str | Path, forward_m: Sequence[float], samples: Sequen
                             ground_truth=ground_truth, extras=extras)
 
 
+@dataclass(frozen=True)
+class RecordingForm:
+    """How a camera driver records a stereo camera, for :func:`write_stereo_bag`: its topics
+    (None: ``<namespace>/left/image_rect`` and so on; CompressedImage topics end in
+    ``/compressed``), how its images are stored (``encoding``: one a camera publishes, made
+    from the samples' grey or RGB by recordings.images.encode_raw; None: mono8 or rgb8 as the
+    samples are) or compressed (``compression``: jpeg or png), the calibrated camera they come
+    from (raw images: its camera_info, with distortion and R; None: the rectified camera of
+    the samples) and whether the right camera_info leaves the baseline out (Tx = 0)."""
+
+    topics: StereoTopics | None = None
+    encoding: str | None = None
+    compression: str | None = None
+    camera: StereoCamera | None = None
+    no_baseline: bool = False
+
+
 def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
                      namespace: str = "/stereo",
                      frame_id: str = "stereo_left_optical_frame", storage: str = "mcap",
                      ground_truth: bool = True,
-                     extras: Callable[[int, int, Any], dict[str, Any]] | None = None) -> int:
+                     extras: Callable[[int, int, Any], dict[str, Any]] | None = None,
+                     form: RecordingForm = RecordingForm()) -> int:
     """Write (stamp ns, StereoSample) frames as a stereo bag: ``left/image_rect``,
     ``right/image_rect`` (mono8, or rgb8 for colour samples), both camera_info and, with
-    ``ground_truth``, ``ground_truth/pothole_labels`` (mono16) under ``namespace``.
-    ``extras(index, stamp, sample)`` gives more messages per frame by topic (``/odom``:
-    nav_msgs/Odometry, ``/gnss/fix``: sensor_msgs/NavSatFix). Returns the number of frames
-    written."""
-    from . import conversions
-
+    ``ground_truth``, ``ground_truth/pothole_labels`` (mono16) under ``namespace``; or in the
+    topics, encoding or compression and calibration of ``form`` (raw images: the samples'
+    images must be the camera's raw ones, synthetic.render_raw). ``extras(index, stamp,
+    sample)`` gives more messages per frame by topic (``/odom``: nav_msgs/Odometry,
+    ``/gnss/fix``: sensor_msgs/NavSatFix). Returns the number of frames written."""
     store = typestore()
     writer = writer_for(out, storage)
     writer.open()
-    topics = {"left": (f"{namespace}/left/image_rect", IMAGE_TYPE),
-              "right": (f"{namespace}/right/image_rect", IMAGE_TYPE),
-              "left_info": (f"{namespace}/left/camera_info", INFO_TYPE),
-              "right_info": (f"{namespace}/right/camera_info", INFO_TYPE)}
+    image_type = COMPRESSED_TYPE if form.compression else IMAGE_TYPE
+    names = form.topics or StereoTopics(
+        *(f"{namespace}/{side}/image_rect" + ("/compressed" if form.compression else "")
+          for side in ("left", "right")),
+        f"{namespace}/left/camera_info", f"{namespace}/right/camera_info")
+    topics = {"left": (names.left, image_type), "right": (names.right, image_type),
+              "left_info": (names.left_info, INFO_TYPE),
+              "right_info": (names.right_info, INFO_TYPE)}
     if ground_truth:
-        topics["truth"] = (f"{namespace}/ground_truth/pothole_labels", IMAGE_TYPE)
+        topics["truth"] = (f"{names.namespace or namespace}/ground_truth/pothole_labels",
+                           IMAGE_TYPE)
     connections = {key: writer.add_connection(topic, msgtype, typestore=store)
                    for key, (topic, msgtype) in topics.items()}
     extra_types = {"/odom": ODOMETRY_TYPE, "/gnss/fix": GNSS_TYPE}
     count = 0
+
+    def image(pixels: np.ndarray, header: Any) -> Any:
+        if form.compression:
+            return conversions.compressed_image(pixels, form.compression, header)
+        encoding = form.encoding or ("mono8" if pixels.ndim == 2 else "rgb8")
+        return conversions.array_to_image(encode_raw(pixels, encoding), encoding, header)
+
     try:
         for index, (stamp_ns, sample) in enumerate(frames):
             for topic, extra in (extras(index, stamp_ns, sample) if extras else {}).items():
@@ -753,15 +527,18 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
                              serialize(extra, extra_types[topic]))
             header = conversions.header_at(stamp_ns, frame_id)
             height, width = sample.left.shape[:2]
-            encoding = "mono8" if sample.left.ndim == 2 else "rgb8"
-            messages = {
-                "left": conversions.array_to_image(sample.left, encoding, header),
-                "right": conversions.array_to_image(sample.right, encoding, header),
-                "left_info": conversions.camera_info_message(sample.calibration, width, height,
-                                                             header),
-                "right_info": conversions.camera_info_message(sample.calibration, width,
-                                                              height, header, right=True),
-            }
+            if form.camera is not None:
+                infos = [conversions.camera_info_of(model, header)
+                         for model in (form.camera.left, form.camera.right)]
+            else:
+                infos = [conversions.camera_info_message(sample.calibration, width, height,
+                                                         header, right=right)
+                         for right in (False, True)]
+            if form.no_baseline:
+                infos[1].p[3] = 0.0
+            messages = {"left": image(sample.left, header),
+                        "right": image(sample.right, header),
+                        "left_info": infos[0], "right_info": infos[1]}
             if ground_truth:
                 messages["truth"] = conversions.array_to_image(
                     sample.labels.astype(np.uint16), "mono16", header)

@@ -21,7 +21,9 @@ from .evaluation import draw_progress, evaluate, evaluate_synthetic, synthetic_m
 from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
 from .pipeline import Pipeline, PipelineResult
+from .recordings.camera import pipeline_inputs
 from .rig_matrix import RIG_CLASS_NAMES
+from .stages.rectify import Rectification
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -31,17 +33,18 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    detect = commands.add_parser("detect", help="detect potholes in one rectified stereo pair")
-    detect.add_argument("--left", required=True, help="left rectified image")
-    detect.add_argument("--right", required=True, help="right rectified image")
+    detect = commands.add_parser("detect", help="detect potholes in one stereo pair")
+    detect.add_argument("--left", required=True, help="left image (rectified, or raw with "
+                                                      "camera-info files that rectify it)")
+    detect.add_argument("--right", required=True, help="right image")
     detect.add_argument("--camera-info-left", help="left ROS calibration YAML")
     detect.add_argument("--camera-info-right", help="right ROS calibration YAML")
-    detect.add_argument("--focal", type=float, help="focal length (px)")
-    detect.add_argument("--baseline", type=float, help="baseline (m)")
     detect.add_argument("--cx", type=float, help="principal point x (px; default image centre)")
     detect.add_argument("--cy", type=float, help="principal point y (px; default image centre)")
     detect.add_argument("--out", required=True, help="output directory")
     _common(detect)
+    _calibration_overrides(detect, "without camera-info files: the rectified pair's; with "
+                                    "them: used where they lack it")
 
     evaluate_cmd = commands.add_parser(
         "evaluate", help="the paper's metrics over a directory of pairs with ground truth, or "
@@ -89,6 +92,7 @@ def _parser() -> argparse.ArgumentParser:
                                  help=f"{name.replace('-info', ' camera_info')} topic "
                                       "(default: found in the bag)")
     _common(process_cmd)
+    _calibration_overrides(process_cmd, "used where the camera_info lacks it")
 
     survey_cmd = commands.add_parser(
         "survey", help="survey recorded drives: one entry per physical pothole, with severity, "
@@ -116,6 +120,7 @@ def _parser() -> argparse.ArgumentParser:
                                 help=f"{name.replace('-info', ' camera_info')} topic "
                                      "(default: found in the bag)")
     _common(survey_cmd)
+    _calibration_overrides(survey_cmd, "used where the camera_info lacks it")
 
     record_cmd = commands.add_parser("record", help="record live topics into a bag")
     record_cmd.add_argument("out", help="output bag directory (new)")
@@ -133,31 +138,53 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         help="override the config's backend (auto, cpu, gpu)")
 
 
-def _config(path: str | None, backend: str | None = None) -> Config:
+def _calibration_overrides(parser: argparse.ArgumentParser, use: str) -> None:
+    parser.add_argument("--baseline", type=float, help=f"baseline (m; {use})")
+    parser.add_argument("--focal", type=float, help=f"focal length (px; {use})")
+    parser.add_argument("--rectify", choices=("auto", "on", "off"),
+                        help="override the config's rectify: rectify the images from their "
+                             "calibration (auto: where it says they are not rectified)")
+
+
+def _config(path: str | None, backend: str | None = None,
+            args: argparse.Namespace | None = None) -> Config:
+    """The parameters of ``path`` (defaults without), with the command line's backend and,
+    where ``args`` has them, its baseline, focal length and rectify."""
     config = Config(load_yaml(path) if path else {})
-    return config.replace(backend=backend) if backend else config
+    config = config.replace(backend=backend) if backend else config
+    if args is not None:
+        changes = {name: value for name, value in (
+            ("baseline_m", getattr(args, "baseline", None)),
+            ("focal_px", getattr(args, "focal", None)),
+            ("rectify", getattr(args, "rectify", None))) if value is not None}
+        config = config.replace(**changes)
+    return config
 
 
-def _calibration(args: argparse.Namespace, width: int, height: int) -> StereoCalibration:
+def _calibration(args: argparse.Namespace, config: Config, width: int, height: int
+                 ) -> tuple[StereoCalibration, Rectification | None]:
+    """The rectified pair's calibration of ``detect``'s arguments and, where the images need
+    it (the rectify parameter), their rectification."""
     if args.camera_info_left or args.camera_info_right:
-        given = [f"--{name.replace('_', '-')}" for name in ("focal", "baseline", "cx", "cy")
-                 if getattr(args, name) is not None]
+        given = [f"--{name}" for name in ("cx", "cy") if getattr(args, name) is not None]
         if given:
             verb = "conflicts" if len(given) == 1 else "conflict"
             raise InputError(f"{' and '.join(given)} {verb} with the camera-info files, "
                              "which hold the calibration: give one or the other")
         if not (args.camera_info_left and args.camera_info_right):
             raise InputError("give both --camera-info-left and --camera-info-right")
-        calibration, size = load_stereo_camera_info(args.camera_info_left,
-                                                    args.camera_info_right)
+        camera, size = load_stereo_camera_info(args.camera_info_left, args.camera_info_right,
+                                               config.baseline_m, config.focal_px)
         if size != (width, height):
             raise InputError(f"camera info is for {size[0]}x{size[1]} images but the images "
                              f"are {width}x{height}")
-        return calibration
+        for note in camera.notes():
+            print(note)
+        return pipeline_inputs(camera, config.rectify)
     if args.focal is None or args.baseline is None:
         raise InputError("give --camera-info-left/--camera-info-right or --focal and --baseline")
     return StereoCalibration.from_focal_baseline(args.focal, args.baseline, width, height,
-                                                 args.cx, args.cy)
+                                                 args.cx, args.cy), None
 
 
 def detection_json(result: PipelineResult) -> dict:
@@ -181,10 +208,11 @@ def detection_json(result: PipelineResult) -> dict:
 
 def run_detect(args: argparse.Namespace) -> int:
     left, right = read_image(args.left), read_image(args.right)
-    calibration = _calibration(args, left.shape[1], left.shape[0])
-    config = _config(args.config, args.backend)
+    config = _config(args.config, args.backend, args)
+    calibration, rectification = _calibration(args, config, left.shape[1], left.shape[0])
     backend = get_backend(config.backend)
-    result = Pipeline(config, calibration, backend).run(left, right)
+    pipeline = Pipeline(config, calibration, backend, rectification)
+    result = pipeline.run(left, right)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     labels = result.host("labels")
@@ -193,7 +221,7 @@ def run_detect(args: argparse.Namespace) -> int:
             result.host("transformed").astype(np.float32))
     write_labels(out / "labels.png", labels)
     (out / "potholes.json").write_text(json.dumps(detection_json(result), indent=2) + "\n")
-    write_rgb(out / "overlay.png", overlay(left, labels, result.potholes,
+    write_rgb(out / "overlay.png", overlay(pipeline.view(left), labels, result.potholes,
                                            result.host("observed")))
     print(f"{len(result.potholes)} pothole(s); road roll {result.road.roll_deg:.2f} deg, "
           f"inliers {result.road.inlier_fraction:.0%}; {result.timings_ms['total']:.0f} ms on "
@@ -235,22 +263,30 @@ def run_process(args: argparse.Namespace) -> int:
     from .bagtools import process
     start = time.perf_counter()
     summary = process(
-        args.bag, args.out, _config(args.config, args.backend), storage=args.storage,
+        args.bag, args.out, _config(args.config, args.backend, args), storage=args.storage,
         keep_inputs=not args.no_inputs, left=args.left_topic, right=args.right_topic,
         left_info=args.left_info_topic, right_info=args.right_info_topic,
         progress=lambda index, total: draw_progress(index, total, start, "process"),
         pictures=args.pictures)
-    for error in summary.errors:
-        print(f"  skipped {error}", file=sys.stderr)
+    for line in summary.failures.lines():
+        print(f"  {line}")
+    if summary.counts.corrupt:
+        print(f"  {summary.counts.corrupt} corrupt messages skipped; the last: "
+              f"{summary.counts.last_problem}")
     print(f"{summary.text()}; wrote {args.out}")
+    if summary.frames == 0:
+        reason = summary.failures.rows()[0][1] if summary.failed else "the bag has no stereo set"
+        print(f"pothole-detector: error: no frame of {args.bag} could be processed: {reason}",
+              file=sys.stderr)
+        return 1
     return 0
 
 
 def run_survey(args: argparse.Namespace) -> int:
     from .report import write_report
-    from .survey import best_view_picture, survey, write_csv, write_geojson
+    from .survey import best_view_picture, survey, write_csv, write_geojson, write_summary
 
-    config = _config(args.config, args.backend)
+    config = _config(args.config, args.backend, args)
     if args.read_processes is not None:
         config = config.replace(read_processes=args.read_processes)
     names = dict(odometry=args.odometry_topic, gnss=args.gnss_topic,
@@ -271,23 +307,37 @@ def run_survey(args: argparse.Namespace) -> int:
                      progress=lambda index, total: draw_progress(index, total, start, label),
                      jobs=args.jobs, **names)
     write_csv(surveys, out / "survey.csv")
+    summary = write_summary(surveys, out / "summary.json")
     geojson = write_geojson(surveys, out / "survey.geojson")
     write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(
-        drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px))
+        drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px, config))
     potholes = [p for drive in surveys for p in drive.potholes]
     by_class = ", ".join(f"{sum(p.row['severity'] == s for p in potholes)} {s}"
                          for s in ("low", "moderate", "high"))
     frames = sum(d.frames for d in surveys)
     elapsed = time.perf_counter() - start
     for drive in surveys:
+        if drive.error:
+            print(f"{drive.bag.name}: not surveyed: {drive.error}")
+            continue
         print(f"{drive.bag.name}: {drive.frames} frames ({drive.failed} failed), "
               f"{len(drive.potholes)} potholes, {drive.observed_length_m:.1f} m of road "
               f"observed, motion from {drive.motion_source}"
               + (f"; {drive.left_out} seen in fewer than min_sightings "
                  f"({config.min_sightings}) frames left out" if drive.left_out else ""))
+        for line in drive.failure_tally().lines():
+            print(f"  {line}")
     print(f"{len(potholes)} potholes ({by_class}) in {frames} frames, "
-          f"{frames / max(elapsed, 1e-9):.1f} frames/s; wrote {out / 'survey.csv'}"
+          f"{frames / max(elapsed, 1e-9):.1f} frames/s; wrote {out / 'survey.csv'}, "
+          f"{out / 'summary.json'}"
           + (f", {out / 'survey.geojson'}" if geojson else "") + f", {out / 'report.html'}")
+    if summary["processed"] == 0:
+        reasons = [line for drive in surveys for line in
+                   ([drive.error] if drive.error else
+                    [row[1] for row in drive.failure_tally().rows()[:1]])]
+        print(f"pothole-detector: error: no frame could be processed: "
+              f"{reasons[0] if reasons else 'the bags hold no stereo set'}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -11,8 +11,10 @@ import numpy as np
 from . import msgtypes
 from .msgtypes import message
 
-from .calibration import StereoCalibration
-from .errors import CalibrationError, InputError
+from .calibration import CameraModel, StereoCalibration
+from .errors import InputError
+from .recordings.images import (RAW_LAYOUTS, compressed_format_string, decode_raw,
+                                encode_compressed)
 from .stages.measure import Pothole, depth_below_road
 from .stages.road_model import RoadModel
 
@@ -20,6 +22,7 @@ Duration = message("builtin_interfaces/msg/Duration")
 Time = message("builtin_interfaces/msg/Time")
 Point = message("geometry_msgs/msg/Point")
 CameraInfo = message("sensor_msgs/msg/CameraInfo")
+CompressedImage = message("sensor_msgs/msg/CompressedImage")
 Image = message("sensor_msgs/msg/Image")
 PointCloud2 = message("sensor_msgs/msg/PointCloud2")
 PointField = message("sensor_msgs/msg/PointField")
@@ -32,16 +35,6 @@ MarkerArray = message("visualization_msgs/msg/MarkerArray")
 PotholeMsg = message("pothole_detector_msgs/msg/Pothole")
 PotholeArray = message("pothole_detector_msgs/msg/PotholeArray")
 
-IMAGE_ENCODINGS: dict[str, tuple[np.dtype, int]] = {
-    "mono8": (np.dtype(np.uint8), 1),
-    "mono16": (np.dtype(np.uint16), 1),
-    "rgb8": (np.dtype(np.uint8), 3),
-    "bgr8": (np.dtype(np.uint8), 3),
-    "rgba8": (np.dtype(np.uint8), 4),
-    "bgra8": (np.dtype(np.uint8), 4),
-    "32FC1": (np.dtype(np.float32), 1),
-}
-INPUT_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8", "rgba8", "bgra8")
 SUBPIXEL_STEP_PX = 1.0 / 16.0
 POINT_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", PointField.FLOAT32),
                 ("depth_below_road", PointField.FLOAT32), ("label", PointField.UINT32))
@@ -69,42 +62,10 @@ def _bytes(values: np.ndarray) -> array.array | np.ndarray:
     return data
 
 
-def image_to_array(msg: Image, allowed: Sequence[str] = INPUT_ENCODINGS) -> np.ndarray:
-    """A host array of a sensor_msgs/Image: HxW (mono8/mono16/32FC1) or HxWx3 RGB (colour
-    encodings, alpha dropped), honouring ``step`` and ``is_bigendian``. Raises InputError when
-    the encoding is unknown or step, width, height and data disagree."""
-    if msg.encoding not in allowed:
-        raise InputError(f"image encoding {msg.encoding!r} is not supported; publish one of "
-                         f"{', '.join(allowed)}")
-    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
-    height, width, step = int(msg.height), int(msg.width), int(msg.step)
-    row_bytes = width * channels * dtype.itemsize
-    if height == 0 or width == 0:
-        raise InputError(f"image is empty ({width}x{height})")
-    if step < row_bytes:
-        raise InputError(f"image step {step} B is shorter than a {msg.encoding} row of {width} "
-                         f"px ({row_bytes} B); fix the publisher's step")
-    if len(msg.data) < step * (height - 1) + row_bytes:
-        raise InputError(f"image data holds {len(msg.data)} B but {width}x{height} "
-                         f"{msg.encoding} with step {step} needs {step * height} B")
-    raw = np.frombuffer(msg.data, dtype=np.uint8, count=min(len(msg.data), step * height))
-    if raw.size < step * height:
-        raw = np.concatenate([raw, np.zeros(step * height - raw.size, np.uint8)])
-    rows = raw.reshape(height, step)[:, :row_bytes]
-    order = ">" if msg.is_bigendian else "<"
-    pixels = np.ascontiguousarray(rows).view(dtype.newbyteorder(order))
-    pixels = pixels.astype(dtype, copy=False).reshape(height, width, channels)
-    if msg.encoding.startswith("bgr"):
-        pixels = pixels[..., 2::-1]
-    elif msg.encoding == "rgba8":
-        pixels = pixels[..., :3]
-    return np.ascontiguousarray(pixels[..., 0] if channels == 1 else pixels)
-
-
 def array_to_image(pixels: np.ndarray, encoding: str, header: Header) -> Image:
-    """A sensor_msgs/Image of a host array (HxW or HxWxC) in ``encoding`` (little endian,
-    tightly packed)."""
-    dtype, channels = IMAGE_ENCODINGS[encoding]
+    """A sensor_msgs/Image of a host array (HxW or HxWxC, as ``encoding`` stores its pixels:
+    recordings.images.RAW_LAYOUTS) in ``encoding`` (little endian, tightly packed)."""
+    dtype, channels = RAW_LAYOUTS[encoding]
     pixels = np.ascontiguousarray(pixels, dtype=dtype.newbyteorder("<"))
     if pixels.ndim != (2 if channels == 1 else 3):
         raise InputError(f"{encoding} needs {'HxW' if channels == 1 else 'HxWxC'} pixels")
@@ -113,21 +74,19 @@ def array_to_image(pixels: np.ndarray, encoding: str, header: Header) -> Image:
                  is_bigendian=0, step=width * channels * dtype.itemsize, data=_bytes(pixels))
 
 
-def calibration_from_camera_info(left: CameraInfo, right: CameraInfo, width: int,
-                                 height: int) -> StereoCalibration:
-    """The rectified stereo calibration of two sensor_msgs/CameraInfo of images ``width`` x
-    ``height`` px. Raises CalibrationError when they disagree with the images or each other."""
-    for side, info in (("left", left), ("right", right)):
-        if (int(info.width), int(info.height)) not in ((width, height), (0, 0)):
-            raise CalibrationError(
-                f"{side} camera_info is for {info.width}x{info.height} images but the images "
-                f"are {width}x{height}; publish the camera_info of the rectified images")
-        k = np.asarray(info.k, dtype=np.float64)
-        if k.size != 9 or not np.isfinite(k).all() or k[0] <= 0 or k[4] <= 0:
-            raise CalibrationError(
-                f"{side} camera_info K has NaN, infinity or a focal length <= 0 ({list(k)}); "
-                "is the camera calibrated?")
-    return StereoCalibration.from_projections(list(left.p), list(right.p))
+def compressed_image(pixels: np.ndarray, codec: str, header: Header) -> CompressedImage:
+    """A sensor_msgs/CompressedImage of HxW grey or HxWx3 RGB ``pixels`` compressed with
+    ``codec`` (jpeg or png) as image_transport's compressed transport writes it."""
+    return CompressedImage(header=header, format=compressed_format_string(pixels, codec),
+                           data=_bytes(np.frombuffer(encode_compressed(pixels, codec),
+                                                     np.uint8)))
+
+
+def camera_info_of(model: CameraModel, header: Header) -> CameraInfo:
+    """sensor_msgs/CameraInfo of a calibrated camera (its raw images: D, K, R and P)."""
+    return CameraInfo(header=header, width=model.width, height=model.height,
+                      distortion_model=model.distortion_model, d=list(model.d), k=list(model.k),
+                      r=list(model.r), p=list(model.p))
 
 
 def disparity_message(disparity: np.ndarray, calibration: StereoCalibration,
@@ -151,7 +110,7 @@ def disparity_message(disparity: np.ndarray, calibration: StereoCalibration,
 
 def disparity_from_message(msg: DisparityImage) -> np.ndarray:
     """The float32 HxW map of a DisparityImage with NaN outside [min, max]_disparity."""
-    values = image_to_array(msg.image, allowed=("32FC1",)).astype(np.float32)
+    values = decode_raw(msg.image, allowed=("32FC1",)).astype(np.float32)
     values[(values < msg.min_disparity) | (values > msg.max_disparity)] = np.nan
     return values
 

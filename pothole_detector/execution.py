@@ -227,6 +227,8 @@ class FrameExecutor:
         self._graph_memory: GraphMemory | None = None  # shared by the graphs (one stream)
         self._readbacks: list[tuple[Readback, Readback]] = []  # used in turn, frame by frame
         self._unpublished: _Frame | None = None  # the last replayed frame, if not yet copied
+        # the rectified images of each upload buffer (GPU; the CPU makes them anew each frame)
+        self._rectified_images: dict[int, tuple[Any, Any]] = {}
 
     def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:
         """One pair: its stages queued, the report's header read back and checked (the next
@@ -237,7 +239,7 @@ class FrameExecutor:
             raise staged
         frame = self._queue(staged, started)
         self._read_road(frame)
-        self.pipeline.band(staged.shape(0))
+        self.pipeline.band(self.pipeline.output_shape(staged.shape(0)))
         self._read_report(frame)
         return self._finish(frame)
 
@@ -285,10 +287,12 @@ class FrameExecutor:
         height, width = pair[0].shape[:2]
         buffers = self._uploads.get((height, width))
         if buffers is None:
+            rows = self.pipeline.output_shape((height, width))[0]
             layout = [((height, width), np.uint8), ((height, width), np.uint8),
-                      ((3, height), np.int32), ((road_model.PRIOR_PARAMS,), np.float64)]
+                      ((3, rows), np.int32), ((road_model.PRIOR_PARAMS,), np.float64)]
             buffers = [UploadBuffer(self.backend, layout) for _ in range(2)]
             self._uploads = {(height, width): buffers}
+            self._rectified_images.clear()
         buffer = buffers.pop(0)
         buffers.append(buffer)
         left_host, right_host = buffer.writable()[:2]
@@ -297,6 +301,24 @@ class FrameExecutor:
         if send_ahead:
             buffer.send_ahead(2)  # the images now; the shifts wait for this frame's road model
         return buffer
+
+    def _rectified(self, staged: UploadBuffer, pair: tuple[Any, Any, Any, Any],
+                   clock: StageClock) -> tuple[Any, Any, Any, Any]:
+        """The uploaded (left, right, shifts, prior) with the images rectified on the device
+        (Pipeline.rectified) into arrays kept with upload buffer ``staged`` (its images are
+        overwritten only by its next upload), where the pipeline rectifies."""
+        if self.pipeline.rectification is None:
+            return pair
+        xp = self.backend.xp
+        shape = self.pipeline.output_shape(staged.shape(0))
+        targets = self._rectified_images.get(id(staged))
+        if targets is None or targets[0].shape != shape:
+            targets = (xp.empty(shape, dtype=xp.uint8), xp.empty(shape, dtype=xp.uint8))
+            if self.backend.is_gpu:
+                self._rectified_images[id(staged)] = targets
+        with clock.stage("rectify"):
+            left, right = self.pipeline.rectified(pair[0], pair[1], targets)
+        return left, right, pair[2], pair[3]
 
     def _queue_staged(self, staged: UploadBuffer | PotholeError) -> _Frame | PotholeError:
         """The pair in upload buffer ``staged`` queued, or the error it raised."""
@@ -311,13 +333,14 @@ class FrameExecutor:
         """Prepare the pair in upload buffer ``staged`` (seed, GPT) and queue its stages (on
         the CPU: run them), replayed as CUDA graphs where they can be."""
         pipeline, config, backend = self.pipeline, self.pipeline.config, self.backend
-        height, width = staged.shape(0)
+        height, width = pipeline.output_shape(staged.shape(0))
         clock = StageClock(backend)
         seeded = pipeline.road is None or not config.gpt_enabled
         seeding = config.gpt_enabled and pipeline.road is None
         staged.send_ahead(2)
         pair, shifts, levels = pipeline.prepare(
-            lambda table, prior: _send(staged, table, prior), (height, width), clock)
+            lambda table, prior: self._rectified(staged, _send(staged, table, prior), clock),
+            (height, width), clock)
         key = (height, width, levels, pipeline.region_size(width))
         graphed = backend.is_gpu and config.cuda_graph and not seeding \
             and config.matcher == "census"

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
-from .bagtools import LogSpan
+from .recordings.bags import LogSpan
 from .errors import InputError
 from .params import Config
 from .stages.matching import set_host_threads

@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -26,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile
     ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 from visualization_msgs.msg import MarkerArray
@@ -35,19 +36,25 @@ from pothole_detector_msgs.msg import PotholeArray
 
 from . import conversions
 from .backend import Backend, get_backend
-from .calibration import StereoCalibration
-from .errors import ConfigError, PotholeError
+from .calibration import StereoCalibration, StereoCamera
+from .errors import ConfigError, InputError, PotholeError
 from .outputs import ON_REQUEST, failure_messages, output_messages
 from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
-from .stages import census_sgm
+from .recordings.camera import pipeline_inputs, stereo_camera
+from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
+from .stages import census_sgm, rectify
 from .sync import StereoSynchronizer
 from .motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
 from .tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
-PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group == "pipeline")
-QOS_PARAMETERS = frozenset({"qos_depth", "use_odometry"})
+PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group in ("pipeline", "input"))
+QOS_PARAMETERS = frozenset({"qos_depth", "use_odometry", "image_transport"})
+# sets that may wait while the worker compiles the CPU kernels at start (a fresh installation)
+WARM_UP_WAITING_SETS = 32
+# what the diagnostics say while the worker warms up
+WARMING_UP = "starting: compiling the CPU kernels (the first start after installation)"
 ODOMETRY_HISTORY = 400
 SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
                              "queue_size"})
@@ -77,8 +84,8 @@ class StereoSet:
     """One synchronized pair with its camera infos and the time it was complete."""
 
     stamp_ns: int
-    left: Image
-    right: Image
+    left: Image | CompressedImage
+    right: Image | CompressedImage
     left_info: CameraInfo | None
     right_info: CameraInfo | None
     received: float
@@ -234,10 +241,9 @@ class PotholeDetectorNode(Node):
         self._synchronizer = StereoSynchronizer.from_config(self._config)
         self._inputs: list[Any] = []
         self._outputs: dict[str, Any] = {}
-        if self._config.matcher == "census" and self._config.backend != "gpu" \
-                and not self._backend_for(self._config).is_gpu:
-            # before the subscriptions: the first frames need not wait for the compiler
-            census_sgm.compile_cpu_kernels()
+        self._noted_cameras: set[StereoCamera] = set()
+        self._warming_up = True
+        self._decoder = ThreadPoolExecutor(1, thread_name_prefix="pothole_decoder")
         self._make_io(self._config)
         self._diagnostics_timer = self._wall_timer(self._config.diagnostics_period_seconds)
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -278,6 +284,23 @@ class PotholeDetectorNode(Node):
 
     # --- topics -----------------------------------------------------------------------------
 
+    def _warm_up(self) -> None:
+        """The worker's start: the backend made and, on the CPU, the kernels compiled (or
+        loaded from Numba's cache) before the first frame; sets arriving meanwhile wait (up to
+        WARM_UP_WAITING_SETS) and the diagnostics say so."""
+        config = self._config
+        if not self._backend_for(config).is_gpu:
+            if config.matcher == "census":
+                census_sgm.compile_cpu_kernels()
+            rectify.compile_cpu_kernel()
+        with self._lock:
+            self._warming_up = False
+
+    def _waiting_limit(self) -> int:
+        """How many synchronized sets may wait for the worker (more while it warms up)."""
+        return max(self._config.max_waiting_sets,
+                   WARM_UP_WAITING_SETS if self._warming_up else 0)
+
     def _make_io(self, config: Config) -> None:
         for subscription in self._inputs:
             self.destroy_subscription(subscription)
@@ -305,9 +328,12 @@ class PotholeDetectorNode(Node):
                                          event_callbacks=events,
                                          qos_overriding_options=overrides)
 
+        compressed = config.image_transport == "compressed"
+        kind, suffix = (CompressedImage, "/compressed") if compressed else (Image, "")
+        self._image_type = COMPRESSED_TYPE if compressed else IMAGE_TYPE
         self._inputs = [
-            subscribe(Image, "left/image_rect", lambda m: self._on_image("left", m)),
-            subscribe(Image, "right/image_rect", lambda m: self._on_image("right", m)),
+            subscribe(kind, "left/image_rect" + suffix, lambda m: self._on_image("left", m)),
+            subscribe(kind, "right/image_rect" + suffix, lambda m: self._on_image("right", m)),
             subscribe(CameraInfo, "left/camera_info", lambda m: self._on_info("left", m)),
             subscribe(CameraInfo, "right/camera_info", lambda m: self._on_info("right", m)),
         ]
@@ -411,7 +437,7 @@ class PotholeDetectorNode(Node):
                 self._waiting = current
             for job in ready:
                 self._pending.append(job)
-                while len(self._pending) > self._config.max_waiting_sets:
+                while len(self._pending) > self._waiting_limit():
                     self._pending.popleft()
                     self._stats.drop()
             if ready:
@@ -437,6 +463,12 @@ class PotholeDetectorNode(Node):
     # --- processing -------------------------------------------------------------------------
 
     def _work(self) -> None:
+        try:
+            self._warm_up()
+        except Exception as exc:  # noqa: BLE001 - frames will say what is wrong
+            self._problem("warm-up", f"could not prepare the pipeline: {exc}")
+            with self._lock:
+                self._warming_up = False
         while True:
             with self._lock:
                 while not self._pending and not self._stopping:
@@ -473,11 +505,25 @@ class PotholeDetectorNode(Node):
             self.get_logger().info(f"backend: {self._backend.name}")
         return self._backend
 
-    def _pipeline_for(self, config: Config, calibration: StereoCalibration) -> Pipeline:
+    def _pipeline_for(self, config: Config, camera: StereoCamera) -> Pipeline:
+        """The pipeline of ``camera`` (rectifying its images where config's rectify says so),
+        made anew when the camera or a pipeline parameter changes; a new camera's notes
+        (a baseline or focal length taken from the parameters, rectification) are logged
+        once."""
         key = (tuple(sorted((k, v) for k, v in config.as_dict().items()
-                            if k in PIPELINE_PARAMETERS or k == "backend")), calibration)
+                            if k in PIPELINE_PARAMETERS or k == "backend")), camera)
         if self._pipeline is None or key != self._pipeline_key:
-            self._pipeline = Pipeline(config, calibration, self._backend_for(config))
+            calibration, rectification = pipeline_inputs(camera, config.rectify)
+            if camera not in self._noted_cameras:
+                self._noted_cameras.add(camera)
+                for note in camera.notes():
+                    self.get_logger().info(note)
+                if rectification is not None:
+                    self.get_logger().info(
+                        f"raw images ({camera.left.distortion_model}): rectifying them from "
+                        "camera_info; outputs are in the rectified frame")
+            self._pipeline = Pipeline(config, calibration, self._backend_for(config),
+                                      rectification)
             self._pipeline_key = key
             gc.freeze()  # the backend's modules and the pipeline, as at start-up (main)
         return self._pipeline
@@ -485,12 +531,22 @@ class PotholeDetectorNode(Node):
     def _process(self, job: StereoSet, config: Config, reset: bool) -> None:
         began = time.monotonic()
         started = time.thread_time()
-        left = conversions.image_to_array(job.left)
-        right = conversions.image_to_array(job.right)
+        image_type = IMAGE_TYPE if isinstance(job.left, Image) else COMPRESSED_TYPE
+        sizes = [(int(info.width), int(info.height)) for info in (job.left_info, job.right_info)]
+        # the right image decodes on a thread of its own (OpenCV's decoders release the GIL)
+        right_future = self._decoder.submit(decode, job.right, image_type, sizes[1])
+        try:
+            left = decode(job.left, image_type, sizes[0])
+        finally:
+            right = right_future.result()
+        if left.shape[:2] != right.shape[:2]:
+            raise InputError(f"left image is {left.shape[1]}x{left.shape[0]} but the right one "
+                             f"{right.shape[1]}x{right.shape[0]}")
         height, width = left.shape[:2]
-        calibration = conversions.calibration_from_camera_info(job.left_info, job.right_info,
-                                                               width, height)
-        pipeline = self._pipeline_for(config, calibration)
+        camera = stereo_camera(job.left_info, job.right_info, width, height, config.baseline_m,
+                               config.focal_px)
+        pipeline = self._pipeline_for(config, camera)
+        calibration = pipeline.calibration
         if reset:
             pipeline.reset()
             self._ids.reset()
@@ -500,8 +556,10 @@ class PotholeDetectorNode(Node):
         header = job.left.header
         publishers = self._outputs
         wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
+        height, width = pipeline.output_shape(left.shape)
         ids = self._pothole_ids(job.stamp_ns, result, calibration, width, height)
-        for name, message in output_messages(result, left, calibration, header, wanted,
+        view = pipeline.view(left) if {"overlay", "points2"} & set(wanted) else left
+        for name, message in output_messages(result, view, calibration, header, wanted,
                                              ids).messages.items():
             publishers[name].publish(message)
         published = time.thread_time()
@@ -553,14 +611,14 @@ class PotholeDetectorNode(Node):
         snapshot = self._stats.snapshot()
         config = self._config
         recent_error = 0 <= snapshot["seconds_since_error"] < 2 * self._stats.window
-        level, message = DiagnosticStatus.OK, "ok"
+        level, message = DiagnosticStatus.OK, WARMING_UP if self._warming_up else "ok"
         if recent_error:
             level, message = DiagnosticStatus.WARN, snapshot["last_error"]
         if snapshot["seconds_since_input"] > config.input_timeout_seconds:
             level, message = DiagnosticStatus.WARN, (
                 f"no stereo image for {snapshot['seconds_since_input']:.1f} s on "
-                f"{self.resolve_topic_name('left/image_rect')} and "
-                f"{self.resolve_topic_name('right/image_rect')}"
+                f"{self.resolve_topic_name(self._image_topic('left'))} and "
+                f"{self.resolve_topic_name(self._image_topic('right'))}"
                 + (f"; the last input problem: {snapshot['last_error']}" if recent_error
                    else ""))
         if snapshot["failures_in_a_row"] >= config.error_after_failed_frames:
@@ -579,6 +637,11 @@ class PotholeDetectorNode(Node):
         self._outputs["diagnostics"].publish(
             DiagnosticArray(header=self._header_now(), status=[status]))
 
+    def _image_topic(self, side: str) -> str:
+        """The relative image topic of ``side`` under the image_transport parameter."""
+        suffix = "/compressed" if self._config.image_transport == "compressed" else ""
+        return f"{side}/image_rect{suffix}"
+
     def _wall_timer(self, period: float) -> Any:
         """The diagnostics timer, on the steady clock: it keeps firing while a simulated
         /clock (use_sim_time) pauses."""
@@ -593,14 +656,17 @@ class PotholeDetectorNode(Node):
             self._stopping = True
             self._lock.notify_all()
         self._worker.join(timeout=5.0)
+        self._decoder.shutdown(wait=False, cancel_futures=True)
         super().destroy_node()
 
 
 USAGE = """usage: pothole_detector_node [--ros-args -r __ns:=NAMESPACE -p NAME:=VALUE ...
                               --params-file config/pothole_detector.yaml]
 
-The pothole detector as a ROS 2 node. Subscribes to left/image_rect, right/image_rect,
-left/camera_info and right/camera_info (relative to its namespace; remap with -r) and publishes
+The pothole detector as a ROS 2 node. Subscribes to left/image_rect, right/image_rect (with
+image_transport:=compressed, left/image_rect/compressed and right/image_rect/compressed; raw
+images are rectified from camera_info), left/camera_info and right/camera_info (relative to
+its namespace; remap with -r) and publishes
 potholes, disparity, disparity_transformed, pothole_labels, pothole_points, points2,
 pothole_markers, overlay and /diagnostics. Every parameter, with its range, is in
 config/pothole_detector.yaml; the README lists the topics and their types."""
@@ -630,6 +696,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"pothole_detector_node: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
+    except KeyboardInterrupt:
+        rclpy.try_shutdown()
+        return 0
     # start-up's objects (modules, the node) leave the collector's view: a full collection
     # then scans only what frames allocate, instead of pausing both threads for tens of ms
     gc.freeze()

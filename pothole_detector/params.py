@@ -196,6 +196,24 @@ PARAMETERS: tuple[Param, ...] = (
           "GPU backend: replay each frame's SGM and later stages as CUDA graphs per image "
           "size, level count and SLIC grid step (same results, two launches instead of about "
           "fifty); per-stage timings need it off. Not used for seed frames."),
+    # input: how the recorded or live images come
+    Param("rectify", str, "auto",
+          "Rectify the images from camera_info before matching: auto (where camera_info says "
+          "they are not rectified: distortion D not zero, R not the identity or K not P's), "
+          "on, or off (take them as rectified). Results are in the rectified frame that the "
+          "right P defines, as stereo_image_proc's.", choices=("auto", "on", "off"),
+          group="input"),
+    Param("image_transport", str, "raw",
+          "Node: subscribe to sensor_msgs/Image on left/image_rect and right/image_rect (raw) "
+          "or to sensor_msgs/CompressedImage on left/image_rect/compressed and "
+          "right/image_rect/compressed (compressed: jpeg or png, as image_transport writes).",
+          choices=("raw", "compressed"), group="input"),
+    Param("baseline_m", float, 0.0,
+          "Baseline (m) to use where the right camera_info has none (P[0,3] = 0); 0: take it "
+          "from camera_info only.", 0.0, 10.0, group="input"),
+    Param("focal_px", float, 0.0,
+          "Focal length (px) to use where camera_info has none in K or P; 0: take it from "
+          "camera_info only.", 0.0, 100000.0, group="input"),
     # node
     Param("backend", str, "auto", "Array backend: gpu (CuPy), cpu (NumPy), or auto (gpu when "
           "CuPy sees a device, else cpu).", choices=("auto", "cpu", "gpu"), group="node"),

@@ -16,10 +16,11 @@ import numpy as np
 
 from .backend import CPU, Backend, StageClock, to_host
 from .calibration import StereoCalibration
-from .errors import NoRoadError, NoTextureError, PotholeError
+from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
 from .stages import components, matching, measure, perspective, refine, road_model, seed
 from .stages import superpixels
+from .stages.rectify import Rectification, invalidate_unseen, remap
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
 
@@ -126,12 +127,17 @@ class Pipeline:
     """
 
     def __init__(self, config: Config, calibration: StereoCalibration,
-                 backend: Backend = CPU) -> None:
+                 backend: Backend = CPU, rectification: Rectification | None = None) -> None:
+        """``calibration``: the rectified pair's; ``rectification``: where the images come
+        raw, the tables that rectify them into that pair's frame (stages/rectify.py)."""
         from .execution import FrameExecutor
 
         self.config = config
         self.calibration = calibration
         self.backend = backend
+        self.rectification = rectification
+        # the tables on the backend, uploaded once
+        self.device_rectification = None if rectification is None else rectification.on(backend)
         self.matcher = matching.Matcher(backend)
         # the seed pass's matcher: buffers of its own size, path costs in the frame matcher's
         self._seed_matcher = matching.Matcher(backend, lender=self.matcher)
@@ -150,8 +156,10 @@ class Pipeline:
         self._refused = 0
 
     def run(self, left: np.ndarray, right: np.ndarray) -> PipelineResult:
-        """Detect potholes in a rectified pair of host images (HxW mono or HxWx3 RGB, uint8 or
-        uint16). Raises InputError, NoTextureError or NoRoadError with a message saying why."""
+        """Detect potholes in a pair of host images (HxW mono or HxWx3 RGB, uint8 or uint16):
+        rectified, or raw where the pipeline has a rectification (then rectified on the
+        backend; the results are in the rectified frame). Raises InputError, NoTextureError or
+        NoRoadError with a message saying why."""
         return self.executor.run(left, right)
 
     def run_stream(self, pairs: Iterable[tuple[np.ndarray, np.ndarray]]
@@ -167,13 +175,16 @@ class Pipeline:
         disparity levels searched; seeds and updates the road model like :meth:`run`."""
         matching.check_pair(left, right)
         xp = self.backend.xp
-        images = [self.backend.upload(matching.to_gray8(image)) for image in (left, right)]
+        images = self.rectified(*(self.backend.upload(matching.to_gray8(image))
+                                  for image in (left, right)))
         clock = StageClock(self.backend)
         seeded = self.road is None
         (*pair, prior), _, levels = self.prepare(
             lambda shifts, prior: (*images, xp.asarray(shifts), xp.asarray(prior)),
             images[0].shape, clock)
         disparity = self.matcher(*pair, levels, self.config)
+        if self.device_rectification is not None:
+            disparity = invalidate_unseen(self.backend, disparity, self.device_rectification)
         if self.config.gpt_enabled:
             report, _ = self.fit_road(disparity, prior, seeded)
             try:
@@ -185,6 +196,36 @@ class Pipeline:
         return disparity, levels
 
     # --- the method, in order -------------------------------------------------------------
+
+    def rectified(self, left: Any, right: Any, out: tuple[Any, Any] | None = None
+                  ) -> tuple[Any, Any]:
+        """The uint8 HxW pair (on the backend) in the rectified frame: remapped where the
+        pipeline has a rectification (into ``out`` where given), else as it is. Raises
+        InputError where the images are not of the calibration's raw size."""
+        tables = self.device_rectification
+        if tables is None:
+            return left, right
+        if tuple(left.shape) != tables.source_shape:
+            raise InputError(
+                f"images are {left.shape[1]}x{left.shape[0]} but camera_info describes "
+                f"{tables.source_shape[1]}x{tables.source_shape[0]} raw images; publish the "
+                "camera_info of these images")
+        targets = out or (None, None)
+        return (remap(self.backend, left, tables.left, targets[0]),
+                remap(self.backend, right, tables.right, targets[1]))
+
+    def view(self, left: np.ndarray) -> np.ndarray:
+        """The left host image as the results see it (for pictures and coloured clouds):
+        rectified for display where the pipeline rectifies, else itself."""
+        if self.rectification is None:
+            return left
+        return self.rectification.left_view(left)
+
+    def output_shape(self, shape: tuple[int, ...]) -> tuple[int, int]:
+        """The (height, width) of the results for input images of ``shape``."""
+        if self.rectification is None:
+            return int(shape[0]), int(shape[1])
+        return self.rectification.shape
 
     def prepare(self, send: Callable[[np.ndarray, np.ndarray], tuple[Any, Any, Any, Any]],
                 shape: tuple[int, int], clock: StageClock
@@ -231,6 +272,8 @@ class Pipeline:
         xp = backend.xp
         with clock.stage("sgm"):
             disparity = self.matcher(left, right, shifts, levels, config)
+            if self.device_rectification is not None:
+                disparity = invalidate_unseen(backend, disparity, self.device_rectification)
         valid = xp.isfinite(disparity)
         with clock.stage("road"):
             report.valid_count[...] = xp.count_nonzero(valid)

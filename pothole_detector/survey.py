@@ -12,16 +12,21 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
 from . import bagtools
-from .errors import InputError, PotholeError
+from .bagtools import FailureTally
+from .backend import get_backend
 from .conversions import stamp_ns
-from .motion import (Pose2, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses,
-                     latlon_of, planar_pose, road_frame)
+from .errors import InputError, PotholeError
+from .motion import (Pose2, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses, latlon_of,
+                     planar_pose, road_frame)
+from .recordings import bags, readahead
+from .recordings.topics import StereoTopics, find_stereo_topics
+from .stages.matching import to_gray8
 from .params import Config
 from .tracking import PotholeTracker, Sighting, Track, sightings_of
 
@@ -64,7 +69,7 @@ class DriveTopics:
     """The topics a survey reads: the stereo camera's and, where the bag has them, motion
     (odometry or /tf) and GNSS."""
 
-    stereo: bagtools.StereoTopics
+    stereo: StereoTopics
     odometry: str | None = None
     tf: str | None = None
     gnss: str | None = None
@@ -93,42 +98,38 @@ def find_drive_topics(topics: dict[str, str], odometry: str | None = None,
         return found[0] if found else None
 
     return DriveTopics(
-        bagtools.find_stereo_topics(topics, **stereo),
+        find_stereo_topics(topics, **stereo),
         only(odometry, ODOMETRY_TYPE, "--odometry-topic"),
         "/tf" if topics.get("/tf") == TF_TYPE else None,
         only(gnss, GNSS_TYPE, "--gnss-topic"), base_frame)
 
 
 def observe(bag: str | Path, topics: DriveTopics, config: Config,
-            span: bagtools.LogSpan | None = None,
+            span: bags.LogSpan | None = None,
             progress: Callable[[int, int], None] | None = None) -> ChunkResult:
     """Run the pipeline and, where the bag has no odometry messages, visual odometry on the
     frames of ``bag``, or of a span of it (the frames of its lead before it run too, for the
     odometry, and are not returned); and read its motion messages (those logged in the
-    span), in the same pass over the bag."""
-    from .backend import get_backend
-    from .stages.matching import to_gray8
-
+    span), in the same pass over the bag. A bag damaged part way keeps the frames before the
+    damage, and the damage counts as a failed frame after them."""
     if config.read_processes > 0:
-        from .decoding import start
-        start(config.read_processes)
-    reader = bagtools.open_bag(bag)
+        readahead.start(config.read_processes)
+    reader = bags.open_bag(bag)
     odometry = StereoOdometry()
-    has_odometry = bool(topics.odometry) and bagtools.message_count(reader, topics.odometry) > 0
-    observations = []
+    has_odometry = bool(topics.odometry) and bags.message_count(reader, topics.odometry) > 0
+    observations: list[FrameObservation] = []
     motion_messages: list[tuple[str, int, Any]] = []
+    results = bagtools.frame_results(
+        reader, topics.stereo, config, get_backend(config.backend), bagtools.ProcessSummary(),
+        progress, span, config.read_threads, topics.motion_topics(), motion_messages,
+        config.read_processes)
     try:
-        summary = bagtools.ProcessSummary()
-        backend = get_backend(config.backend)
-        for frame, outcome in bagtools.frame_results(
-                reader, topics.stereo, config, backend, summary, progress, span,
-                config.read_threads, topics.motion_topics(), motion_messages,
-                config.read_processes):
+        for frame, outcome in _until_damaged(results, observations, span):
             kept = span is None or frame.logged_ns >= span.start_ns
             try:
                 if isinstance(outcome, PotholeError):
                     raise outcome
-                height, width = frame.left.shape[:2]
+                height, width = outcome.disparity.shape
                 plane = road_frame(outcome.road, frame.calibration, width, height)
             except (PotholeError, ValueError) as exc:
                 odometry.reset()
@@ -137,7 +138,8 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                                                          (math.nan, math.nan), None, str(exc)))
                 continue
             step = None if has_odometry else odometry.step(
-                to_gray8(frame.left), outcome.host("disparity"), plane, frame.calibration)
+                to_gray8(frame.left_view()), outcome.host("disparity"), plane,
+                frame.calibration)
             if kept:
                 observations.append(FrameObservation(
                     frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height),
@@ -146,6 +148,21 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     finally:
         reader.close()
     return observations, motion_samples(motion_messages, topics)
+
+
+def _until_damaged(results: Iterable[tuple[bags.BagFrame, Any]],
+                   observations: list[FrameObservation], span: bags.LogSpan | None
+                   ) -> Iterator[tuple[bags.BagFrame, Any]]:
+    """The (frame, outcome) of ``results`` until damage to the bag stops them (InputError);
+    the damage is then noted in ``observations`` as a failed frame after the last one."""
+    last = span.start_ns if span is not None else 0
+    try:
+        for frame, outcome in results:
+            last = frame.stamp
+            yield frame, outcome
+    except InputError as exc:
+        observations.append(FrameObservation(last + 1, (), (math.nan, math.nan), None,
+                                             str(exc)))
 
 
 @dataclass
@@ -283,7 +300,9 @@ class DriveSurvey:
     """The survey of one bag: its potholes, the route (motion-frame positions of the frames),
     the GNSS route (lat, lon) where the bag has GNSS, the motion source, the observed length
     of road (m), the frame counts, how many tracked potholes were seen in fewer than
-    ``min_sightings`` frames (left out) and the topics it was read from."""
+    ``min_sightings`` frames (left out), the topics it was read from, the frames that
+    failed: (stamp ns, seconds into the drive, motion-frame x, y (m; NaN where unknown), why),
+    and why the bag could not be read at all, if so."""
 
     bag: Path
     potholes: list[SurveyPothole]
@@ -292,9 +311,26 @@ class DriveSurvey:
     motion_source: str
     observed_length_m: float
     frames: int
-    failed: int
     left_out: int = 0
     topics: DriveTopics | None = None
+    failures: list[tuple[int, float, float, float, str]] = field(default_factory=list)
+    error: str = ""
+
+    @classmethod
+    def unreadable(cls, bag: str | Path, error: str) -> "DriveSurvey":
+        """The survey of a bag that could not be read at all, and why."""
+        return cls(Path(bag), [], np.zeros((0, 2)), None, "none", 0.0, 0, error=error)
+
+    @property
+    def failed(self) -> int:
+        return len(self.failures)
+
+    def failure_tally(self) -> FailureTally:
+        """The failed frames counted by kind of reason."""
+        tally = FailureTally()
+        for stamp, _, _, _, reason in self.failures:
+            tally.add(stamp, reason)
+        return tally
 
 
 def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: MotionSeries,
@@ -337,11 +373,14 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
         }
         rows.append(SurveyPothole(row, (min(depths), max(depths)), (min(areas), max(areas)),
                                   best.bbox_px))
+    start = frames[0].stamp_ns if frames else 0
+    failures = [(f.stamp_ns, (f.stamp_ns - start) / 1e9, pose.x if pose else math.nan,
+                 pose.y if pose else math.nan, f.failure)
+                for f, pose in zip(frames, poses) if f.failure]
     return DriveSurvey(Path(bag), rows, route,
                        to_latlon(route) if to_latlon and len(route) else None, motion.source,
                        _observed_length(frames, poses), len(frames),
-                       sum(bool(f.failure) for f in frames), len(tracked_all) - len(tracks),
-                       topics)
+                       len(tracked_all) - len(tracks), topics, failures)
 
 
 def _gnss_alignment(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
@@ -391,37 +430,37 @@ def _observed_length(frames: Sequence[FrameObservation], poses: Sequence[Pose2 |
 
 
 def chunk_spans(bag: str | Path, topics: DriveTopics, config: Config
-                ) -> tuple[int, list[bagtools.LogSpan]]:
+                ) -> tuple[int, list[bags.LogSpan]]:
     """The left images in ``bag`` (an upper bound of its stereo frames) and its chunks: its
     log time split evenly into spans of about ``chunk_frames`` frames, each read with a lead of
     ``chunk_overlap_frames`` + 2 frames (at the bag's mean rate) and the sync tolerance. A
     chunk seeks to its span: no frame before it is read."""
-    reader = bagtools.open_bag(bag)
+    reader = bags.open_bag(bag)
     try:
-        count = bagtools.message_count(reader, topics.stereo.left)
+        count = bags.message_count(reader, topics.stereo.left)
         start, end = (reader.start_time, reader.end_time) if count else (0, 0)
-        period_ns = bagtools.mean_period_ns(reader, topics.stereo.left) if count else 0.0
+        period_ns = bags.mean_period_ns(reader, topics.stereo.left) if count else 0.0
     finally:
         reader.close()
     pieces = max(1, math.ceil(count / config.chunk_frames))
     lead_ns = math.ceil(period_ns * (config.chunk_overlap_frames + 2)
                         + config.approximate_sync_tolerance_seconds * 1e9)
     bounds = [start + (end + 1 - start) * k // pieces for k in range(pieces + 1)]
-    return count, [bagtools.LogSpan(first, stop, lead_ns)
+    return count, [bags.LogSpan(first, stop, lead_ns)
                    for first, stop in zip(bounds, bounds[1:])]
 
 
 def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
     """The :class:`DriveTopics` of ``bag``; ``names`` as :func:`find_drive_topics` takes."""
-    return find_drive_topics(bagtools.topics_of(bag), **names)
+    return find_drive_topics(bags.topics_of(bag), **names)
 
 
-Plan = tuple[Path, DriveTopics, list[bagtools.LogSpan]]
+Plan = tuple[Path, DriveTopics, list[bags.LogSpan]]
 ChunkResult = tuple[list[FrameObservation], MotionSamples]
 
 
 def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
-                  span: bagtools.LogSpan) -> ChunkResult:
+                  span: bags.LogSpan) -> ChunkResult:
     """:func:`observe` of one chunk with the parameter values ``values``: a task for worker
     processes and Ray."""
     return observe(bag, topics, Config(values), span)
@@ -459,10 +498,15 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
     ``ray_address`` or a local one; with ``jobs`` > 1, a task of one of ``jobs`` worker
     processes here (:func:`observe_in_processes`)."""
     plans: list[Plan] = []
+    unreadable: dict[int, DriveSurvey] = {}
     total = 0
-    for bag in bags:
-        topics = drive_topics(bag, **names)
-        count, spans = chunk_spans(bag, topics, config)
+    for index, bag in enumerate(bags):
+        try:
+            topics = drive_topics(bag, **names)
+            count, spans = chunk_spans(bag, topics, config)
+        except PotholeError as exc:
+            unreadable[index] = DriveSurvey.unreadable(bag, str(exc))
+            continue
         plans.append((Path(bag), topics, spans))
         total += count
     if use_ray:
@@ -491,7 +535,44 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
         drive = assemble(bag, observations, motion, config, next_id, topics)
         next_id += len(drive.potholes)
         surveys.append(drive)
+    for index in sorted(unreadable):
+        surveys.insert(index, unreadable[index])
     return surveys
+
+
+def write_summary(surveys: Sequence[DriveSurvey], path: str | Path) -> dict[str, Any]:
+    """summary.json beside survey.csv: per bag the topics, motion source, frames processed
+    and failed, the failures by kind of reason (count, first reason, first stamp) and each
+    failed frame (stamp, seconds into the drive, motion-frame x, y), or why the bag could not
+    be read; and the totals. Returns the document."""
+    import json
+
+    def finite(value: float) -> float | None:
+        return float(value) if math.isfinite(value) else None
+
+    drives = []
+    for drive in surveys:
+        drives.append({
+            "bag": str(drive.bag), "error": drive.error or None,
+            "topics": None if drive.topics is None else drive.topics.stereo.describe(),
+            "motion_source": drive.motion_source, "frames": drive.frames,
+            "processed": drive.frames - drive.failed, "failed": drive.failed,
+            "potholes": len(drive.potholes),
+            "failures_by_reason": [{"count": count, "reason": reason, "first_stamp_ns": stamp}
+                                   for count, reason, stamp in drive.failure_tally().rows()],
+            "failed_frames": [{"stamp_ns": stamp, "seconds": round(seconds, 3),
+                               "odom_x_m": finite(x), "odom_y_m": finite(y), "reason": reason}
+                              for stamp, seconds, x, y, reason in drive.failures],
+        })
+    document = {
+        "bags": len(surveys), "unreadable_bags": sum(bool(d.error) for d in surveys),
+        "frames": sum(d.frames for d in surveys),
+        "processed": sum(d.frames - d.failed for d in surveys),
+        "failed": sum(d.failed for d in surveys),
+        "potholes": sum(len(d.potholes) for d in surveys), "drives": drives,
+    }
+    Path(path).write_text(json.dumps(document, indent=1) + "\n")
+    return document
 
 
 def write_csv(surveys: Sequence[DriveSurvey], path: str | Path) -> None:
@@ -533,31 +614,12 @@ def write_geojson(surveys: Sequence[DriveSurvey], path: str | Path) -> bool:
 
 
 def best_view_picture(bag: str | Path, topics: DriveTopics, stamp: int,
-                      bbox_px: tuple[int, int, int, int], size_px: int = 240) -> np.ndarray:
-    """The left image at ``stamp`` (ns) cropped about ``bbox_px`` (with a margin of half its
-    size), the box drawn, scaled to at most ``size_px``: HxWx3 uint8 RGB."""
-    from .conversions import image_to_array
-
-    reader = bagtools.open_bag(bag)
-    try:
-        connections = [c for c in reader.connections if c.topic == topics.stereo.left]
-        image = None
-        # logged at most 0.1 s before its stamp and within 1 s after, as recorders do; else
-        # anywhere from 1 s before it on
-        for window in ({"start": stamp - 100_000_000, "stop": stamp + 1_000_000_000},
-                       {"start": stamp - 1_000_000_000}):
-            for connection, _, rawdata in reader.messages(connections=connections, **window):
-                msg = bagtools.deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
-                                           bagtools.IMAGE_TYPE)
-                if stamp_ns(msg.header) == stamp:
-                    image = image_to_array(msg)
-                    break
-            if image is not None:
-                break
-        else:
-            raise InputError(f"{bag} has no left image at {stamp}")
-    finally:
-        reader.close()
+                      bbox_px: tuple[int, int, int, int], config: Config,
+                      size_px: int = 240) -> np.ndarray:
+    """The left image at ``stamp`` (ns), in the rectified frame the results are in, cropped
+    about ``bbox_px`` (with a margin of half its size), the box drawn, scaled to at most
+    ``size_px``: HxWx3 uint8 RGB."""
+    image = bags.left_view_at(bag, topics.stereo, stamp, config)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     image = np.ascontiguousarray(image[..., :3]).astype(np.uint8)

@@ -13,9 +13,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
-from .calibration import StereoCalibration
+from .calibration import CameraModel, StereoCalibration, StereoCamera
 
 
 def _ellipse_frame(shape: "PotholeShape | BumpShape | Paint", x: np.ndarray,
@@ -304,16 +305,21 @@ def _pothole_depth(scene: Scene, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _render_view(scene: Scene, axes: np.ndarray, origin: np.ndarray, gain: float = 1.0,
-                 noise_stream: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 noise_stream: int = 0, lens: CameraModel | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Image (uint8 HxW), optical depth at pixel centres (HxW, NaN = no road) and world
     points at pixel centres (HxWx3) of one camera, whose gain is ``gain`` and whose sensor
-    noise is drawn from stream ``noise_stream``."""
+    noise is drawn from stream ``noise_stream``. With ``lens`` the image is the raw one of that
+    calibrated camera (its rectified frame the scene's camera): each sample's ray goes where
+    the lens model sends its raw pixel; depth and world points stay the rectified view's."""
     k = scene.supersample
     f, cx, cy = scene.focal_px, (scene.width - 1) / 2.0, (scene.height - 1) / 2.0
     offsets = (np.arange(k) + 0.5) / k - 0.5
     u = (np.arange(scene.width)[:, None] + offsets[None, :]).ravel()
     v = (np.arange(scene.height)[:, None] + offsets[None, :]).ravel()
     uu, vv = np.meshgrid(u, v)
+    if lens is not None:
+        uu, vv = _rectified_position(lens, uu, vv)
     rays = np.stack([(uu - cx) / f, (vv - cy) / f, np.ones_like(uu)], axis=-1).reshape(-1, 3)
     directions = rays @ axes.T
     s = _cast(scene, origin, directions)
@@ -360,6 +366,62 @@ def render(scene: Scene) -> StereoSample:
         labels[inside] = index
     return StereoSample(left, right, disparity, labels, scene.calibration, scene.potholes,
                         camera_from_world=axes.T, camera_origin_world=left_origin)
+
+
+def _rectified_position(lens: CameraModel, u: np.ndarray, v: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Where raw pixels (u, v) of ``lens`` lie in its rectified frame (P's), by OpenCV's
+    undistortion of its model (the inverse of the rectification maps)."""
+    points = np.stack([u.ravel(), v.ravel()], axis=-1)[:, None, :].astype(np.float64)
+    k = np.asarray(lens.k, dtype=np.float64).reshape(3, 3)
+    r = np.asarray(lens.r, dtype=np.float64).reshape(3, 3)
+    p = np.asarray(lens.p, dtype=np.float64).reshape(3, 4)
+    d = np.asarray(lens.d, dtype=np.float64)
+    if lens.distortion_model == "equidistant":
+        found = cv2.fisheye.undistortPoints(points, k, d[:4], R=r, P=p)
+    else:
+        found = cv2.undistortPoints(points, k, d, R=r, P=p)
+    return found[:, 0, 0].reshape(u.shape), found[:, 0, 1].reshape(v.shape)
+
+
+LENS_DISTORTION = {
+    "plumb_bob": (-0.28, 0.07, 0.0008, -0.0005, 0.0),
+    "rational_polynomial": (0.35, -0.04, 0.0006, -0.0004, 0.0, 0.62, -0.02, 0.0),
+    "equidistant": (-0.03, 0.012, -0.004, 0.0008),
+}
+
+
+def raw_camera(calibration: StereoCalibration, width: int, height: int,
+               model: str = "plumb_bob", seed: int = 0) -> StereoCamera:
+    """A calibrated stereo camera whose rectification gives ``calibration``'s rectified pair
+    (its P matrices) for ``width`` x ``height`` images: per view a lens of distortion
+    ``model`` (coefficients LENS_DISTORTION), a focal length 15 % longer than the rectified
+    one, the principal point a few pixels off and a rotation R of about a degree (drawn from
+    ``seed``)."""
+    rng = np.random.default_rng(seed)
+    f, cx, cy = calibration.f, calibration.cx, calibration.cy
+    models = []
+    for side in (0, 1):
+        rotation, _ = cv2.Rodrigues(rng.normal(0.0, math.radians(0.6), 3))
+        k = (1.15 * f, 0.0, cx + rng.uniform(-6, 6), 0.0, 1.15 * f, cy + rng.uniform(-6, 6),
+             0.0, 0.0, 1.0)
+        tx = -f * calibration.baseline if side else 0.0
+        p = (f, 0.0, cx, tx, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0)
+        models.append(CameraModel(width, height, model, LENS_DISTORTION[model], k,
+                                  tuple(rotation.ravel()), p))
+    return StereoCamera(models[0], models[1])
+
+
+def render_raw(scene: Scene, camera: StereoCamera) -> tuple[np.ndarray, np.ndarray]:
+    """The raw left and right images (uint8 HxW) that ``camera`` (raw_camera of the scene's
+    calibration) takes of ``scene``: rectified by the camera's calibration they are the views
+    :func:`render` gives, and its ground truth holds for them."""
+    axes = _axes(scene)
+    left_origin = np.array([0.0, scene.camera_y_m, scene.camera_height_m])
+    right_origin = left_origin + scene.baseline_m * axes[:, 0]
+    left, _, _ = _render_view(scene, axes, left_origin, lens=camera.left)
+    right, _, _ = _render_view(scene, axes, right_origin, scene.right_gain, 1, camera.right)
+    return left, right
 
 
 def demo_scene(width: int = 640, height: int = 360, roll_deg: float = 1.5,

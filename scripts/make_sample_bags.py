@@ -21,8 +21,9 @@ class RealPair:
     def __init__(self, folder: Path) -> None:
         self.left = read_image(folder / "left.png")
         self.right = read_image(folder / "right.png")
-        self.calibration, _ = load_stereo_camera_info(folder / "left_camera_info.yaml",
-                                                      folder / "right_camera_info.yaml")
+        camera, _ = load_stereo_camera_info(folder / "left_camera_info.yaml",
+                                            folder / "right_camera_info.yaml")
+        self.calibration = camera.calibration()
 
 
 def main() -> None:

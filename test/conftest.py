@@ -93,8 +93,9 @@ def rewrite_bag(source, out, log_time):
     """Copy bag ``source`` to ``out`` with each message logged at ``log_time(topic, log time
     ns)`` (None: left out)."""
     from pothole_detector import bagtools
+    from pothole_detector.recordings.bags import cdr_bytes, open_bag
 
-    reader = bagtools.open_bag(source)
+    reader = open_bag(source)
     writer = bagtools.writer_for(out, "mcap")
     writer.open()
     try:
@@ -105,7 +106,7 @@ def rewrite_bag(source, out, log_time):
             moved = log_time(connection.topic, timestamp)
             if moved is not None:
                 writer.write(connections[connection.id], moved,
-                             bagtools.cdr_bytes(reader, connection, rawdata))
+                             cdr_bytes(reader, connection, rawdata))
     finally:
         writer.close()
         reader.close()

@@ -66,8 +66,9 @@ def cases() -> dict[str, list[dict]]:
     """Every case's per-frame digests from the code as it is."""
     out: dict[str, list[dict]] = {}
     pair = REPO / "bags" / "sample_pair"
-    calibration, _ = load_stereo_camera_info(pair / "left_camera_info.yaml",
-                                             pair / "right_camera_info.yaml")
+    camera, _ = load_stereo_camera_info(pair / "left_camera_info.yaml",
+                                        pair / "right_camera_info.yaml")
+    calibration = camera.calibration()
     left, right = read_image(pair / "left.png"), read_image(pair / "right.png")
     for name, config in (("pair", Config()),
                          ("pair_metric", Config({"threshold_mode": "metres"}))):

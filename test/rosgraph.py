@@ -22,7 +22,9 @@ from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 from visualization_msgs.msg import MarkerArray
 
-from pothole_detector import bagtools, conversions
+from pothole_detector import conversions
+from pothole_detector.recordings.images import decode_raw  # noqa: E402
+from pothole_detector.recordings import bags
 from pothole_detector.conversions import stamp_ns
 from pothole_detector.transport import large_image_transport
 from pothole_detector_msgs.msg import PotholeArray
@@ -53,7 +55,7 @@ def sample_frames(count: int) -> list[dict[str, Any]]:
              "/stereo/left/camera_info": "left_info", "/stereo/right/camera_info": "right_info",
              "/stereo/ground_truth/pothole_labels": "truth"}
     frames: dict[int, dict[str, Any]] = defaultdict(dict)
-    for topic, stamp, msg in bagtools.read_messages(SAMPLE_DRIVE, roles):
+    for topic, stamp, msg in bags.read_messages(SAMPLE_DRIVE, roles):
         frames[stamp][roles[topic]] = msg
         if len(frames) > count:
             break
@@ -196,5 +198,4 @@ class Probe:
 
 
 def labels_of(msg: Image) -> np.ndarray:
-    from pothole_detector.conversions import image_to_array
-    return image_to_array(msg, allowed=("mono16",))
+    return decode_raw(msg, allowed=("mono16",))

@@ -12,6 +12,8 @@ from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from pothole_detector import bagtools, conversions  # noqa: E402
+from pothole_detector.recordings.images import decode_raw  # noqa: E402
+from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
@@ -46,18 +48,6 @@ def test_typestore_knows_our_messages():
     assert "bbox_px" in [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/Pothole"][1]]
 
 
-def test_find_stereo_topics():
-    types = dict(zip(STEREO, [bagtools.IMAGE_TYPE] * 2 + [bagtools.INFO_TYPE] * 2))
-    found = bagtools.find_stereo_topics(types)
-    assert (found.left, found.right_info, found.namespace) == (STEREO[0], STEREO[3], "/cam")
-    types["/other/left/image_rect"] = bagtools.IMAGE_TYPE
-    with pytest.raises(InputError, match="name it with --left-topic$"):
-        bagtools.find_stereo_topics(types)
-    assert bagtools.find_stereo_topics(types, left=STEREO[0]).left == STEREO[0]
-    with pytest.raises(InputError, match="no sensor_msgs/msg/Image topic /nope"):
-        bagtools.find_stereo_topics(types, left="/nope")
-
-
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, drive_frames,
                                                            storage):
@@ -66,7 +56,7 @@ def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, 
                                pictures=tmp_path / "pictures")
     assert (summary.frames, summary.failed) == (3, 0)
     assert len(list((tmp_path / "pictures").glob("overlay_*.png"))) == 3
-    topics = bagtools.topics_of(out)
+    topics = bags.topics_of(out)
     for name, msgtype in bagtools.OUTPUT_TYPES.items():
         if name in bagtools.OFFLINE_OUTPUTS:
             assert topics[f"/cam/{name}"] == msgtype
@@ -75,7 +65,7 @@ def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, 
     pipeline = Pipeline(Config(), drive_frames[0][1].calibration)
     expected = {stamp: pipeline.run(s.left, s.right) for stamp, s in drive_frames}
     seen = set()
-    for topic, stamp, msg in bagtools.read_messages(out, ["/cam/disparity", "/cam/potholes"]):
+    for topic, stamp, msg in bags.read_messages(out, ["/cam/disparity", "/cam/potholes"]):
         assert conversions.stamp_ns(msg.header) == stamp
         assert msg.header.frame_id == "stereo_left_optical_frame"
         if topic == "/cam/disparity":
@@ -138,21 +128,21 @@ def test_process_refuses_existing_output_and_missing_bag(tmp_path, drive_bag):
 
 def test_committed_sample_bag_is_the_generators_output():
     bag = REPO / "bags" / "sample_drive"
-    topics = bagtools.topics_of(bag)
+    topics = bags.topics_of(bag)
     assert topics["/stereo/left/image_rect"] == bagtools.IMAGE_TYPE
     assert topics["/stereo/ground_truth/pothole_labels"] == bagtools.IMAGE_TYPE
     first = {}
-    for topic, stamp, msg in bagtools.read_messages(bag):
+    for topic, stamp, msg in bags.read_messages(bag):
         first.setdefault(topic, (stamp, msg))
     sample = render(drive_scenes(frames=1)[0])
     assert first["/stereo/left/image_rect"][0] == START
     np.testing.assert_array_equal(
-        conversions.image_to_array(first["/stereo/left/image_rect"][1]), sample.left)
+        decode_raw(first["/stereo/left/image_rect"][1]), sample.left)
     np.testing.assert_array_equal(
-        conversions.image_to_array(first["/stereo/ground_truth/pothole_labels"][1]),
+        decode_raw(first["/stereo/ground_truth/pothole_labels"][1]),
         sample.labels)
     counts = {}
-    for topic, _, _ in bagtools.read_messages(bag, ["/stereo/right/image_rect"]):
+    for topic, _, _ in bags.read_messages(bag, ["/stereo/right/image_rect"]):
         counts[topic] = counts.get(topic, 0) + 1
     assert counts == {"/stereo/right/image_rect": 16}
 
@@ -192,13 +182,15 @@ def test_process_goes_on_after_a_failed_frame_and_a_new_calibration(tmp_path, dr
     assert bagtools.write_stereo_bag(bag, frames, namespace="/cam") == 4
     summary = bagtools.process(bag, tmp_path / "out", Config({"backend": "cpu"}))
     assert (summary.frames, summary.failed) == (3, 1)
-    assert f"stamp {s1}" in summary.errors[0] and "texture" in summary.errors[0]
+    [(count, reason, stamp)] = summary.failures.rows()
+    assert (count, stamp) == (1, s1) and "texture" in reason
+    assert f"1 frame failed: {reason} (first at stamp {s1})" == summary.failures.lines()[0]
     before = Pipeline(Config(), first.calibration).run(first.left, first.right)
     after = Pipeline(Config(), wider)
     expected = {s0: before, s2: after.run(third.left, third.right),
                 s2 + 100_000_000: after.run(third.left, third.right)}
     seen, failed = {}, {}
-    for _, stamp, msg in bagtools.read_messages(tmp_path / "out", ["/cam/potholes"]):
+    for _, stamp, msg in bags.read_messages(tmp_path / "out", ["/cam/potholes"]):
         if msg.status == msg.FAILED:
             failed[stamp] = msg.reason
             continue
@@ -220,7 +212,7 @@ def test_process_pairs_camera_info_written_after_the_images(tmp_path, drive_fram
     rewrite_bag(source, late, lambda topic, timestamp: timestamp + (
         5_000_000 if topic.endswith("camera_info") else 0))
     summary = bagtools.process(late, tmp_path / "out", Config({"backend": "cpu"}))
-    assert (summary.frames, summary.failed) == (2, 0), summary.errors
+    assert (summary.frames, summary.failed) == (2, 0), summary.failures.lines()
 
 
 def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_drive(tmp_path):
@@ -234,7 +226,7 @@ def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_
     config = Config(load_yaml(REPO / "config" / "pothole_detector.yaml"))
     summary = bagtools.process(tmp_path / "vehicle", tmp_path / "out", config)
     assert (summary.frames, summary.failed) == (6, 0)
-    messages = [msg for _, _, msg in bagtools.read_messages(tmp_path / "out", ["/cam/potholes"])]
+    messages = [msg for _, _, msg in bags.read_messages(tmp_path / "out", ["/cam/potholes"])]
     assert len(messages) == 6 and all(msg.status != msg.FAILED for msg in messages)
 
 
@@ -250,19 +242,19 @@ def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp
     rewrite_bag(source, latched, lambda topic, timestamp: timestamp if (
         not topic.endswith("camera_info") or timestamp == START) else None)
     config = Config()
-    topics = bagtools.StereoTopics(*STEREO)
-    reader = bagtools.open_bag(latched)
+    topics = bags.StereoTopics(*STEREO)
+    reader = bags.open_bag(latched)
     try:
-        whole = [s[0] for s in bagtools.stereo_sets(reader, topics, config,
-                                                    bagtools.ProcessSummary())]
+        whole = [s[0] for s in bags.stereo_sets(reader, topics, config,
+                                                    bags.SetCounts())]
         assert whole == [stamp for stamp, _ in frames]
         kept = []
         for first, stop in ((START, START + 700_000_000), (START + 700_000_000,
                                                            START + 1_400_000_000),
                             (START + 1_400_000_000, START + 1_800_000_000)):
-            span = bagtools.LogSpan(first, stop, 200_000_000)
-            sets = list(bagtools.stereo_sets(reader, topics, config,
-                                             bagtools.ProcessSummary(), span))
+            span = bags.LogSpan(first, stop, 200_000_000)
+            sets = list(bags.stereo_sets(reader, topics, config,
+                                             bags.SetCounts(), span))
             assert all(s[4] is not None and s[5] is not None for s in sets)
             assert all(first - 200_000_000 <= s[1] < stop for s in sets)
             kept += [s[0] for s in sets if s[1] >= first]
@@ -282,16 +274,16 @@ def test_sets_read_ahead_in_threads_are_the_sets_read_in_one(tmp_path, drive_fra
     assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 20
     rewrite_bag(source, late, lambda topic, timestamp: timestamp + (
         0 if topic == STEREO[0] else 30_000_000))
-    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 3)
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
     config = Config()
-    topics = bagtools.StereoTopics(*STEREO)
-    reader = bagtools.open_bag(late)
+    topics = bags.StereoTopics(*STEREO)
+    reader = bags.open_bag(late)
     try:
-        for span in (None, bagtools.LogSpan(START + 450_000_000, START + 1_650_000_000,
+        for span in (None, bags.LogSpan(START + 450_000_000, START + 1_650_000_000,
                                             250_000_000)):
-            alone = list(bagtools.stereo_sets(reader, topics, config,
-                                              bagtools.ProcessSummary(), span))
-            ahead = list(bagtools.read_sets_ahead(reader, topics, config, span, 3))
+            alone = list(bags.stereo_sets(reader, topics, config,
+                                              bags.SetCounts(), span))
+            ahead = list(bags.read_sets_ahead(reader, topics, config, span, 3))
             assert [s[:2] for s in ahead] == [s[:2] for s in alone]
             assert len(alone) == (20 if span is None else 15)
             assert all(s[4] is not None and s[5] is not None for s in ahead)

@@ -37,8 +37,9 @@ def test_camera_info_yaml_round_trip(tmp_path):
     calibration = StereoCalibration(650.0, 0.1, 300.0, 200.0)
     for side in ("left", "right"):
         (tmp_path / f"{side}.yaml").write_text(camera_info_yaml(calibration, 640, 400, side))
-    loaded, size = load_stereo_camera_info(tmp_path / "left.yaml", tmp_path / "right.yaml")
-    assert size == (640, 400)
+    camera, size = load_stereo_camera_info(tmp_path / "left.yaml", tmp_path / "right.yaml")
+    loaded = camera.calibration()
+    assert size == (640, 400) and not camera.needs_rectification()
     assert math.isclose(loaded.baseline, 0.1) and loaded.f == 650.0
 
 

@@ -102,7 +102,7 @@ def test_bad_input_exits_with_one_line(case, says, pair_dir, tmp_path):
                  "--camera-info-right", str(pair_dir / "right.yaml")]
     elif case == "conflict":
         extra = ["--camera-info-left", str(pair_dir / "left.yaml"),
-                 "--camera-info-right", str(pair_dir / "right.yaml"), "--focal", "430"]
+                 "--camera-info-right", str(pair_dir / "right.yaml"), "--cx", "300"]
     if case == "not_a_bag":
         (tmp_path / "notes.txt").write_text("not a bag\n")
         result = run_cli("process", str(tmp_path / "notes.txt"), "--out", str(tmp_path / "o"))

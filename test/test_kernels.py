@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from pothole_detector import backend
-from pothole_detector.stages import (census_sgm, measure, refine, road_model, superpixels,
-                                     threshold)
+from pothole_detector.stages import (census_sgm, measure, rectify, refine, road_model,
+                                     superpixels, threshold)
 
 ARCHITECTURE = "sm_90"
 
@@ -67,6 +67,7 @@ KERNEL_BUILDS: dict[str, list[dict[str, int]]] = {
     "measure.cu": [measure._MEASURE_DEFINES],
     "transform.cu": [road_model.ROAD_DEFINES],
     "sgm.cu": _matcher_builds(),
+    "rectify.cu": [rectify.REMAP_DEFINES],
 }
 
 

@@ -21,6 +21,8 @@ from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
+from pothole_detector.recordings.camera import stereo_camera  # noqa: E402
+from pothole_detector.recordings.images import decode_raw  # noqa: E402
 from pothole_detector.backend import gpu_available  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
@@ -72,12 +74,12 @@ def probe():
 
 
 def offline_results(frames):
-    left = conversions.image_to_array(frames[0]["left"])
-    calibration = conversions.calibration_from_camera_info(
-        frames[0]["left_info"], frames[0]["right_info"], left.shape[1], left.shape[0])
+    left = decode_raw(frames[0]["left"])
+    calibration = stereo_camera(frames[0]["left_info"], frames[0]["right_info"], left.shape[1],
+                                left.shape[0]).calibration()
     pipeline = Pipeline(Config({"backend": "cpu"}), calibration)
-    return [pipeline.run(conversions.image_to_array(f["left"]),
-                         conversions.image_to_array(f["right"])) for f in frames]
+    return [pipeline.run(decode_raw(f["left"]),
+                         decode_raw(f["right"])) for f in frames]
 
 
 def test_play_sample_bag_every_output(node_factory, probe):
@@ -116,7 +118,7 @@ def test_play_sample_bag_every_output(node_factory, probe):
         assert msg.min_disparity <= np.nanmin(result.disparity)
         assert msg.max_disparity >= np.nanmax(result.disparity)
     for msg, result in zip(p.received["disparity_transformed"], expected):
-        np.testing.assert_array_equal(conversions.image_to_array(msg, ("32FC1",)),
+        np.testing.assert_array_equal(decode_raw(msg, ("32FC1",)),
                                       result.transformed)
     for msg, result in zip(p.received["potholes"], expected):
         assert [q.area_m2 for q in msg.potholes] == [q.area_m2 for q in result.potholes]
@@ -271,7 +273,7 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
     assert p.spin(15, lambda: T0 + 1 in p.stamps())
 
     def smaller(msg, width):
-        pixels = conversions.image_to_array(msg)[:, :width]
+        pixels = decode_raw(msg)[:, :width]
         return conversions.array_to_image(pixels, "mono8", msg.header)
 
     lying_step = copy.deepcopy(good["left"])
@@ -314,7 +316,7 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
 
 
 def test_record_writes_live_topics_as_raw_cdr(tmp_path, probe, frames):
-    from pothole_detector import bagtools
+    from pothole_detector.recordings import bags
 
     p = probe(outputs=())
     out = tmp_path / "recorded"
@@ -332,10 +334,10 @@ def test_record_writes_live_topics_as_raw_cdr(tmp_path, probe, frames):
     stdout, stderr = record.communicate()
     assert record.returncode == 0, stderr
     assert "/stereo/left/image_rect: 3" in stdout
-    recorded = [msg for _, _, msg in bagtools.read_messages(out)]
+    recorded = [msg for _, _, msg in bags.read_messages(out)]
     assert [stamp_ns(m.header) for m in recorded] == [T0, T0 + 1, T0 + 2]
-    np.testing.assert_array_equal(conversions.image_to_array(recorded[1]),
-                                  conversions.image_to_array(frames[1]["left"]))
+    np.testing.assert_array_equal(decode_raw(recorded[1]),
+                                  decode_raw(frames[1]["left"]))
 
 
 @pytest.mark.parametrize("params_file", ["shipped", "written"])
@@ -372,7 +374,7 @@ def test_diagnostics_tell_no_input_and_failures_in_a_row(node_factory, probe, fr
     status = p.received["diagnostics"][-1].status[0]
     assert status.name == "/stereo/pothole_detector: pipeline"
     good = frames[0]
-    right = conversions.image_to_array(good["right"])[:, :600]
+    right = decode_raw(good["right"])[:, :600]
     narrow = conversions.array_to_image(right, "mono8", good["right"].header)
     for index in range(2):  # one at a time: a set arriving while the node is busy is dropped
         p.publish(good, T0 + index, right=narrow)
@@ -443,15 +445,15 @@ def test_the_gpu_node_gives_what_the_cpu_pipeline_gives(node_factory, probe):
     assert float(diagnostics["pipeline_cpu_ms_per_frame"]) > 0
     assert float(diagnostics["conversion_cpu_ms_per_frame"]) > 0
 
-    left = conversions.image_to_array(drive[0]["left"])
-    calibration = conversions.calibration_from_camera_info(
-        drive[0]["left_info"], drive[0]["right_info"], left.shape[1], left.shape[0])
+    left = decode_raw(drive[0]["left"])
+    calibration = stereo_camera(drive[0]["left_info"], drive[0]["right_info"], left.shape[1],
+                                left.shape[0]).calibration()
     pipeline = Pipeline(Config({"backend": "cpu", "matcher": "census"}), calibration)
     by_stamp = {stamp_ns(m.header): m for m in p.received["pothole_labels"]}
     agreement = []
     for frame, array in zip(drive, p.received["potholes"]):
-        expected = pipeline.run(conversions.image_to_array(frame["left"]),
-                                conversions.image_to_array(frame["right"]))
+        expected = pipeline.run(decode_raw(frame["left"]),
+                                decode_raw(frame["right"]))
         assert stamp_ns(array.header) == stamp_ns(frame["left"].header)
         assert len(array.potholes) == len(expected.potholes)
         labels = labels_of(by_stamp[stamp_ns(array.header)]) > 0

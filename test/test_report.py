@@ -25,7 +25,7 @@ def report(survey_drive_bags, tmp_path_factory):
     surveys = survey([bags["gnss"], REPO / "bags" / "sample_drive"], Config({"backend": "cpu"}))
     path = tmp_path_factory.mktemp("report") / "report.html"
     write_report(surveys, path, lambda d, p: best_view_picture(
-        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px))
+        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px, Config()))
     return path, surveys
 
 
@@ -46,7 +46,7 @@ def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):
     (drive,) = survey([bags["odom"]], Config({"backend": "cpu"}))
     pothole = drive.potholes[0]
     crop = best_view_picture(drive.bag, drive.topics, pothole.row["best_stamp_ns"],
-                             pothole.bbox_px)
+                             pothole.bbox_px, Config())
     assert crop.ndim == 3 and crop.dtype == np.uint8 and max(crop.shape[:2]) <= 240
     red = (crop[..., 0] > 200) & (crop[..., 1] < 100)
     assert red.sum() > 20  # the drawn box
@@ -55,19 +55,19 @@ def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):
 def test_a_best_view_picture_is_found_however_early_its_image_was_logged(tmp_path):
     """The sample drive with every message logged 0.5 s before its stamp: the picture at a
     stamp is still that frame's left image."""
-    from pothole_detector import bagtools
+    from pothole_detector.recordings import bags
     from pothole_detector.survey import drive_topics
 
     source, early = REPO / "bags" / "sample_drive", tmp_path / "early"
     rewrite_bag(source, early, lambda topic, timestamp: timestamp - 500_000_000)
-    stamps = [stamp for _, stamp, _ in bagtools.read_messages(source)]
+    stamps = [stamp for _, stamp, _ in bags.read_messages(source)]
     topics = drive_topics(early)
     box = (10, 10, 40, 40)
     stamp = sorted(set(stamps))[8]
-    np.testing.assert_array_equal(best_view_picture(early, topics, stamp, box),
-                                  best_view_picture(source, topics, stamp, box))
+    np.testing.assert_array_equal(best_view_picture(early, topics, stamp, box, Config()),
+                                  best_view_picture(source, topics, stamp, box, Config()))
     with pytest.raises(Exception, match="has no left image"):
-        best_view_picture(early, topics, stamp + 1, box)
+        best_view_picture(early, topics, stamp + 1, box, Config())
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="needs Chromium (apt install chromium)")

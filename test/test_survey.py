@@ -165,10 +165,10 @@ def test_reading_ahead_observes_what_one_reader_does(survey_drive_bags, motion, 
     """A chunk (24 frames) read in blocks of five frames by three threads, and by two worker
     processes: the same frames, sightings and motion messages as read in the pipeline's
     thread."""
-    from pothole_detector import bagtools
+    from pothole_detector.recordings import bags as recorded
     from pothole_detector.survey import chunk_spans, drive_topics, observe
 
-    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 5)
+    monkeypatch.setattr(recorded, "READ_BLOCK_FRAMES", 5)
     bags, _, _ = survey_drive_bags
     topics = drive_topics(bags[motion])
     config = Config({"backend": "cpu", "chunk_frames": 30})

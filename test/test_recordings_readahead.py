@@ -13,7 +13,8 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from pothole_detector import bagtools, decoding  # noqa: E402
+from pothole_detector import bagtools  # noqa: E402
+from pothole_detector.recordings import bags, readahead  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.synthetic import drive_scenes, render  # noqa: E402
@@ -24,7 +25,7 @@ START = 1_700_000_000_000_000_000
 PERIOD_NS = 100_000_000
 STEREO = ["/cam/left/image_rect", "/cam/right/image_rect", "/cam/left/camera_info",
           "/cam/right/camera_info"]
-TOPICS = bagtools.StereoTopics(*STEREO)
+TOPICS = bags.StereoTopics(*STEREO)
 
 
 @pytest.fixture(scope="module")
@@ -58,11 +59,11 @@ def _bag(folder, samples, count, colour=False, infos_from=0):
 def _one_reader(reader, span):
     """(stamp, log time, left, right, calibration or the error) as one reader converts them."""
     sets = []
-    for stamp, logged, left, right, left_info, right_info in bagtools.stereo_sets(
-            reader, TOPICS, Config(), bagtools.ProcessSummary(), span):
+    for stamp, logged, left, right, left_info, right_info in bags.stereo_sets(
+            reader, TOPICS, Config(), bags.SetCounts(), span):
         try:
-            sets.append((stamp, logged, *bagtools.convert_set(TOPICS, left, right, left_info,
-                                                              right_info)))
+            sets.append((stamp, logged, *bags.convert_set(TOPICS, left, right, left_info,
+                                                          right_info, Config())))
         except InputError as exc:
             sets.append((stamp, logged, None, None, str(exc)))
     return sets
@@ -71,7 +72,7 @@ def _one_reader(reader, span):
 def _as_sets(frames):
     return [(item[0].stamp, item[0].logged_ns, None, None, str(item[1]))
             if isinstance(item, tuple) else
-            (item.stamp, item.logged_ns, item.left, item.right, item.calibration)
+            (item.stamp, item.logged_ns, item.left, item.right, item.camera)
             for item in frames]
 
 
@@ -88,9 +89,9 @@ def _assert_same(got, expected):
 
 @pytest.fixture
 def fresh_decoders():
-    decoding._close_decoders()
+    readahead._close_decoders()
     yield
-    decoding._close_decoders()
+    readahead._close_decoders()
 
 
 @pytest.mark.parametrize("colour", [False, True], ids=["mono8", "rgb8"])
@@ -99,18 +100,18 @@ def test_worker_processes_give_the_frames_one_reader_gives(tmp_path, samples, co
     """Twenty sets read in blocks of three by two worker processes, of the whole bag and of a
     span with its lead: the sets, pixels and calibrations one reader gives, in order, each
     set's pixels on a slot of the ring; every slot is back once the frames are gone."""
-    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 3)
-    reader = bagtools.open_bag(_bag(tmp_path, samples, 20, colour))
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
+    reader = bags.open_bag(_bag(tmp_path, samples, 20, colour))
     try:
-        for span in (None, bagtools.LogSpan(START + 450_000_000, START + 1_650_000_000,
+        for span in (None, bags.LogSpan(START + 450_000_000, START + 1_650_000_000,
                                             250_000_000)):
             got, on_slots = [], []
-            for frame in decoding.decoded_frames(reader, TOPICS, Config(), span, 2):
-                ring = decoding._DECODERS[0].ring
+            for frame in readahead.decoded_frames(reader, TOPICS, Config(), span, 2):
+                ring = readahead._DECODERS[0].ring
                 on_slots.append(frame.left.base is frame.right.base
                                 and frame.left.base.size == ring.slot_bytes)
                 got.append((frame.stamp, frame.logged_ns, frame.left.copy(),
-                            frame.right.copy(), frame.calibration))
+                            frame.right.copy(), frame.camera))
                 if not got[1:]:
                     assert frame.header.frame_id == "stereo_left_optical_frame"
             expected = _one_reader(reader, span)
@@ -126,12 +127,12 @@ def test_worker_processes_give_the_frames_one_reader_gives(tmp_path, samples, co
 
 def test_without_room_in_shared_memory_the_pixels_come_pickled(tmp_path, samples, monkeypatch,
                                                                fresh_decoders):
-    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 4)
-    monkeypatch.setattr(decoding, "SHARED_MEMORY_SHARE", 0.0)
-    reader = bagtools.open_bag(_bag(tmp_path, samples, 9))
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 4)
+    monkeypatch.setattr(readahead, "SHARED_MEMORY_SHARE", 0.0)
+    reader = bags.open_bag(_bag(tmp_path, samples, 9))
     try:
-        frames = list(decoding.decoded_frames(reader, TOPICS, Config(), None, 2))
-        assert decoding._DECODERS[0].ring.memory is None
+        frames = list(readahead.decoded_frames(reader, TOPICS, Config(), None, 2))
+        assert readahead._DECODERS[0].ring.memory is None
         _assert_same(_as_sets(frames), _one_reader(reader, None))
     finally:
         reader.close()
@@ -141,14 +142,14 @@ def test_a_set_without_camera_info_comes_back_as_its_error(tmp_path, samples, mo
                                                            fresh_decoders):
     """No camera_info for the first two of twelve sets: those two are errors that say what is
     missing, and the sets after them are read."""
-    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 4)
-    reader = bagtools.open_bag(_bag(tmp_path, samples, 12, infos_from=2))
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 4)
+    reader = bags.open_bag(_bag(tmp_path, samples, 12, infos_from=2))
     try:
-        frames = list(decoding.decoded_frames(reader, TOPICS, Config(), None, 2))
+        frames = list(readahead.decoded_frames(reader, TOPICS, Config(), None, 2))
         got = _as_sets(frames)
         assert [s[4] for s in got[:2]] == ["no camera_info on /cam/left/camera_info and "
                                            "/cam/right/camera_info yet"] * 2
-        assert all(isinstance(item, bagtools.BagFrame) for item in frames[2:])
+        assert all(isinstance(item, bags.BagFrame) for item in frames[2:])
         _assert_same(got, _one_reader(reader, None))
     finally:
         reader.close()
@@ -158,12 +159,12 @@ def test_a_reading_stopped_early_gives_its_slots_back(tmp_path, samples, monkeyp
                                                       fresh_decoders):
     """Two frames taken of twenty, then the reading is closed: the blocks read ahead give
     their slots back as they finish."""
-    monkeypatch.setattr(bagtools, "READ_BLOCK_FRAMES", 3)
-    reader = bagtools.open_bag(_bag(tmp_path, samples, 20))
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
+    reader = bags.open_bag(_bag(tmp_path, samples, 20))
     try:
-        frames = decoding.decoded_frames(reader, TOPICS, Config(), None, 2)
+        frames = readahead.decoded_frames(reader, TOPICS, Config(), None, 2)
         taken = [next(frames).stamp for _ in range(2)]
-        ring = decoding._DECODERS[0].ring
+        ring = readahead._DECODERS[0].ring
         assert len(ring.free) < ring.slots
         frames.close()
         gc.collect()

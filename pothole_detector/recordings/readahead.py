@@ -1,7 +1,7 @@
 """Reading a bag ahead of the pipeline in worker processes (the ``read_processes`` parameter).
 
 Each worker opens the bag itself and reads, decompresses and decodes blocks of its log time
-(as the read threads of :func:`bagtools.read_sets_ahead` do); it writes each set's pixels
+(as the read threads of :func:`.bags.read_sets_ahead` do); it writes each set's pixels
 into a slot of a ring of shared memory that this process reads in place, so the process that
 runs the pipeline takes no part in decoding and copies no pixels. A slot returns to the ring
 when the last array on it is gone. Where the ring has no free slot, or a pair does not fit in
@@ -23,10 +23,14 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from . import bagtools, conversions
-from .errors import PotholeError
-from .msgtypes import deserialize, serialize
-from .params import Config
+from ..conversions import header_at
+from ..errors import PotholeError
+from ..msgtypes import deserialize, serialize
+from ..params import Config
+from .bags import (BagFrame, LogSpan, SetCounts, block_sets, cdr_bytes, convert_set, open_bag,
+                   read_blocks)
+from .images import decode
+from .topics import StereoTopics
 
 SLOT_ALIGN_BYTES = 64
 # The share of the free shared memory (/dev/shm) that the ring may take.
@@ -48,7 +52,7 @@ def _worker_reader(path: str) -> Any:
     if _WORKER.get("path") != path:
         if "reader" in _WORKER:
             _WORKER.pop("reader").close()
-        _WORKER["reader"] = bagtools.open_bag(path)
+        _WORKER["reader"] = open_bag(path)
         _WORKER["path"] = path
     return _WORKER["reader"]
 
@@ -63,25 +67,29 @@ def _worker_ring(name: str) -> memoryview:
     return _WORKER["ring"].buf
 
 
-def decode_block(path: str, topics: bagtools.StereoTopics, values: dict[str, Any],
-                 block: bagtools.LogSpan, first: bool, others: Sequence[str], ring: str,
+def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
+                 block: LogSpan, first: bool, others: Sequence[str], ring: str,
                  slot_bytes: int, slots: Sequence[int]
-                 ) -> tuple[list[DecodedSet], list[tuple[str, int, bytes]], list[int]]:
+                 ) -> tuple[list[DecodedSet], list[tuple[str, int, bytes]], list[int],
+                            SetCounts]:
     """A worker's task: the sets whose left image was logged in ``block`` (the first block
     also its lead), converted, their pixels written into the granted ``slots`` of the ring
     (each ``slot_bytes`` long) while they last; the ``others`` messages logged in the block as
-    (topic, log time ns, CDR bytes); and the slots left unused."""
+    (topic, log time ns, CDR bytes); the slots left unused; and the corrupt messages
+    counted."""
     reader = _worker_reader(path)
     types = {connection.topic: connection.msgtype for connection in reader.connections}
     free = deque(slots)
     decoded: list[DecodedSet] = []
     extras: list[tuple[str, int, Any]] = []
-    for stamp, logged, left_msg, right_msg, left_info, right_info in bagtools.block_sets(
-            reader, topics, Config(values), block, first, others, extras):
+    counts = SetCounts()
+    config = Config(values)
+    for stamp, logged, left_msg, right_msg, left_info, right_info in block_sets(
+            reader, topics, config, block, first, others, extras, counts):
         frame_id = left_msg.header.frame_id
         try:
-            left, right, calibration = bagtools.convert_set(topics, left_msg, right_msg,
-                                                            left_info, right_info)
+            left, right, calibration = convert_set(topics, left_msg, right_msg, left_info,
+                                                   right_info, config)
         except PotholeError as exc:
             decoded.append((stamp, logged, frame_id, None, None, exc))
             continue
@@ -96,7 +104,7 @@ def decode_block(path: str, topics: bagtools.StereoTopics, values: dict[str, Any
             pixels = (slot, left.shape, left.dtype.str, right.shape, right.dtype.str)
         decoded.append((stamp, logged, frame_id, pixels, calibration, None))
     messages = [(topic, logged, serialize(msg, types[topic])) for topic, logged, msg in extras]
-    return decoded, messages, list(free)
+    return decoded, messages, list(free), counts
 
 
 def _ready() -> None:
@@ -129,14 +137,13 @@ class Ring:
             taken.append(self.free.popleft())
         return taken
 
-    def frame(self, decoded: DecodedSet
-              ) -> bagtools.BagFrame | tuple[bagtools.BagFrame, PotholeError]:
+    def frame(self, decoded: DecodedSet) -> BagFrame | tuple[BagFrame, PotholeError]:
         """The frame of a decoded set, its arrays on its slot (which returns to the ring when
         they are gone), or the frame and the error that its conversion raised."""
         stamp, logged, frame_id, pixels, calibration, error = decoded
-        header = conversions.header_at(stamp, frame_id)
+        header = header_at(stamp, frame_id)
         if error is not None:
-            return bagtools.BagFrame(stamp, header, None, None, None, logged), error
+            return BagFrame(stamp, header, None, None, None, logged), error
         if isinstance(pixels[0], np.ndarray):
             left, right = pixels
         else:
@@ -150,7 +157,7 @@ class Ring:
             start = _aligned(left_bytes)
             left = whole[:left_bytes].view(left_dtype).reshape(left_shape)
             right = whole[start:start + right_bytes].view(right_dtype).reshape(right_shape)
-        return bagtools.BagFrame(stamp, header, left, right, calibration, logged)
+        return BagFrame(stamp, header, left, right, calibration, logged)
 
     def close(self) -> None:
         """Free the ring (its memory goes when no array is left on it)."""
@@ -210,41 +217,48 @@ def _close_decoders() -> None:
 multiprocessing.util.Finalize(None, _close_decoders, exitpriority=100)
 
 
-def _pair_bytes(reader: Any, topics: bagtools.StereoTopics) -> int:
-    """The bytes a slot needs for a pair of the bag's first left image's size."""
+def _pair_bytes(reader: Any, topics: StereoTopics) -> int:
+    """The bytes a slot needs for a pair of the bag's first left image as decoded; a slot of
+    the least size where it cannot be decoded."""
     connections = [c for c in reader.connections if c.topic == topics.left]
     for connection, _, rawdata in reader.messages(connections=connections):
-        image = deserialize(bagtools.cdr_bytes(reader, connection, rawdata),
-                            bagtools.IMAGE_TYPE)
-        return 2 * _aligned(int(image.height) * int(image.step))
+        try:
+            image = decode(deserialize(cdr_bytes(reader, connection, rawdata),
+                                       topics.image_type), topics.image_type)
+        except (PotholeError, ValueError, TypeError):
+            break
+        return 2 * _aligned(image.nbytes)
     return SLOT_ALIGN_BYTES
 
 
-def decoded_frames(reader: Any, topics: bagtools.StereoTopics, config: Config,
-                   span: bagtools.LogSpan | None, processes: int, others: Sequence[str] = (),
-                   collected: list | None = None
-                   ) -> Iterator[bagtools.BagFrame | tuple[bagtools.BagFrame, PotholeError]]:
-    """The frames of the sets of ``span`` (or the whole bag) in order, as
-    :func:`bagtools.frame_results` converts them, read and decoded by ``processes`` worker
-    processes a block at a time (the blocks of :func:`bagtools.read_blocks`), at most
-    ``processes`` + 1 blocks ahead; the ``others`` messages logged in the span go into
-    ``collected``."""
-    blocks, period_ns = bagtools.read_blocks(reader, topics, config, span)
+def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogSpan | None,
+                   processes: int, others: Sequence[str] = (), collected: list | None = None,
+                   counts: SetCounts | None = None
+                   ) -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
+    """The frames of the sets of ``span`` (or the whole bag) in order, converted as
+    :func:`.bags.convert_set` does, read and decoded by
+    ``processes`` worker processes a block at a time (the blocks of :func:`.bags.read_blocks`),
+    at most ``processes`` + 1 blocks ahead; the ``others`` messages logged in the span go
+    into ``collected``, the corrupt messages into ``counts``."""
+    blocks, period_ns = read_blocks(reader, topics, config, span)
     lead_sets = math.ceil(blocks[0].lead_ns / period_ns) + 2
     per_block = math.ceil((blocks[0].stop_ns - blocks[0].start_ns) / period_ns) + 2
     decoders = start(processes)
-    ring = decoders.ring_of(_pair_bytes(reader, topics), (processes + 2) * per_block + lead_sets)
+    ring = decoders.ring_of(_pair_bytes(reader, topics),
+                            (processes + 2) * per_block + lead_sets)
     path = str(Path(list(reader.paths)[0]))
     values = config.as_dict()
 
-    def submit(index: int, block: bagtools.LogSpan) -> tuple[Future, list[int]]:
+    def submit(index: int, block: LogSpan) -> tuple[Future, list[int]]:
         slots = ring.grant(per_block + (lead_sets if index == 0 else 0))
         return decoders.pool.submit(decode_block, path, topics, values, block, index == 0,
                                     tuple(others), ring.name, ring.slot_bytes, slots), slots
 
-    def take(future: Future) -> Iterator[bagtools.BagFrame | tuple]:
-        decoded, messages, unused = future.result()
+    def take(future: Future) -> Iterator[BagFrame | tuple]:
+        decoded, messages, unused, found = future.result()
         ring.free.extend(unused)
+        if counts is not None:
+            counts.add(found)
         if collected is not None:
             collected.extend((topic, logged, deserialize(data, types[topic]))
                              for topic, logged, data in messages)

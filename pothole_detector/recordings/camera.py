@@ -1,0 +1,73 @@
+"""camera_info as a calibration: the two sensor_msgs/CameraInfo of a stereo set as a
+:class:`~pothole_detector.calibration.StereoCamera`, and what the pipeline needs of it (the
+rectified pair, and the rectification where the images come raw)."""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+
+from ..calibration import CameraModel, StereoCalibration, StereoCamera, rectification_maps
+from ..errors import CalibrationError
+from ..stages.rectify import Rectification
+
+RECTIFY_CHOICES = ("auto", "on", "off")
+
+
+def camera_model(info: Any) -> CameraModel:
+    """The :class:`CameraModel` of a sensor_msgs/CameraInfo."""
+    return CameraModel.from_values(info.width, info.height, info.distortion_model,
+                                   list(info.d), list(info.k), list(info.r), list(info.p))
+
+
+def stereo_camera(left: Any, right: Any, width: int, height: int, baseline_m: float = 0.0,
+                  focal_px: float = 0.0) -> StereoCamera:
+    """The stereo camera of two CameraInfo for images ``width`` x ``height`` px, with the
+    baseline (m) and focal length (px) to use where they lack them (0: none). Raises
+    CalibrationError where they disagree with the images or hold NaN or infinity."""
+    models = []
+    for side, info in (("left", left), ("right", right)):
+        if (int(info.width), int(info.height)) not in ((width, height), (0, 0)):
+            raise CalibrationError(
+                f"{side} camera_info is for {info.width}x{info.height} images but the images "
+                f"are {width}x{height}; publish the camera_info of these images")
+        for name in ("k", "p", "d", "r"):
+            values = np.asarray(getattr(info, name), dtype=np.float64)
+            if not np.isfinite(values).all():
+                raise CalibrationError(f"{side} camera_info {name.upper()} has NaN or infinity "
+                                       f"({list(values)}); is the camera calibrated?")
+        k = np.asarray(info.k, dtype=np.float64)
+        if k.size != 9 or (k[0] <= 0 or k[4] <= 0) and (k[0] != 0 or k[4] != 0):
+            raise CalibrationError(
+                f"{side} camera_info K has a focal length <= 0 ({list(k)}); is the camera "
+                "calibrated?")
+        model = camera_model(info)
+        models.append(CameraModel(width, height, model.distortion_model, model.d, model.k,
+                                  model.r, model.p))
+    return StereoCamera(models[0], models[1], float(baseline_m), float(focal_px))
+
+
+def rectifies(camera: StereoCamera, mode: str) -> bool:
+    """Whether images of ``camera`` are rectified before matching under ``mode`` (auto: where
+    the calibration says they are not rectified already; on; off)."""
+    if mode not in RECTIFY_CHOICES:
+        raise CalibrationError(f"rectify must be one of {', '.join(RECTIFY_CHOICES)}")
+    return mode == "on" or (mode == "auto" and camera.needs_rectification())
+
+
+@functools.lru_cache(maxsize=8)
+def rectification(camera: StereoCamera) -> Rectification:
+    """The remap tables of ``camera``'s two views (built once per calibration)."""
+    left_maps, right_maps = rectification_maps(camera)
+    return Rectification.from_maps(left_maps, right_maps,
+                                   (camera.left.height, camera.left.width))
+
+
+def pipeline_inputs(camera: StereoCamera, mode: str
+                    ) -> tuple[StereoCalibration, Rectification | None]:
+    """The rectified pair's calibration and, where ``mode`` rectifies (:func:`rectifies`),
+    the rectification: what a Pipeline is made with."""
+    calibration = camera.calibration()
+    return calibration, rectification(camera) if rectifies(camera, mode) else None
