@@ -9,7 +9,10 @@ processed frame: all threads, and the worker thread split into message conversio
 messages out) and the pipeline.
 
 Run: python benchmarks/bench_node.py [--backend gpu] [--sizes 1280x720 2079x1040]
-     [--rates 30 60] [--seconds 10]
+     [--rates 30 60] [--seconds 10] [--encoding mono8|rgb8|raw-jpeg]
+``--encoding raw-jpeg``: colour JPEG CompressedImage of a raw, distorted and slightly rotated
+camera (plumb_bob, with its camera_info) on .../image_rect/compressed, as a driver's
+image_transport publishes them: the node decodes and rectifies every set.
 On the GPU machine: source scripts/gpu_machine/env.sh first (docs/gpu-machine.md)."""
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from pothole_detector_msgs.msg import PotholeArray  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
-from pothole_detector.synthetic import demo_scene, render  # noqa: E402
+from pothole_detector.synthetic import demo_scene, raw_camera, render, render_raw  # noqa
 from pothole_detector.transport import large_image_transport  # noqa: E402
 from rosgraph import NodeProcess, Probe, header_at, isolate_ros_graph, stamp_ns  # noqa: E402
 
@@ -108,21 +111,28 @@ def measure(feeder: Feeder, pid: int, rate: float, seconds: float) -> dict:
 
 def bench_size(width: int, height: int, rates: list[float], seconds: float, backend: str,
                encoding: str, node_params: dict[str, str]) -> list[dict]:
-    sample = render(demo_scene(width, height))
+    scene = demo_scene(width, height)
+    sample = render(scene)
     header = header_at(0)
     images = {side: sample.left if side == "left" else sample.right for side in ("left", "right")}
-    if encoding == "rgb8":
+    infos = [conversions.camera_info_message(sample.calibration, width, height, header,
+                                             right=right) for right in (False, True)]
+    if encoding == "raw-jpeg":
+        camera = raw_camera(sample.calibration, width, height, "plumb_bob")
+        images = dict(zip(("left", "right"), render_raw(scene, camera)))
+        infos = [conversions.camera_info_of(model, header)
+                 for model in (camera.left, camera.right)]
+        node_params = {"image_transport": "compressed", **node_params}
+    if encoding in ("rgb8", "raw-jpeg"):
         images = {side: np.repeat(image[..., None], 3, axis=2) for side, image in images.items()}
-    frame = {
-        "left": conversions.array_to_image(images["left"], encoding, header),
-        "right": conversions.array_to_image(images["right"], encoding, header),
-        "left_info": conversions.camera_info_message(sample.calibration, width, height, header),
-        "right_info": conversions.camera_info_message(sample.calibration, width, height,
-                                                      header, right=True),
-    }
+    make = (lambda pixels: conversions.compressed_image(pixels, "jpeg", header)) \
+        if encoding == "raw-jpeg" else \
+        (lambda pixels: conversions.array_to_image(pixels, encoding, header))
+    frame = {"left": make(images["left"]), "right": make(images["right"]),
+             "left_info": infos[0], "right_info": infos[1]}
     node = NodeProcess(Path(f"/tmp/bench_node_{width}x{height}.log"), backend=backend,
                        **node_params)
-    probe = Probe(outputs=())
+    probe = Probe(outputs=(), compressed=encoding == "raw-jpeg")
     try:
         probe.wait_connected(timeout=60.0)
         feeder = Feeder(probe, frame)
@@ -156,7 +166,7 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["1280x720"])
     parser.add_argument("--rates", type=float, nargs="+", default=[10.0, 20.0, 30.0])
     parser.add_argument("--seconds", type=float, default=10.0)
-    parser.add_argument("--encoding", default="mono8", choices=("mono8", "rgb8"))
+    parser.add_argument("--encoding", default="mono8", choices=("mono8", "rgb8", "raw-jpeg"))
     parser.add_argument("--node-param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a parameter of the node (repeatable)")
     args = parser.parse_args()

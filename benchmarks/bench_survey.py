@@ -4,12 +4,15 @@ a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
         [--backend cpu|gpu] [--ray | --jobs N [N ...]] [--chunk-frames 30]
-        [--read-threads N [N ...]] [--read-processes N [N ...]]
+        [--read-threads N [N ...]] [--read-processes N [N ...]] [--form rectified|raw-jpeg]
 
 The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
 frame at these sizes would take longer than the survey), with an odometry topic that follows
 the cycle, as survey vehicles record it: the survey takes its motion from it (no visual
-odometry) and tracks the same six potholes throughout."""
+odometry) and tracks the same six potholes throughout. ``--form raw-jpeg`` records the drive as
+a camera driver often does: raw images of a distorted, slightly rotated camera (plumb_bob, with
+its camera_info), JPEG-compressed (image_transport's compressed topics), so the survey
+decodes and rectifies every frame."""
 
 from __future__ import annotations
 
@@ -27,21 +30,29 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pothole_detector.bagtools import write_drive_bag  # noqa: E402
+from pothole_detector.bagtools import RecordingForm, write_drive_bag  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.report import write_report  # noqa: E402
 from pothole_detector.survey import best_view_picture, survey, write_csv  # noqa: E402
-from pothole_detector.synthetic import render, survey_drive  # noqa: E402
+from pothole_detector.synthetic import (raw_camera, render, render_raw,  # noqa: E402
+                                        survey_drive)
 
 DISTINCT_FRAMES = 4
 
 
-def make_bag(bag: Path, samples: list, forward_m: list[float], frames: int) -> Path:
+def make_bag(bag: Path, samples: list, forward_m: list[float], frames: int,
+             form: RecordingForm) -> Path:
     """``frames`` frames at 30 Hz cycling ``samples`` (taken ``forward_m`` along the road)."""
     cycle = [i % len(samples) for i in range(frames)]
     write_drive_bag(bag, [forward_m[i] for i in cycle], [samples[i] for i in cycle], "odom",
-                    rate_hz=30.0, ground_truth=False)
+                    rate_hz=30.0, ground_truth=False, form=form)
     return bag
+
+
+def raw_sample(scene: object, camera: object) -> object:
+    """The scene's render with the raw camera's images in place of the rectified ones."""
+    left, right = render_raw(scene, camera)
+    return replace(render(scene), left=left, right=right)
 
 
 def bench(bag: Path, config: Config, use_ray: bool, jobs: int, out: Path
@@ -67,6 +78,9 @@ def main() -> None:
     parser.add_argument("--read-threads", type=int, nargs="+", default=[4],
                         help="threads per process that read the bag ahead (several: a row "
                              "each)")
+    parser.add_argument("--form", choices=("rectified", "raw-jpeg"), default="rectified",
+                        help="how the drive is recorded (raw-jpeg: raw distorted images, "
+                             "JPEG-compressed)")
     parser.add_argument("--read-processes", type=int, nargs="+", default=[0],
                         help="worker processes that read and decode the bag ahead instead of "
                              "the threads (0: the threads; several: a row each)")
@@ -77,7 +91,7 @@ def main() -> None:
     else:
         from pothole_detector.backend import get_backend
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
-    print(f"survey throughput, {device}, {args.frames} frames a bag, "
+    print(f"survey throughput, {device}, {args.frames} frames a bag ({args.form}), "
           f"{datetime.date.today().isoformat()}")
     print("| size | processes | reading ahead (each) | frames | potholes | seconds (decode, "
           "pipeline, odometry, tracking, outputs) | frames/s |")
@@ -88,13 +102,19 @@ def main() -> None:
             width, height = (int(v) for v in size.lower().split("x"))
             scenes = [replace(s, supersample=1) for s in survey_drive(
                 frames=DISTINCT_FRAMES * 4, width=width, height=height)[::4]]
+            form = RecordingForm()
             with ProcessPoolExecutor(len(scenes), mp_context=get_context("spawn")) as pool:
-                samples = list(pool.map(render, scenes))
+                if args.form == "raw-jpeg":
+                    camera = raw_camera(scenes[0].calibration, width, height, "plumb_bob")
+                    form = RecordingForm(compression="jpeg", camera=camera)
+                    samples = list(pool.map(raw_sample, scenes, [camera] * len(scenes)))
+                else:
+                    samples = list(pool.map(render, scenes))
             forward = [s.camera_y_m for s in scenes]
-            bag = make_bag(folder / f"drive_{size}", samples, forward, args.frames)
+            bag = make_bag(folder / f"drive_{size}", samples, forward, args.frames, form)
             warm = folder / f"warm_{size}"
             warm.mkdir()
-            bench(make_bag(warm / "drive", samples, forward, 3), config, False, 1,
+            bench(make_bag(warm / "drive", samples, forward, 3, form), config, False, 1,
                   warm)  # compiles kernels
             for jobs in [1] if args.ray else args.jobs:
                 for threads, readers in [(t, 0) for t in args.read_threads if 0 in

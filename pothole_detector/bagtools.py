@@ -435,33 +435,6 @@ def gnss_message(stamp_ns: int, lat_deg: float, lon_deg: float,
     return msg
 
 
-DRIVE_MOTIONS = ("none", "odom", "gnss")
-
-
-def write_drive_bag(out: str | Path, forward_m: Sequence[float], samples: Sequence[Any],
-                    motion: str = "none", origin_latlon: tuple[float, float] = (48.137, 11.575),
-                    start_ns: int = 1_700_000_000_000_000_000, rate_hz: float = 10.0,
-                    ground_truth: bool = True) -> int:
-    """A stereo bag of a straight drive of our generator: frame i (StereoSample) taken
-    ``forward_m[i]`` m along the road from the first, at ``rate_hz``; with ``motion`` "odom"
-    also /odom (the road point below the camera, x forward), with "gnss" /gnss/fix (driving
-    north from ``origin_latlon``); the label images as write_stereo_bag's ``ground_truth``."""
-    if motion not in DRIVE_MOTIONS:
-        raise ValueError(f"motion must be one of {DRIVE_MOTIONS}")
-
-    def extras(index: int, stamp: int, sample: Any) -> dict[str, Any]:
-        if motion == "odom":
-            return {"/odom": odometry_message(stamp, forward_m[index], 0.0, 0.0)}
-        if motion == "gnss":
-            lat, lon = latlon_of(np.array([[0.0, forward_m[index]]]), *origin_latlon)[0]
-            return {"/gnss/fix": gnss_message(stamp, lat, lon)}
-        return {}
-
-    return write_stereo_bag(out, ((start_ns + round(i * 1e9 / rate_hz), sample)
-                                  for i, sample in enumerate(samples)),
-                            ground_truth=ground_truth, extras=extras)
-
-
 @dataclass(frozen=True)
 class RecordingForm:
     """How a camera driver records a stereo camera, for :func:`write_stereo_bag`: its topics
@@ -477,6 +450,35 @@ class RecordingForm:
     compression: str | None = None
     camera: StereoCamera | None = None
     no_baseline: bool = False
+
+
+DRIVE_MOTIONS = ("none", "odom", "gnss")
+
+
+def write_drive_bag(out: str | Path, forward_m: Sequence[float], samples: Sequence[Any],
+                    motion: str = "none", origin_latlon: tuple[float, float] = (48.137, 11.575),
+                    start_ns: int = 1_700_000_000_000_000_000, rate_hz: float = 10.0,
+                    ground_truth: bool = True, form: RecordingForm | None = None) -> int:
+    """A stereo bag of a straight drive of our generator: frame i (StereoSample) taken
+    ``forward_m[i]`` m along the road from the first, at ``rate_hz``; with ``motion`` "odom"
+    also /odom (the road point below the camera, x forward), with "gnss" /gnss/fix (driving
+    north from ``origin_latlon``); the label images as write_stereo_bag's ``ground_truth``, the
+    camera's topics and images as ``form`` says (write_stereo_bag)."""
+    if motion not in DRIVE_MOTIONS:
+        raise ValueError(f"motion must be one of {DRIVE_MOTIONS}")
+
+    def extras(index: int, stamp: int, sample: Any) -> dict[str, Any]:
+        if motion == "odom":
+            return {"/odom": odometry_message(stamp, forward_m[index], 0.0, 0.0)}
+        if motion == "gnss":
+            lat, lon = latlon_of(np.array([[0.0, forward_m[index]]]), *origin_latlon)[0]
+            return {"/gnss/fix": gnss_message(stamp, lat, lon)}
+        return {}
+
+    return write_stereo_bag(out, ((start_ns + round(i * 1e9 / rate_hz), sample)
+                                  for i, sample in enumerate(samples)),
+                            ground_truth=ground_truth, extras=extras,
+                            form=form or RecordingForm())
 
 
 def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],

@@ -17,7 +17,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 from visualization_msgs.msg import MarkerArray
@@ -105,9 +105,10 @@ class Probe:
 
     def __init__(self, namespace: str = "/stereo", reliability: str = "reliable",
                  outputs: tuple[str, ...] = tuple(OUTPUTS), input_reliability: str = "reliable",
-                 durability: str = "volatile") -> None:
+                 durability: str = "volatile", compressed: bool = False) -> None:
         """``reliability`` and ``durability``: of the output subscriptions;
-        ``input_reliability``: of the camera publishers."""
+        ``input_reliability``: of the camera publishers; ``compressed``: the images go as
+        CompressedImage on ``.../image_rect/compressed``."""
         self.namespace = namespace
         self.node = rclpy.create_node(f"probe_{uuid.uuid4().hex[:8]}")
         self.executor = SingleThreadedExecutor()
@@ -130,9 +131,12 @@ class Probe:
         self._subs.append(self.node.create_subscription(
             DiagnosticArray, "/diagnostics", lambda m: self.received["diagnostics"].append(m),
             10))
+        kind, suffix = (CompressedImage, "/compressed") if compressed else (Image, "")
         self.inputs = {
-            "left": self.node.create_publisher(Image, f"{namespace}/left/image_rect", camera),
-            "right": self.node.create_publisher(Image, f"{namespace}/right/image_rect", camera),
+            "left": self.node.create_publisher(kind, f"{namespace}/left/image_rect{suffix}",
+                                               camera),
+            "right": self.node.create_publisher(kind, f"{namespace}/right/image_rect{suffix}",
+                                                camera),
             "left_info": self.node.create_publisher(CameraInfo, f"{namespace}/left/camera_info",
                                                     camera),
             "right_info": self.node.create_publisher(CameraInfo,

@@ -21,7 +21,9 @@ from pothole_detector.stages import (census_sgm, components, matching, measure, 
 from pothole_detector.stages.matching import to_gray8
 from pothole_detector.stages.road_model import fit_road
 from pothole_detector.stages.transform import transform_disparity
-from pothole_detector.synthetic import drive_scenes, render
+from pothole_detector.recordings.camera import pipeline_inputs, rectification
+from pothole_detector.stages import rectify
+from pothole_detector.synthetic import drive_scenes, raw_camera, render, render_raw
 
 import census_reference
 
@@ -1075,3 +1077,37 @@ def test_the_widest_seed_try_on_the_gpu_finds_the_road_the_reference_does(gpu,
     assert roads[0].roll_deg == pytest.approx(-2.0, abs=0.2)
     assert roads[0].roll_deg == pytest.approx(roads[1].roll_deg, abs=0.02)
     assert roads[0].a0 == pytest.approx(roads[1].a0, abs=0.5)
+
+
+def test_rectification_kernel_equals_the_cpu_one_bit_for_bit(gpu):
+    """The remap of a raw image and the unseen mask of a disparity map, on both backends."""
+    sample = render(replace(drive_scenes(frames=1)[0], supersample=1))
+    for model in ("plumb_bob", "rational_polynomial", "equidistant"):
+        tables = rectification(raw_camera(sample.calibration, 640, 360, model, seed=4))
+        on_gpu = tables.on(gpu)
+        for image, cpu_table, gpu_table in ((sample.left, tables.left, on_gpu.left),
+                                            (sample.right, tables.right, on_gpu.right)):
+            expected = rectify.remap(CPU, image, cpu_table)
+            got = rectify.remap(gpu, gpu.upload(image), gpu_table).get()
+            np.testing.assert_array_equal(got, expected)
+        disparity = sample.disparity.copy()
+        expected = rectify.invalidate_unseen(CPU, disparity, tables)
+        got = rectify.invalidate_unseen(gpu, gpu.upload(disparity), on_gpu).get()
+        np.testing.assert_array_equal(got, expected)
+        assert np.isnan(expected).sum() > np.isnan(disparity).sum()
+
+
+def test_a_raw_drive_gives_the_same_labels_on_both_backends(gpu):
+    """Raw distorted frames rectified on the device inside the frame (graphs and streams as
+    usual): the CPU backend's labels and potholes."""
+    scenes = [replace(scene, supersample=1) for scene in drive_scenes(frames=3)]
+    camera = raw_camera(render(scenes[0]).calibration, 640, 360, "plumb_bob", seed=3)
+    pairs = [render_raw(scene, camera) for scene in scenes]
+    calibration, tables = pipeline_inputs(camera, "auto")
+    config = Config({"matcher": "census"})
+    cpu = list(Pipeline(config, calibration, CPU, tables).run_stream(pairs))
+    on_gpu = list(Pipeline(config, calibration, gpu, tables).run_stream(pairs))
+    for expected, got in zip(cpu, on_gpu):
+        assert not isinstance(got, PotholeError) and not isinstance(expected, PotholeError)
+        np.testing.assert_array_equal(got.host("labels") > 0, expected.host("labels") > 0)
+        assert len(got.potholes) == len(expected.potholes)

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import copy
 import math
+import signal
 import subprocess
-import time
 import sys
+import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,13 +23,14 @@ from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
-from pothole_detector.recordings.camera import stereo_camera  # noqa: E402
+from pothole_detector.recordings.camera import pipeline_inputs, stereo_camera  # noqa: E402
 from pothole_detector.recordings.images import decode_raw  # noqa: E402
 from pothole_detector.backend import gpu_available  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from rosgraph import (SAMPLE_DRIVE, NodeProcess, Probe, isolate_ros_graph,  # noqa: E402
-                      labels_of, sample_frames, stamp_ns)
+from pothole_detector.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
+from rosgraph import (SAMPLE_DRIVE, NodeProcess, Probe, header_at,  # noqa: E402
+                      isolate_ros_graph, labels_of, sample_frames, stamp_ns)
 
 T0 = 1_800_000_000_000_000_000
 
@@ -281,23 +284,24 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
     short_data = copy.deepcopy(good["left"])
     short_data.data = bytes(short_data.data)[:1000]
     unknown = copy.deepcopy(good["left"])
-    unknown.encoding = "yuv422"
+    unknown.encoding = "nv24"
     flat_right = copy.deepcopy(good["right_info"])
     flat_right.p[3] = 0.0
     nan_info = copy.deepcopy(good["left_info"])
     nan_info.p[0] = math.nan
     cases = [
-        ({"right": smaller(good["right"], 600)}, "640x360 but right is 600x360"),
-        ({"left": unknown}, "encoding 'yuv422' is not supported"),
+        ({"right": smaller(good["right"], 600)},
+         "image is 600x360 but its camera_info is for 640x360"),
+        ({"left": unknown}, "encoding 'nv24' is not supported"),
         ({"left": lying_step}, "step"),
         ({"left": short_data}, "needs"),
         ({"right_info": flat_right}, "Tx"),
         ({"left_info": nan_info}, "NaN"),
     ]
     stamp = T0 + 1_000_000_000
-    for replace, words in cases:
+    for changes, words in cases:
         stamp += 1_000_000_000
-        p.publish(good, stamp, **replace)
+        p.publish(good, stamp, **changes)
         assert p.spin(10, lambda: words in p.diagnostics().get("message", "")), words
         p.publish(good, stamp + 500_000_000)
         assert p.spin(15, lambda: stamp + 500_000_000 in p.stamps()), node.text()
@@ -553,3 +557,57 @@ def test_the_shipped_parameters_take_every_frame_of_a_640x480_vehicle_drive(node
     assert all(msg.status != msg.FAILED for msg in p.received["potholes"])
     assert p.spin(5, lambda: p.diagnostics().get("frames_processed") == "6"), p.diagnostics()
     assert p.diagnostics()["failures_in_a_row"] == "0"
+
+
+def test_the_node_takes_compressed_and_raw_distorted_input(node_factory, probe, frames):
+    """image_transport:=compressed: the sample drive as PNG CompressedImage on
+    .../image_rect/compressed gives the labels of the uncompressed pairs; raw images of a
+    distorted, rotated camera with its camera_info (rectify auto): rectified in the node,
+    the labels of the same pipeline offline, close to the ground truth."""
+    compressed = [{**frame, **{side: conversions.compressed_image(
+        decode_raw(frame[side]), "png", frame[side].header) for side in ("left", "right")}}
+        for frame in frames]
+    node_factory(backend="cpu", image_transport="compressed")
+    p = probe(outputs=("potholes", "pothole_labels"), compressed=True)
+    p.wait_connected()
+    for index, frame in enumerate(compressed):
+        p.publish(frame, T0 + index)
+        assert p.spin(30, lambda: len(p.received["pothole_labels"]) == index + 1), index
+    expected = offline_results(frames)
+    for msg, result in zip(p.received["pothole_labels"], expected):
+        np.testing.assert_array_equal(labels_of(msg) > 0, result.labels > 0)
+
+    scenes = [replace(scene, supersample=1) for scene in drive_scenes(frames=2)]
+    samples = [render(scene) for scene in scenes]
+    camera = raw_camera(samples[0].calibration, 640, 360, "plumb_bob", seed=2)
+    raw = [render_raw(scene, camera) for scene in scenes]
+    infos = [conversions.camera_info_of(model, header_at(0))
+             for model in (camera.left, camera.right)]
+    node_factory(backend="cpu", namespace="/raw")
+    q = probe(outputs=("potholes", "pothole_labels"), namespace="/raw")
+    q.wait_connected()
+    calibration, rectification = pipeline_inputs(camera, "auto")
+    pipeline = Pipeline(Config({"backend": "cpu"}), calibration, rectification=rectification)
+    for index, ((left, right), sample) in enumerate(zip(raw, samples)):
+        q.publish({"left": conversions.array_to_image(left, "mono8", header_at(0)),
+                   "right": conversions.array_to_image(right, "mono8", header_at(0)),
+                   "left_info": infos[0], "right_info": infos[1]}, T0 + 10 + index)
+        assert q.spin(30, lambda: len(q.received["pothole_labels"]) == index + 1), index
+        labels = labels_of(q.received["pothole_labels"][-1])
+        np.testing.assert_array_equal(labels > 0, pipeline.run(left, right).labels > 0)
+        truth = sample.labels > 0
+        found = labels > 0
+        assert 2 * (found & truth).sum() / (found.sum() + truth.sum()) > 0.85
+
+
+def test_ctrl_c_while_the_node_starts_exits_quietly(tmp_path):
+    """The console script interrupted at once, while Python still loads ROS: status 0 and no
+    traceback."""
+    for delay in (0.2, 1.5):
+        process = subprocess.Popen([sys.executable, "-m", "pothole_detector.node_main",
+                                    "--ros-args", "-p", "backend:=cpu"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        time.sleep(delay)
+        process.send_signal(signal.SIGINT)
+        output, _ = process.communicate(timeout=30)
+        assert process.returncode == 0 and "Traceback" not in output, output
