@@ -257,7 +257,8 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
                   progress: Callable[[int, int], None] | None = None,
                   span: LogSpan | None = None, read_threads: int = 1,
                   others: Sequence[str] = (), collected: list | None = None,
-                  read_processes: int = 0) -> Iterator[tuple[BagFrame, Any]]:
+                  read_processes: int = 0, colour: bool = False
+                  ) -> Iterator[tuple[BagFrame, Any]]:
     """(frame, PipelineResult or the PotholeError that stopped it) for the synchronized sets
     of a bag, or of a :class:`LogSpan` of it (with the sets of its lead before it: their
     ``logged_ns`` is before the span's start), in order; each frame carries the rectified
@@ -272,7 +273,9 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
     ``read_processes`` > 0: read and decoded by that many worker processes instead
     (recordings.readahead, on the same condition). The messages of the ``others`` topics
     logged in the span go into ``collected`` in the same pass (complete once the frames
-    are)."""
+    are). The pipeline takes the images as the matcher does (recordings.images.decode's
+    ``grey``); ``colour``: each frame also keeps its left image in colour, for pictures (not
+    with ``read_processes``)."""
     images = total = message_count(reader, stereo.left)
     if span is not None:
         bag_ns = max(reader.end_time - reader.start_time + 1, 1)
@@ -281,7 +284,7 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
     def prepared() -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
         streamed_infos = all(2 * message_count(reader, topic) >= images
                              for topic in (stereo.left_info, stereo.right_info))
-        if read_processes > 0 and streamed_infos:
+        if read_processes > 0 and streamed_infos and not colour:
             for index, item in enumerate(decoded_frames(reader, stereo, config, span,
                                                         read_processes, others, collected,
                                                         summary.counts)):
@@ -297,12 +300,13 @@ def frame_results(reader: AnyReader, stereo: StereoTopics, config: Config, backe
             if progress is not None:
                 progress(min(index, total), total)
             try:
-                left_px, right_px, camera = convert_set(stereo, left_msg, right_msg, left_cal,
-                                                        right_cal, config)
+                left_px, right_px, camera, left_colour = convert_set(
+                    stereo, left_msg, right_msg, left_cal, right_cal, config, colour)
             except PotholeError as exc:
                 yield BagFrame(stamp, left_msg.header, None, None, None, logged), exc
                 continue
-            yield BagFrame(stamp, left_msg.header, left_px, right_px, camera, logged)
+            yield BagFrame(stamp, left_msg.header, left_px, right_px, camera, logged,
+                           left_colour=left_colour)
 
     def key(item: BagFrame | tuple[BagFrame, PotholeError]) -> Any:
         return None if isinstance(item, tuple) else item.camera
@@ -365,7 +369,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
                 Path(pictures).mkdir(parents=True, exist_ok=True)
             started = time.perf_counter()
             for frame, outcome in frame_results(reader, stereo, config, backend, summary,
-                                                progress):
+                                                progress, colour=True):
                 if isinstance(outcome, PotholeError):
                     summary.failures.add(frame.stamp, str(outcome))
                     for name, made in failure_messages(frame.header, str(outcome)).items():

@@ -533,10 +533,11 @@ class PotholeDetectorNode(Node):
         started = time.thread_time()
         image_type = IMAGE_TYPE if isinstance(job.left, Image) else COMPRESSED_TYPE
         sizes = [(int(info.width), int(info.height)) for info in (job.left_info, job.right_info)]
-        # the right image decodes on a thread of its own (OpenCV's decoders release the GIL)
-        right_future = self._decoder.submit(decode, job.right, image_type, sizes[1])
+        # as the matcher takes them; the right image decodes on a thread of its own (OpenCV's
+        # decoders release the GIL)
+        right_future = self._decoder.submit(decode, job.right, image_type, sizes[1], True)
         try:
-            left = decode(job.left, image_type, sizes[0])
+            left = decode(job.left, image_type, sizes[0], grey=True)
         finally:
             right = right_future.result()
         if left.shape[:2] != right.shape[:2]:
@@ -558,7 +559,9 @@ class PotholeDetectorNode(Node):
         wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
         height, width = pipeline.output_shape(left.shape)
         ids = self._pothole_ids(job.stamp_ns, result, calibration, width, height)
-        view = pipeline.view(left) if {"overlay", "points2"} & set(wanted) else left
+        view = left
+        if {"overlay", "points2"} & set(wanted):  # pictures in colour, as the camera took them
+            view = pipeline.view(decode(job.left, image_type, sizes[0]))
         for name, message in output_messages(result, view, calibration, header, wanted,
                                              ids).messages.items():
             publishers[name].publish(message)

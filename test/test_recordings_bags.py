@@ -228,10 +228,11 @@ def test_sets_in_one_pass_by_span_and_in_threads(tmp_path, drive):
         assert whole == [stamp for stamp, _ in frames]
         ahead = [s[0] for s in bags.read_sets_ahead(reader, topics, CPU, None, 3)]
         assert ahead == whole
-        left, right, camera = bags.convert_set(
+        left, right, camera, colour = bags.convert_set(
             topics, *next(iter(bags.stereo_sets(reader, topics, CPU, bags.SetCounts())))[2:],
-            CPU)
+            CPU, colour=True)
         assert left.shape == (360, 640) and not camera.needs_rectification()
+        np.testing.assert_array_equal(colour, samples[0].left)
         assert camera.calibration().baseline == pytest.approx(samples[0].calibration.baseline)
     finally:
         reader.close()

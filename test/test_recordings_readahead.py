@@ -63,7 +63,7 @@ def _one_reader(reader, span):
             reader, TOPICS, Config(), bags.SetCounts(), span):
         try:
             sets.append((stamp, logged, *bags.convert_set(TOPICS, left, right, left_info,
-                                                          right_info, Config())))
+                                                          right_info, Config())[:3]))
         except InputError as exc:
             sets.append((stamp, logged, None, None, str(exc)))
     return sets

@@ -74,14 +74,17 @@ class BagFrame:
     logged_ns: int = 0
     calibration: StereoCalibration | None = None
     rectification: Rectification | None = None
+    left_colour: np.ndarray | None = None
 
     def left_view(self) -> np.ndarray:
-        """The left image in the rectified frame that the results are in (rectified here for
-        display where it came raw)."""
-        assert self.left is not None
+        """The left image (its colour where it was kept, else as the matcher took it) in the
+        rectified frame that the results are in (rectified here for display where it came
+        raw)."""
+        image = self.left if self.left_colour is None else self.left_colour
+        assert image is not None
         if self.rectification is None:
-            return self.left
-        return self.rectification.left_view(self.left)
+            return image
+        return self.rectification.left_view(image)
 
 
 @dataclass(frozen=True)
@@ -272,22 +275,25 @@ def block_sets(reader: AnyReader, topics: StereoTopics, config: Config, block: L
 
 
 def convert_set(topics: StereoTopics, left_msg: Any, right_msg: Any, left_info: Any,
-                right_info: Any, config: Config) -> tuple[np.ndarray, np.ndarray, StereoCamera]:
-    """The left and right pixels (HxW or HxWx3, as taken: raw or rectified) and the stereo
-    camera of a synchronized set (with
-    ``config``'s baseline_m and focal_px where the camera_info lacks them); raises InputError
-    or CalibrationError where it cannot be converted."""
+                right_info: Any, config: Config, colour: bool = False
+                ) -> tuple[np.ndarray, np.ndarray, StereoCamera, np.ndarray | None]:
+    """The left and right pixels as the matcher takes them (HxW, as recorded: raw or
+    rectified; images.decode's ``grey``), the stereo camera of a synchronized set (with
+    ``config``'s baseline_m and focal_px where the camera_info lacks them) and, with
+    ``colour``, the left image in colour (HxWx3, for pictures; None without). Raises
+    InputError or CalibrationError where it cannot be converted."""
     if left_info is None or right_info is None:
         raise InputError(f"no camera_info on {topics.left_info} and {topics.right_info} yet")
     sizes = [(int(info.width), int(info.height)) for info in (left_info, right_info)]
-    left = decode(left_msg, topics.image_type, sizes[0])
-    right = decode(right_msg, topics.image_type, sizes[1])
+    left = decode(left_msg, topics.image_type, sizes[0], grey=True)
+    right = decode(right_msg, topics.image_type, sizes[1], grey=True)
     if left.shape[:2] != right.shape[:2]:
         raise InputError(f"left image is {left.shape[1]}x{left.shape[0]} but the right one "
                          f"{right.shape[1]}x{right.shape[0]}")
     height, width = left.shape[:2]
-    return left, right, stereo_camera(left_info, right_info, width, height, config.baseline_m,
-                                      config.focal_px)
+    camera = stereo_camera(left_info, right_info, width, height, config.baseline_m,
+                           config.focal_px)
+    return left, right, camera, decode(left_msg, topics.image_type) if colour else None
 
 
 def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,

@@ -45,18 +45,25 @@ COMPRESSED_FORMATS = ("jpeg", "png")
 MAX_IMAGE_PIXELS = 64_000_000
 
 
-def decode(msg: Any, msgtype: str, expected: tuple[int, int] | None = None) -> np.ndarray:
+def decode(msg: Any, msgtype: str, expected: tuple[int, int] | None = None,
+           grey: bool = False) -> np.ndarray:
     """The pixels of an image message of ``msgtype`` (IMAGE_TYPE or COMPRESSED_TYPE): HxW
-    (mono, uint8 or uint16) or HxWx3 RGB (uint8 or uint16; alpha dropped). ``expected``:
+    (mono, uint8 or uint16) or HxWx3 RGB (uint8 or uint16; alpha dropped); with ``grey``, as
+    the matcher takes them: 8-bit colour as grey (a JPEG's own luma, decoded without its
+    colour; otherwise OpenCV's RGB to grey, as stages.matching.to_gray8). ``expected``:
     (width, height) the camera_info gives, checked before a compressed image is decoded.
     Raises InputError saying what is wrong."""
     if msgtype == COMPRESSED_TYPE:
-        return decode_compressed(msg, expected)
-    pixels = decode_raw(msg)
-    if expected is not None and expected != (0, 0) \
-            and (pixels.shape[1], pixels.shape[0]) != expected:
-        raise InputError(f"image is {pixels.shape[1]}x{pixels.shape[0]} but its camera_info is "
-                         f"for {expected[0]}x{expected[1]}; publish matching camera_info")
+        pixels = decode_compressed(msg, expected, grey)
+    else:
+        pixels = decode_raw(msg)
+        if expected is not None and expected != (0, 0) \
+                and (pixels.shape[1], pixels.shape[0]) != expected:
+            raise InputError(f"image is {pixels.shape[1]}x{pixels.shape[0]} but its "
+                             f"camera_info is for {expected[0]}x{expected[1]}; publish "
+                             "matching camera_info")
+    if grey and pixels.ndim == 3 and pixels.dtype == np.uint8:
+        return cv2.cvtColor(pixels, cv2.COLOR_RGB2GRAY)
     return pixels
 
 
@@ -135,11 +142,12 @@ def image_size(data: bytes | np.ndarray) -> tuple[int, int]:
                          "corrupt") from None
 
 
-def decode_compressed(msg: Any, expected: tuple[int, int] | None = None) -> np.ndarray:
+def decode_compressed(msg: Any, expected: tuple[int, int] | None = None,
+                      grey: bool = False) -> np.ndarray:
     """A sensor_msgs/CompressedImage as an array (see :func:`decode`). Its header's size is
     checked first (at most MAX_IMAGE_PIXELS, equal to ``expected`` where given); a JPEG must
     end with its end-of-image marker and a PNG with IEND (a truncated one is refused rather
-    than half decoded)."""
+    than half decoded). ``grey``: a JPEG decoded to its luma alone."""
     codec = compressed_format(msg)
     data = np.frombuffer(msg.data, dtype=np.uint8) if not isinstance(msg.data, np.ndarray) \
         else msg.data.view(np.uint8)
@@ -159,7 +167,8 @@ def decode_compressed(msg: Any, expected: tuple[int, int] | None = None) -> np.n
                          "cut off")
     if codec == "png" and b"IEND" not in tail:
         raise InputError("PNG image is truncated (no IEND chunk); the message was cut off")
-    pixels = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    pixels = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if grey and codec == "jpeg"
+                          else cv2.IMREAD_UNCHANGED)
     if pixels is None:
         raise InputError(f"compressed {codec} image could not be decoded; the message is "
                          "corrupt")

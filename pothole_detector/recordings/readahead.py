@@ -88,8 +88,8 @@ def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
             reader, topics, config, block, first, others, extras, counts):
         frame_id = left_msg.header.frame_id
         try:
-            left, right, calibration = convert_set(topics, left_msg, right_msg, left_info,
-                                                   right_info, config)
+            left, right, calibration, _ = convert_set(topics, left_msg, right_msg, left_info,
+                                                      right_info, config)
         except PotholeError as exc:
             decoded.append((stamp, logged, frame_id, None, None, exc))
             continue
@@ -224,7 +224,7 @@ def _pair_bytes(reader: Any, topics: StereoTopics) -> int:
     for connection, _, rawdata in reader.messages(connections=connections):
         try:
             image = decode(deserialize(cdr_bytes(reader, connection, rawdata),
-                                       topics.image_type), topics.image_type)
+                                       topics.image_type), topics.image_type, grey=True)
         except (PotholeError, ValueError, TypeError):
             break
         return 2 * _aligned(image.nbytes)
@@ -236,7 +236,7 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
                    counts: SetCounts | None = None
                    ) -> Iterator[BagFrame | tuple[BagFrame, PotholeError]]:
     """The frames of the sets of ``span`` (or the whole bag) in order, converted as
-    :func:`.bags.convert_set` does, read and decoded by
+    :func:`.bags.convert_set` does (without the colour image), read and decoded by
     ``processes`` worker processes a block at a time (the blocks of :func:`.bags.read_blocks`),
     at most ``processes`` + 1 blocks ahead; the ``others`` messages logged in the span go
     into ``collected``, the corrupt messages into ``counts``."""
