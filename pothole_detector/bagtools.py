@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import itertools
 import logging
 import math
@@ -517,11 +518,21 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
     extra_types = {"/odom": ODOMETRY_TYPE, "/gnss/fix": GNSS_TYPE}
     count = 0
 
+    stored: dict[int, tuple[np.ndarray, Any]] = {}
+
     def image(pixels: np.ndarray, header: Any) -> Any:
-        if form.compression:
-            return conversions.compressed_image(pixels, form.compression, header)
-        encoding = form.encoding or ("mono8" if pixels.ndim == 2 else "rgb8")
-        return conversions.array_to_image(encode_raw(pixels, encoding), encoding, header)
+        """The image message of ``pixels``, encoded once per array (a drive may cycle a few
+        samples) and stamped ``header``."""
+        if id(pixels) not in stored:
+            if form.compression:
+                made = conversions.compressed_image(pixels, form.compression, header)
+            else:
+                encoding = form.encoding or ("mono8" if pixels.ndim == 2 else "rgb8")
+                made = conversions.array_to_image(encode_raw(pixels, encoding), encoding, header)
+            stored[id(pixels)] = (pixels, made)
+        made = copy.copy(stored[id(pixels)][1])
+        made.header = header
+        return made
 
     try:
         for index, (stamp_ns, sample) in enumerate(frames):
