@@ -1,6 +1,7 @@
 """report.html: one self-contained page for a road inspector: the route with the potholes
 coloured by severity, a sortable table, a picture of each pothole at its best view, the
-distribution of depths and areas and the observed length of road."""
+distribution of depths and areas, the observed length of road, and the frames that could not
+be processed: how many, why and where in the drive (and bags that could not be read)."""
 
 from __future__ import annotations
 
@@ -62,7 +63,11 @@ def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
         holes = np.array([[p.row["odom_x_m"], p.row["odom_y_m"]] for p in drive.potholes]
                          ).reshape(-1, 2)
         axes = f"x / y (m, motion frame: {drive.motion_source})"
-    points = np.concatenate([route, holes]) if len(route) else holes
+    failed = np.array([[x, y] for _, _, x, y, _ in drive.failures
+                       if math.isfinite(x) and math.isfinite(y)]).reshape(-1, 2)
+    if use_gnss:
+        failed = np.zeros((0, 2))  # their positions are in the motion frame only
+    points = np.concatenate([route, holes, failed])
     if not len(points):
         return "<p class=muted>no route</p>"
     low, high = points.min(axis=0), points.max(axis=0)
@@ -82,6 +87,10 @@ def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
         sx, sy = to_svg(route[:1])[0]
         parts.append(f'<circle cx="{sx:.1f}" cy="{sy:.1f}" r="5" fill="#3d6fb6"/>'
                      f'<text x="{sx + 8:.1f}" y="{sy + 4:.1f}" font-size="11">start</text>')
+    for x, y in to_svg(failed) if len(failed) else ():
+        parts.append(f'<path d="M{x - 4:.1f},{y - 4:.1f}L{x + 4:.1f},{y + 4:.1f}M{x - 4:.1f},'
+                     f'{y + 4:.1f}L{x + 4:.1f},{y - 4:.1f}" stroke="#888" stroke-width="2">'
+                     '<title>a frame that failed</title></path>')
     for pothole, (x, y) in zip(drive.potholes, to_svg(holes)):
         colour = SEVERITY_COLOURS[pothole.row["severity"]]
         parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="7" fill="{colour}" '
@@ -89,9 +98,31 @@ def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
                      f'{pothole.row["max_depth_m"] * 1000:.0f} mm</title></circle>'
                      f'<text x="{x + 9:.1f}" y="{y - 7:.1f}" font-size="11">'
                      f'{pothole.row["pothole_id"]}</text>')
+    crosses = "; grey crosses: frames that failed" if len(failed) else ""
     parts.append(f'<text x="8" y="{height - 8}" font-size="11" fill="#666">{axes}; '
-                 f'{span:.1f} m across</text></svg>')
+                 f'{span:.1f} m across{crosses}</text></svg>')
     return "".join(parts)
+
+
+def _failures_html(surveys: Sequence[DriveSurvey]) -> str:
+    """Per bag, the frames that failed by kind of reason (how many, the first one's reason,
+    seconds into the drive of the first), and the bags that could not be read."""
+    rows = []
+    for drive in surveys:
+        name = html.escape(drive.bag.name)
+        if drive.error:
+            rows.append(f"<tr><td class=l>{name}</td><td>-</td><td class=l>not read: "
+                        f"{html.escape(drive.error)}</td><td>-</td></tr>")
+            continue
+        start = drive.failures[0][0] - int(drive.failures[0][1] * 1e9) if drive.failures else 0
+        for count, reason, stamp in drive.failure_tally().rows():
+            rows.append(f"<tr><td class=l>{name}</td><td>{count}</td><td class=l>"
+                        f"{html.escape(reason)}</td><td>{(stamp - start) / 1e9:.1f}</td></tr>")
+    if not rows:
+        return "<p class=muted>Every frame was processed.</p>"
+    return ("<table id=failures><thead><tr><th class=l>bag</th><th>frames</th>"
+            "<th class=l>why (the first such frame's reason)</th><th>first at s</th></tr>"
+            "</thead><tbody>" + "".join(rows) + "</tbody></table>")
 
 
 def _histogram_svg(values: Sequence[float], label: str, unit_scale: float, unit: str,
@@ -147,10 +178,11 @@ def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
     counts = {s: sum(p.row["severity"] == s for p in potholes) for s in SEVERITIES}
     observed = sum(d.observed_length_m for d in surveys)
     frames = sum(d.frames for d in surveys)
+    failed = sum(d.failed for d in surveys)
     cards = [("potholes", str(len(potholes))),
              *((f"{s} severity", str(counts[s])) for s in SEVERITIES),
              ("road observed", f"{observed:.1f} m"), ("frames", str(frames)),
-             ("bags", str(len(surveys)))]
+             ("frames failed", str(failed)), ("bags", str(len(surveys)))]
     header = ("<tr><th>id</th><th class=l>bag</th><th class=l>severity</th>"
               "<th>max depth mm (spread)</th><th>mean depth mm</th><th>area cm²</th>"
               "<th>volume cm³</th><th>sightings</th><th>position x, y m</th>"
@@ -184,6 +216,7 @@ def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
 <h2>Depths and sizes</h2>
 {_histogram_svg([p.row["max_depth_m"] for p in potholes], "largest depth", 1000, "mm")}
 {_histogram_svg([p.row["area_m2"] for p in potholes], "area", 1e4, "cm²")}
+<h2>Frames that failed</h2>{_failures_html(surveys)}
 <script>{_SORT}</script></body></html>
 """
     Path(path).write_text(page, encoding="utf-8")

@@ -141,3 +141,59 @@ def test_evaluate_prints_the_papers_metrics(tmp_path, demo_sample):
     precision = float(row.split("|")[2])
     assert precision > 0.8
     assert (tmp_path / "r.md").read_text().strip() == result.stdout.strip()
+
+
+@pytest.fixture(scope="module")
+def drive_without_baseline(tmp_path_factory):
+    """Three frames of the driving sequence whose right camera_info has Tx = 0 (some drivers
+    publish it so), and the baseline they were taken with."""
+    from dataclasses import replace
+
+    from pothole_detector.bagtools import RecordingForm, write_stereo_bag
+    from pothole_detector.synthetic import drive_scenes, render
+
+    samples = [render(replace(s, supersample=1)) for s in drive_scenes(frames=3)]
+    bag = tmp_path_factory.mktemp("tx0") / "drive"
+    write_stereo_bag(bag, [(1_700_000_000_000_000_000 + i * 100_000_000, s)
+                           for i, s in enumerate(samples)],
+                     form=RecordingForm(no_baseline=True))
+    return bag, samples[0].calibration.baseline
+
+
+def test_a_run_that_processes_nothing_exits_non_zero_and_says_why(tmp_path,
+                                                                 drive_without_baseline):
+    """process and survey on a bag whose every frame fails: status 1, the reason counted on
+    stdout, one error line; survey's summary.json and report.html tell the failures. With
+    --baseline both process every frame."""
+    bag, baseline = drive_without_baseline
+    done = run_cli("process", str(bag), "--out", str(tmp_path / "p"), "--backend", "cpu")
+    assert done.returncode == 1, done.stderr
+    assert "3 frames failed: right camera_info has Tx = P[0,3] = 0" in done.stdout
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("pothole-detector: error: no frame of") and "--baseline" in last
+    survey_out = tmp_path / "s"
+    broken = tmp_path / "broken_bag"
+    broken.mkdir()
+    (broken / "broken_bag_0.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(100))
+    done = run_cli("survey", str(bag), str(broken), "--out", str(survey_out),
+                   "--backend", "cpu")
+    assert done.returncode == 1, done.stderr
+    assert "broken_bag: not surveyed: " in done.stdout and "3 frames failed" in done.stdout
+    summary = json.loads((survey_out / "summary.json").read_text())
+    assert (summary["frames"], summary["processed"], summary["failed"]) == (3, 0, 3)
+    assert summary["unreadable_bags"] == 1
+    [kind] = summary["drives"][0]["failures_by_reason"]
+    assert kind["count"] == 3 and "baseline" in kind["reason"]
+    assert len(summary["drives"][0]["failed_frames"]) == 3
+    page = (survey_out / "report.html").read_text()
+    assert "Frames that failed" in page and "Tx = P[0,3] = 0" in page and "not read" in page
+    done = run_cli("process", str(bag), "--out", str(tmp_path / "p2"), "--backend", "cpu",
+                   "--baseline", str(baseline))
+    assert done.returncode == 0, done.stderr
+    assert "using baseline" in done.stdout and "3 frames" in done.stdout
+    assert "stereo topics: /stereo/left/image_rect and /stereo/right/image_rect" in done.stdout
+    done = run_cli("survey", str(bag), "--out", str(tmp_path / "s2"), "--backend", "cpu",
+                   "--baseline", str(baseline))
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((tmp_path / "s2" / "summary.json").read_text())
+    assert (summary["processed"], summary["failed"]) == (3, 0)
