@@ -13,7 +13,9 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config",
-         ["config/pothole_detector.yaml", "config/fastdds_large_images.xml"]),
+         ["config/pothole_detector.yaml", "config/fastdds_large_images.xml",
+          "config/foxglove_layout.json"]),
+        ("share/" + package_name + "/launch", ["launch/pothole_detector.launch.py"]),
         # our message definitions, for reading and writing bags without ROS (rosbags)
         ("share/" + package_name + "/msg", sorted(glob("msg_schemas/msg/*.msg"))),
     ],
@@ -23,6 +25,7 @@ setup(
         "numpy>=1.24",
         "opencv-python-headless>=4.8",
         "Pillow>=10",
+        "mcap>=1.1",
         "scipy>=1.10",
         "PyYAML>=6.0",
         "rosbags>=0.10",

@@ -195,24 +195,38 @@ def test_corrupt_messages_are_skipped_and_counted(tmp_path, drive):
     assert summary.frames == FRAMES - 1 and summary.unpaired == 1
 
 
-def test_a_bag_cut_off_mid_chunk_keeps_the_frames_before_the_cut(tmp_path, drive):
-    source = tmp_path / "source"
-    samples = drive[1] * 3
+def test_a_bag_cut_off_mid_chunk_keeps_the_frames_before_the_cut(tmp_path, drive, caplog):
+    """An mcap recording cut off two thirds of the way, mid-chunk and before its footer: the
+    frames of the chunks before the cut are processed from a repaired copy, with a warning
+    that says so; a cut-off sqlite3 bag is refused with one line."""
+    samples = drive[1] * 6
     frames = [(START + i * 100_000_000, s) for i, s in enumerate(samples)]
-    bagtools.write_stereo_bag(source, frames, ground_truth=False, storage="sqlite3")
-    cut = tmp_path / "cut"
-    cut.mkdir()
-    [database] = source.glob("*.db3")
-    (cut / database.name).write_bytes(database.read_bytes())
-    (cut / "metadata.yaml").write_text((source / "metadata.yaml").read_text())
-    data = bytearray((cut / database.name).read_bytes())
-    (cut / database.name).write_bytes(bytes(data[:len(data) * 2 // 3]))
-    try:
-        summary = bagtools.process(cut, tmp_path / "out", CPU, keep_inputs=False)
-    except InputError as exc:
-        assert "is not a bag that can be read" in str(exc) or "damaged" in str(exc)
-    else:
-        assert summary.frames < len(samples)
+    for storage in ("mcap", "sqlite3"):
+        source = tmp_path / f"source_{storage}"
+        bagtools.write_stereo_bag(source, frames, ground_truth=False, storage=storage,
+                                  form=RecordingForm(compression="png"))
+        cut = tmp_path / f"cut_{storage}"
+        cut.mkdir()
+        for file in source.iterdir():
+            data = file.read_bytes()
+            if file.suffix in (".mcap", ".db3"):
+                data = data[:len(data) * 2 // 3]
+            (cut / file.name).write_bytes(data)
+        if storage == "sqlite3":
+            with pytest.raises(InputError, match="not a bag that can be read"):
+                bagtools.process(cut, tmp_path / f"out_{storage}", CPU, keep_inputs=False)
+            continue
+        with caplog.at_level("WARNING"):
+            summary = bagtools.process(cut, tmp_path / f"out_{storage}", CPU,
+                                       keep_inputs=False)
+        assert 0 < summary.frames < len(samples) and summary.failed == 0
+        assert "is cut off (its recording was interrupted)" in caplog.text
+        again = bags.open_bag(cut)  # the repaired copy is made once
+        try:
+            assert bags.message_count(again, "/stereo/left/image_rect/compressed") >= \
+                summary.frames
+        finally:
+            again.close()
 
 
 def test_sets_in_one_pass_by_span_and_in_threads(tmp_path, drive):

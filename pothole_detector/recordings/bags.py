@@ -5,6 +5,7 @@ were taken with), in one pass or ahead of the caller in threads; the bag's other
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 import threading
 from collections import deque
@@ -27,19 +28,42 @@ from ..stages.rectify import Rectification
 from ..sync import StereoSynchronizer
 from .camera import rectification, rectifies, stereo_camera
 from .images import decode
+from .repair import repaired_copy
 from .topics import INFO_TYPE, StereoTopics
 
+_log = logging.getLogger(__name__)
+
 def open_bag(path: str | Path) -> AnyReader:
-    """An opened AnyReader on a ROS 2 bag directory (mcap or sqlite3) or a ROS 1 .bag."""
+    """An opened AnyReader on a ROS 2 bag directory (mcap or sqlite3) or a ROS 1 .bag. An mcap
+    bag cut off before its footer (an interrupted recording) is read from its repaired copy
+    (:mod:`.repair`), and a warning says so once per process."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"bag {path} does not exist")
     try:
-        reader = AnyReader([path], default_typestore=typestore())
-        reader.open()
+        return _opened(path)
     except Exception as exc:  # rosbags raises several unrelated error types
-        raise InputError(f"{path} is not a bag that can be read ({exc}): give a ROS 2 bag "
-                         "directory (mcap or sqlite3) or a ROS 1 .bag file") from None
+        if "end magic" not in str(exc) and "footer" not in str(exc).lower():
+            raise InputError(f"{path} is not a bag that can be read ({exc}): give a ROS 2 bag "
+                             "directory (mcap or sqlite3) or a ROS 1 .bag file") from None
+    repaired, count, stop = repaired_copy(path)
+    if path not in _REPAIRED:
+        _REPAIRED.add(path)
+        _log.warning(f"{path} is cut off (its recording was interrupted): reading the {count} "
+                     f"messages before the cut ({stop}) from a repaired copy, {repaired}")
+    try:
+        return _opened(repaired)
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"{path} is cut off and its repaired copy cannot be read ({exc})"
+                         ) from None
+
+
+_REPAIRED: set[Path] = set()
+
+
+def _opened(path: Path) -> AnyReader:
+    reader = AnyReader([path], default_typestore=typestore())
+    reader.open()
     return reader
 
 
