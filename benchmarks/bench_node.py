@@ -3,7 +3,8 @@ over DDS from this process, as a camera driver would: for each image size, after
 each rate for ``--seconds``. Prints a Markdown table (for docs/benchmarks.md): processed rate,
 sets the node dropped, sets that never arrived, latency from publishing a set to receiving its
 ``potholes`` (p50/p95; "in node": from the set's arrival to its ``potholes``, over the node's
-last 5 s), the worker's time on a set (p95 and longest, last 5 s), sets this process sent more
+last 5 s), the worker's time on a set (p95 and longest, last 5 s) and, of it, decoding the two
+images (p95), sets this process sent more
 than a period late (its own stalls, which reach the node as bursts), and the node's CPU per
 processed frame: all threads, and the worker thread split into message conversion (images in,
 messages out) and the pipeline.
@@ -105,6 +106,7 @@ def measure(feeder: Feeder, pid: int, rate: float, seconds: float) -> dict:
         "work_p95": float(diagnostics.get("work_p95_ms", "nan")),
         "node_p95": float(diagnostics.get("latency_p95_ms", "nan")),
         "work_max": float(diagnostics.get("work_max_ms", "nan")), "late": feeder.late,
+        "decode_p95": float(diagnostics.get("decode_p95_ms", "nan")),
         "rss": rss_mib(pid), "backend": diagnostics.get("backend", "?"),
     }
 
@@ -185,14 +187,14 @@ def main() -> None:
           + "".join(f", {item}" for item in args.node_param))
     print("| size | input Hz | sets sent | processed | processed Hz | dropped by node | "
           "never arrived | sent late | latency p50 ms | latency p95 ms | in node p95 ms | "
-          "worker p95 ms | worker max ms | CPU ms/frame all | conversion | pipeline | "
-          "node RSS MiB |")
-    print("| --- " * 17 + "|")
+          "worker p95 ms | worker max ms | decoding p95 ms | CPU ms/frame all | conversion | "
+          "pipeline | node RSS MiB |")
+    print("| --- " * 18 + "|")
     for r in rows:
         print(f"| {r['size']} | {r['rate']:.0f} | {r['sent']} | {r['processed']} | "
               f"{r['processed_hz']:.1f} | {r['dropped']} | {r['lost']} | {r['late']} | "
               f"{r['p50']:.1f} | {r['p95']:.1f} | {r['node_p95']:.1f} | {r['work_p95']:.1f} | "
-              f"{r['work_max']:.1f} | {r['cpu_ms']:.1f} | "
+              f"{r['work_max']:.1f} | {r['decode_p95']:.1f} | {r['cpu_ms']:.1f} | "
               f"{r['conversion_ms']:.1f} | "
               f"{r['pipeline_ms']:.1f} | {r['rss']:.0f} |")
 

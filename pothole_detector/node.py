@@ -98,8 +98,8 @@ class Statistics:
         self.lock = threading.Lock()
         self.window = window_seconds
         self.inputs: deque[float] = deque()
-        # per processed set: (when, latency, work, conversion CPU, pipeline CPU), ms
-        self.processed: deque[tuple[float, float, float, float, float]] = deque()
+        # per processed set: (when, latency, work, conversion CPU, pipeline CPU, decoding), ms
+        self.processed: deque[tuple[float, float, float, float, float, float]] = deque()
         self.dropped = 0
         self.unpaired = 0
         self.errors = 0
@@ -149,14 +149,14 @@ class Statistics:
             self.last_error_time = time.monotonic()
 
     def done(self, latency_ms: float, work_ms: float, inlier_fraction: float, potholes: int,
-             conversion_cpu_ms: float, pipeline_cpu_ms: float) -> None:
-        """A processed set: receipt-to-published latency, the worker's wall time on it and the
+             conversion_cpu_ms: float, pipeline_cpu_ms: float, decode_ms: float) -> None:
+        """A processed set: receipt-to-published latency, the worker's wall time on it, the
         worker thread's CPU time (ms) in message conversion (images in, messages out) and in
-        the pipeline."""
+        the pipeline, and the wall time of decoding its two images (ms)."""
         now = time.monotonic()
         with self.lock:
             self.processed.append((now, latency_ms, work_ms, conversion_cpu_ms,
-                                   pipeline_cpu_ms))
+                                   pipeline_cpu_ms, decode_ms))
             self.road_inlier_fraction = inlier_fraction
             self.potholes = potholes
             self.frames += 1
@@ -177,8 +177,8 @@ class Statistics:
         now = time.monotonic()
         with self.lock:
             self._trim(now)
-            timed = np.array(self.processed, dtype=np.float64).reshape(-1, 5)
-            latencies, work, conversion, pipeline = timed[:, 1:].T
+            timed = np.array(self.processed, dtype=np.float64).reshape(-1, 6)
+            latencies, work, conversion, pipeline, decoding = timed[:, 1:].T
             some = len(timed) > 0
             span = self.window
             return {
@@ -190,6 +190,7 @@ class Statistics:
                 "latency_p95_ms": float(np.percentile(latencies, 95)) if some else 0.0,
                 "work_p95_ms": float(np.percentile(work, 95)) if some else 0.0,
                 "work_max_ms": float(work.max()) if some else 0.0,
+                "decode_p95_ms": float(np.percentile(decoding, 95)) if some else 0.0,
                 "conversion_cpu_ms_per_frame": float(conversion.mean()) if some else 0.0,
                 "pipeline_cpu_ms_per_frame": float(pipeline.mean()) if some else 0.0,
                 "road_inlier_fraction": self.road_inlier_fraction,
@@ -540,6 +541,7 @@ class PotholeDetectorNode(Node):
             left = decode(job.left, image_type, sizes[0], grey=True)
         finally:
             right = right_future.result()
+        decoded = time.monotonic()
         if left.shape[:2] != right.shape[:2]:
             raise InputError(f"left image is {left.shape[1]}x{left.shape[0]} but the right one "
                              f"{right.shape[1]}x{right.shape[0]}")
@@ -569,7 +571,8 @@ class PotholeDetectorNode(Node):
         finished = time.monotonic()
         self._stats.done((finished - job.received) * 1e3, (finished - began) * 1e3,
                          result.road.inlier_fraction, len(result.potholes),
-                         (converted - started + published - ran) * 1e3, (ran - converted) * 1e3)
+                         (converted - started + published - ran) * 1e3, (ran - converted) * 1e3,
+                         (decoded - began) * 1e3)
 
     @staticmethod
     def _tracker(config: Config) -> PotholeTracker:

@@ -496,7 +496,7 @@ def test_statistics_tell_whether_the_worker_keeps_up():
     assert stats.keeping_up()
     for _ in range(30):  # 30 sets a second, 20 ms each: keeps up
         stats.input_set()
-        stats.done(25.0, 20.0, 1.0, 0, 1.0, 10.0)
+        stats.done(25.0, 20.0, 1.0, 0, 1.0, 10.0, 2.0)
     assert stats.keeping_up()
     for _ in range(30):  # 60 sets a second at 20 ms: 1.2 s of work a second
         stats.input_set()
