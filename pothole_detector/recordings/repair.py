@@ -7,17 +7,24 @@ neither ROS 2 Jazzy nor our messages define are left out of it."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Iterator
 
 from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+try:  # the zstd that rosbags reads mcap chunks with
+    from compression import zstd  # type: ignore[import-not-found]
+except ImportError:
+    from backports import zstd
 
 from ..errors import InputError
 from ..msgtypes import typestore
@@ -40,6 +47,19 @@ def _key(files: list[Path]) -> str:
         stat = file.stat()
         digest.update(f"{file.resolve()}:{stat.st_size}:{stat.st_mtime_ns}".encode())
     return digest.hexdigest()[:16]
+
+
+def _records(reader: StreamReader) -> Iterator[object]:
+    """The records of an mcap stream in order, those of its chunks too (zstd chunks through
+    the zstd rosbags uses; the others through the mcap library)."""
+    for record in reader.records:
+        if not isinstance(record, Chunk):
+            yield record
+            continue
+        if record.compression == "zstd":
+            record = dataclasses.replace(record, compression="",
+                                         data=zstd.decompress(record.data))
+        yield from breakup_chunk(record)
 
 
 def repaired_copy(path: Path) -> tuple[Path, int, str]:
@@ -69,8 +89,8 @@ def repaired_copy(path: Path) -> tuple[Path, int, str]:
         for file in files:
             with file.open("rb") as stream:
                 try:
-                    for record in StreamReader(stream, record_size_limit=RECORD_SIZE_LIMIT
-                                               ).records:
+                    for record in _records(StreamReader(
+                            stream, emit_chunks=True, record_size_limit=RECORD_SIZE_LIMIT)):
                         if isinstance(record, Schema):
                             schemas[record.id] = record
                         elif isinstance(record, Channel):

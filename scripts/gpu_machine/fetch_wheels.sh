@@ -20,7 +20,8 @@ mkdir -p "$out/wheels" "$out/build_wheels" "$out/pure"
 "$python" -m pip wheel --quiet --no-deps -w "$out/pure" empy==4.2.1 lark-parser==0.12.0
 cp "$out/pure"/*.whl "$out/wheels/"
 "$python" "${download[@]}" --find-links "$out/pure" -d "$out/wheels" \
-    ros-jazzy-rclpy ros-jazzy-common-interfaces ros-jazzy-rmw-fastrtps-cpp "rosbags>=0.10"
+    ros-jazzy-rclpy ros-jazzy-common-interfaces ros-jazzy-rmw-fastrtps-cpp "rosbags>=0.10" \
+    "mcap>=1.1"
 "$python" "${download[@]}" --find-links "$out/pure" -d "$out/build_wheels" \
     ros-jazzy-ament-cmake ros-jazzy-ament-package ros-jazzy-ament-cmake-include-directories \
     ros-jazzy-ament-cmake-ros ros-jazzy-ament-cmake-gmock ros-jazzy-ament-cmake-gtest \
