@@ -89,9 +89,11 @@ def survey_drive_bags(tmp_path_factory):
     return bags, scenes, samples
 
 
-def rewrite_bag(source, out, log_time):
+def rewrite_bag(source, out, log_time=lambda topic, timestamp: timestamp,
+                payload=lambda topic, index, data: data):
     """Copy bag ``source`` to ``out`` with each message logged at ``log_time(topic, log time
-    ns)`` (None: left out)."""
+    ns)`` (None: left out) and its CDR bytes as ``payload(topic, index in the bag, bytes)``
+    gives them."""
     from pothole_detector import bagtools
     from pothole_detector.recordings.bags import cdr_bytes, open_bag
 
@@ -102,11 +104,11 @@ def rewrite_bag(source, out, log_time):
         store = bagtools.typestore()
         connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
                        for c in reader.connections}
-        for connection, timestamp, rawdata in reader.messages():
+        for index, (connection, timestamp, rawdata) in enumerate(reader.messages()):
             moved = log_time(connection.topic, timestamp)
             if moved is not None:
-                writer.write(connections[connection.id], moved,
-                             cdr_bytes(reader, connection, rawdata))
+                writer.write(connections[connection.id], moved, payload(
+                    connection.topic, index, cdr_bytes(reader, connection, rawdata)))
     finally:
         writer.close()
         reader.close()

@@ -24,6 +24,8 @@ from pothole_detector.recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, deco
 from pothole_detector.recordings.topics import StereoTopics  # noqa: E402
 from pothole_detector.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
 
+from conftest import rewrite_bag  # noqa: E402
+
 START = 1_700_000_000_000_000_000
 FRAMES = 2
 CPU = Config({"backend": "cpu"})
@@ -157,25 +159,6 @@ def test_images_that_disagree_with_their_camera_info_fail_alone(tmp_path, drive)
     assert "image is 320x360 but its camera_info is for 640x360" in summary.failures.rows()[0][1]
 
 
-def _copy(source, out, change):
-    """Copy a bag message by message, each CDR payload through ``change(topic, index,
-    bytes)`` (None: left out)."""
-    reader = bags.open_bag(source)
-    writer = bagtools.writer_for(out, "mcap")
-    writer.open()
-    try:
-        store = bagtools.typestore()
-        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                       for c in reader.connections}
-        for index, (connection, stamp, data) in enumerate(reader.messages()):
-            changed = change(connection.topic, index, bytes(data))
-            if changed is not None:
-                writer.write(connections[connection.id], stamp, changed)
-    finally:
-        writer.close()
-        reader.close()
-
-
 def test_corrupt_messages_are_skipped_and_counted(tmp_path, drive):
     source = tmp_path / "source"
     frames = [(START + i * 100_000_000, s) for i, s in enumerate(drive[1])]
@@ -189,7 +172,7 @@ def test_corrupt_messages_are_skipped_and_counted(tmp_path, drive):
             return data[:40]  # a CDR message cut short
         return data
 
-    _copy(source, tmp_path / "corrupt", corrupt)
+    rewrite_bag(source, tmp_path / "corrupt", payload=corrupt)
     summary = bagtools.process(tmp_path / "corrupt", tmp_path / "out", CPU, keep_inputs=False)
     assert summary.counts.corrupt == 1 and "corrupt" in summary.counts.last_problem
     assert summary.frames == FRAMES - 1 and summary.unpaired == 1
