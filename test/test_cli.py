@@ -197,3 +197,43 @@ def test_a_run_that_processes_nothing_exits_non_zero_and_says_why(tmp_path,
     assert done.returncode == 0, done.stderr
     summary = json.loads((tmp_path / "s2" / "summary.json").read_text())
     assert (summary["processed"], summary["failed"]) == (3, 0)
+
+
+def test_detect_rectifies_raw_images_and_takes_a_missing_baseline(tmp_path):
+    """detect on a raw pair of a distorted, rotated camera with calibration files whose right
+    P has Tx = 0: refused without --baseline (one line saying how), then the potholes of the
+    rectified pair, the overlay in the rectified frame."""
+    import yaml
+
+    from pothole_detector.synthetic import demo_scene, raw_camera, render, render_raw
+
+    scene = demo_scene(640, 360)
+    sample = render(scene)
+    camera = raw_camera(sample.calibration, 640, 360, "plumb_bob", seed=1)
+    left, right = render_raw(scene, camera)
+    for side, image, model in (("left", left, camera.left), ("right", right, camera.right)):
+        cv2.imwrite(str(tmp_path / f"{side}.png"), image)
+        p = [float(v) for v in model.p]
+        p[3] = 0.0
+        (tmp_path / f"{side}.yaml").write_text(yaml.safe_dump({
+            "image_width": 640, "image_height": 360, "distortion_model": model.distortion_model,
+            "distortion_coefficients": {"rows": 1, "cols": 5,
+                                        "data": [float(v) for v in model.d]},
+            "camera_matrix": {"rows": 3, "cols": 3, "data": [float(v) for v in model.k]},
+            "rectification_matrix": {"rows": 3, "cols": 3,
+                                     "data": [float(v) for v in model.r]},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": p}}))
+    args = ["detect", "--left", str(tmp_path / "left.png"), "--right",
+            str(tmp_path / "right.png"), "--camera-info-left", str(tmp_path / "left.yaml"),
+            "--camera-info-right", str(tmp_path / "right.yaml"), "--backend", "cpu"]
+    refused = run_cli(*args, "--out", str(tmp_path / "refused"))
+    assert refused.returncode == 2 and "--baseline" in refused.stderr
+    done = run_cli(*args, "--out", str(tmp_path / "out"), "--baseline",
+                   str(sample.calibration.baseline))
+    assert done.returncode == 0, done.stderr
+    assert "using baseline" in done.stdout
+    report = json.loads((tmp_path / "out" / "potholes.json").read_text())
+    assert len(report["potholes"]) == len(sample.potholes)
+    labels = cv2.imread(str(tmp_path / "out" / "labels.png"), cv2.IMREAD_UNCHANGED) > 0
+    truth = sample.labels > 0
+    assert 2 * (labels & truth).sum() / (labels.sum() + truth.sum()) > 0.85
