@@ -33,6 +33,7 @@ from .topics import INFO_TYPE, StereoTopics
 
 _log = logging.getLogger(__name__)
 
+
 def open_bag(path: str | Path) -> AnyReader:
     """An opened AnyReader on a ROS 2 bag directory (mcap or sqlite3) or a ROS 1 .bag. An mcap
     bag cut off before its footer (an interrupted recording) is read from its repaired copy
@@ -120,7 +121,6 @@ class LogSpan:
     start_ns: int
     stop_ns: int
     lead_ns: int
-
 
 
 @dataclass
@@ -395,8 +395,6 @@ def read_messages(bag: str | Path, topics: Iterable[str] | None = None,
                 cdr_bytes(reader, connection, rawdata), connection.msgtype)
     finally:
         reader.close()
-
-
 
 
 def left_view_at(bag: str | Path, topics: StereoTopics, stamp: int, config: Config
