@@ -1,8 +1,10 @@
-"""The paper's metrics on datasets with ground truth (formats of shared/data/README.md)."""
+"""The paper's metrics on datasets with ground truth (formats of shared/data/README.md), and the
+scores we are judged by on the independent renderer's validation scenes."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import pickle
 import sys
@@ -13,6 +15,7 @@ from typing import Any, Iterable, Iterator, TextIO
 
 import cv2
 import numpy as np
+import yaml
 
 from .backend import Backend
 from .calibration import StereoCalibration
@@ -22,6 +25,9 @@ from .params import Config
 from .pipeline import Pipeline
 from .stages import matching, perspective
 from .stages.road_model import fit_road
+
+# validation scenes: potholes with fewer visible pixels are "don't care"
+MIN_SCORED_PIXELS = 100
 
 # Calibrations used when a dataset ships none (metric outputs only; pixel metrics ignore them).
 FAN_POTHOLES_FOCAL_PX, FAN_POTHOLES_BASELINE_M = 1390.0, 0.1194
@@ -42,6 +48,8 @@ class Sample:
     roi: Path | None = None
     disparity: Path | None = None
     disparity_format: str = ""
+    scene: Path | None = None
+    group: str = ""
 
     def ground_truth_disparity(self) -> np.ndarray:
         """float32 HxW px, NaN = unknown."""
@@ -61,7 +69,8 @@ class Sample:
 
 
 def discover(root: str | Path) -> list[Sample]:
-    """Every evaluable pair under ``root`` (fan_potholes frames, KITTI, Middlebury)."""
+    """Every evaluable pair under ``root`` (fan_potholes frames, validation scenes: a folder of
+    left.png, right.png, labels_gt.png, camera_info.yaml and meta.json; KITTI, Middlebury)."""
     root = Path(root)
     if not root.is_dir():
         raise InputError(f"{root} is not a directory")
@@ -81,6 +90,13 @@ def discover(root: str | Path) -> list[Sample]:
                     samples.append(Sample(f"{base.name}/{gt.stem}", left, right, KITTI_FOCAL_PX,
                                           KITTI_BASELINE_M, disparity=gt,
                                           disparity_format="kitti"))
+    for meta in sorted(root.rglob("meta.json")):
+        folder = meta.parent
+        if all((folder / name).is_file() for name in ("left.png", "right.png", "labels_gt.png",
+                                                      "camera_info.yaml")):
+            samples.append(Sample(f"{folder.parent.name}/{folder.name}", folder / "left.png",
+                                  folder / "right.png", 0.0, 0.0, scene=folder,
+                                  group=folder.parent.name))
     for gt in sorted(root.rglob("disp2.png")):
         folder = gt.parent
         left, right = folder / "im2.png", folder / "im6.png"
@@ -203,6 +219,7 @@ class EvaluationReport:
     objects: ObjectCounts = field(default_factory=ObjectCounts)
     pothole_rows: list[dict] = field(default_factory=list)
     disparity_rows: list[dict] = field(default_factory=list)
+    scene_tallies: dict[str, "RigTally"] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
 
     def markdown(self) -> str:
@@ -236,6 +253,11 @@ class EvaluationReport:
                     f" {row['pep2']:.2f} | {row['pep3']:.2f} | {row['rmse']:.3f} | "
                     f"{row['density']:.1f} | {row['levels']} | {row['ms']:.0f} |")
             lines.append("")
+        if self.scene_tallies:
+            lines += ["## Validation scenes (pixels over the whole frame; potholes at IoU 0.3, "
+                      f"those under {MIN_SCORED_PIXELS} visible pixels not counted either way; "
+                      "false potholes per frame)", "",
+                      validation_markdown(self.scene_tallies)]
         if self.errors:
             lines += ["## Pairs that failed", ""] + [f"- {e}" for e in self.errors] + [""]
         return "\n".join(lines)
@@ -273,7 +295,9 @@ def evaluate(root: str | Path, config: Config, backend: Backend,
     report = EvaluationReport()
     for sample in progress(samples, stream):
         try:
-            if sample.pothole_mask is not None:
+            if sample.scene is not None:
+                _evaluate_scene(sample, config, backend, report)
+            elif sample.pothole_mask is not None:
                 _evaluate_potholes(sample, config, backend, report)
             else:
                 _evaluate_disparity(sample, config, backend, report)
@@ -306,6 +330,98 @@ def _evaluate_potholes(sample: Sample, config: Config, backend: Backend,
         "detections": len(result.potholes), "correct": objects.correct,
         "incorrect": objects.incorrect, "missed": objects.missed, "ms": elapsed,
     })
+
+
+def _evaluate_scene(sample: Sample, config: Config, backend: Backend,
+                    report: EvaluationReport) -> None:
+    """One validation scene: its pair through the pipeline with the calibration of its
+    camera_info.yaml, scored into its group's tally (:func:`score_scene`)."""
+    assert sample.scene is not None
+    info = yaml.safe_load((sample.scene / "camera_info.yaml").read_text())
+    meta = json.loads((sample.scene / "meta.json").read_text())
+    calibration = StereoCalibration.from_projections(info["left"]["P"], info["right"]["P"])
+    truth = cv2.imread(str(sample.scene / "labels_gt.png"), cv2.IMREAD_UNCHANGED)
+    tally = report.scene_tallies.setdefault(sample.group, RigTally())
+    try:
+        result = Pipeline(config, calibration, backend).run(read_image(sample.left),
+                                                            read_image(sample.right))
+    except PotholeError:
+        tally.failed += 1
+        raise
+    score_scene(tally, result, truth.astype(np.int64), meta)
+
+
+def score_scene(tally: "RigTally", result: Any, truth: np.ndarray, meta: dict) -> None:
+    """Score a result against a validation scene's instance labels (HxW, k = pothole ``id``
+    k of ``meta["potholes"]``) as we are judged: pixels over the whole frame; detections
+    matched one to one to potholes at IoU >= 0.3, those of fewer than MIN_SCORED_PIXELS
+    visible pixels "don't care" (a detection matched to one counts neither way); recall
+    also of the potholes whose centre lies in the observed range (m ahead along the road:
+    world y from the left camera's); relative errors of largest depth, area and volume of
+    the matched ones; reports that no road can give (not finite, not positive, deeper than
+    max_pothole_depth_m)."""
+    labels = result.host("labels")
+    tally.scenes += 1
+    tally.pixels_all.add(labels > 0, truth > 0, np.ones(truth.shape, dtype=bool))
+    tally.pixels_observed.add(labels > 0, truth > 0, result.host("observed"))
+    visible = np.bincount(truth.ravel(), minlength=len(meta["potholes"]) + 1)
+    scored = {p["id"]: p for p in meta["potholes"]
+              if p["id"] < len(visible) and visible[p["id"]] >= MIN_SCORED_PIXELS}
+    pairs = match_potholes(labels, truth)
+    ignored = {d for d, t in pairs if t not in scored}
+    pairs = [(d, t) for d, t in pairs if t in scored]
+    matched = {t for _, t in pairs}
+    near, far = result.observed_range_m
+    camera_y = float(meta["C_left_world"][1])
+    for pothole_id, pothole in scored.items():
+        tally.truths_all += 1
+        if near <= pothole["centroid_world_m"][1] - camera_y <= far:
+            tally.truths_observed += 1
+            tally.matched_observed += pothole_id in matched
+    detections = [p for p in result.potholes if p.label not in ignored]
+    tally.detections += len(detections)
+    tally.matched += len(pairs)
+    tally.false_on_clean += len(detections) - len(pairs)
+    by_label = {p.label: p for p in result.potholes}
+    for d, t in pairs:
+        found, truth_pothole = by_label.get(d), scored[t]
+        if found is None:
+            continue
+        for errors, ours, theirs in ((tally.depth_errors, found.max_depth_m, "max_depth_m"),
+                                     (tally.area_errors, found.area_m2, "area_m2"),
+                                     (tally.volume_errors, found.volume_m3, "volume_m3")):
+            errors.append(abs(ours - truth_pothole[theirs]) / truth_pothole[theirs])
+    for found in result.potholes:
+        numbers = (found.area_m2, found.max_depth_m, found.mean_depth_m, found.volume_m3)
+        tally.bad_reports += not all(math.isfinite(x) and x > 0 for x in numbers)
+
+
+def validation_markdown(tallies: dict[str, "RigTally"]) -> str:
+    """The table of validation scenes per group (vehicle_1280x720, robot_640x480, ...), with a
+    row of the groups pooled where there are several. False potholes: detections matched to
+    no scored pothole (and to no "don't care" one), per frame."""
+    lines = ["| group | scenes | pixel P / R / F | pothole P / R / F (all >= "
+             f"{MIN_SCORED_PIXELS} px) | pothole R (observed range) | false per frame | "
+             "depth / area / volume error median | bad reports | failed |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    rows = dict(tallies)
+    if len(rows) > 1:
+        rows["**all**"] = pooled(tallies.values())
+
+    def median(values: list[float]) -> str:
+        return f"{100 * float(np.median(values)):.0f} %" if values else "-"
+
+    for name, t in rows.items():
+        every = t.pixels_all
+        p, r, f = t.pothole_scores(False)
+        _, r_observed, _ = t.pothole_scores(True)
+        lines.append(
+            f"| {name} | {t.scenes} | {every.precision:.2f} / {every.recall:.2f} / "
+            f"{every.f_score:.2f} | {p:.2f} / {r:.2f} / {f:.2f} | {r_observed:.2f} | "
+            f"{t.false_on_clean / max(t.scenes, 1):.2f} | {median(t.depth_errors)} / "
+            f"{median(t.area_errors)} / {median(t.volume_errors)} | {t.bad_reports} | "
+            f"{t.failed} |")
+    return "\n".join(lines) + "\n"
 
 
 def _evaluate_disparity(sample: Sample, config: Config, backend: Backend,

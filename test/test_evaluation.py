@@ -117,3 +117,65 @@ def test_the_classes_pooled_sum_their_counts_and_keep_every_error():
     table = synthetic_markdown({"robot": small, "survey": large})
     assert table.splitlines()[-1].startswith("| **all** | 5 + 0 clean | 0.91 / 0.91 / 0.91 |")
     assert "**all**" not in synthetic_markdown({"robot": small})
+
+
+def _box(shape, top, left, height, width, value=1):
+    out = np.zeros(shape, dtype=np.int64)
+    out[top:top + height, left:left + width] = value
+    return out
+
+
+def test_a_validation_scene_is_scored_as_we_are_judged():
+    """Four truths (one too small to count) and four detections: one matches a scored
+    pothole, one matches the small one (counted neither way), one is false; a scored pothole
+    outside the observed range is missed; errors of the matched one."""
+    from types import SimpleNamespace
+
+    from pothole_detector.evaluation import RigTally, score_scene, validation_markdown
+    from pothole_detector.stages.measure import Pothole
+
+    shape = (60, 80)
+    truth = _box(shape, 5, 5, 10, 10, 1) + _box(shape, 30, 5, 5, 5, 2) \
+        + _box(shape, 40, 40, 12, 12, 3) + _box(shape, 5, 50, 10, 12, 4)
+    labels = _box(shape, 6, 5, 10, 10, 1) + _box(shape, 30, 5, 5, 5, 2) \
+        + _box(shape, 30, 60, 8, 8, 3)
+    potholes = [Pothole(label, 100, 0.12, 0.05, 0.03, 0.002, np.array([0.0, 0.0, 3.0]),
+                        (0, 0, 1, 1)) for label in (1, 2, 3)]
+    meta = {"C_left_world": [0.0, 0.0, 1.0], "potholes": [
+        {"id": 1, "max_depth_m": 0.04, "area_m2": 0.1, "volume_m3": 0.002,
+         "centroid_world_m": [0.0, 3.0, 0.0]},
+        {"id": 2, "max_depth_m": 0.02, "area_m2": 0.01, "volume_m3": 0.0001,
+         "centroid_world_m": [0.0, 3.0, 0.0]},
+        {"id": 3, "max_depth_m": 0.05, "area_m2": 0.2, "volume_m3": 0.004,
+         "centroid_world_m": [0.0, 3.5, 0.0]},
+        {"id": 4, "max_depth_m": 0.05, "area_m2": 0.2, "volume_m3": 0.004,
+         "centroid_world_m": [0.0, 9.0, 0.0]}]}
+    observed = np.ones(shape, dtype=bool)
+    arrays = {"labels": labels, "observed": observed}
+    result = SimpleNamespace(host=arrays.__getitem__, potholes=potholes,
+                             observed_range_m=(1.0, 5.0))
+    tally = RigTally()
+    score_scene(tally, result, truth, meta)
+    assert (tally.truths_all, tally.truths_observed, tally.matched_observed) == (3, 2, 1)
+    assert (tally.detections, tally.matched, tally.false_on_clean) == (2, 1, 1)
+    precision, recall, f = tally.pothole_scores(False)
+    assert (precision, recall) == (0.5, 1 / 3) and f == pytest.approx(0.4)
+    assert tally.depth_errors == [pytest.approx(0.25)] and tally.area_errors == \
+        [pytest.approx(0.2)]
+    assert tally.pixels_all.tp == 9 * 10 + 25
+    table = validation_markdown({"vehicle": tally})
+    assert "| vehicle | 1 | " in table and "| 0.50 / 0.33 / 0.40 |" in table
+    assert "| 1.00 |" in table  # one false pothole in one frame
+
+
+def test_evaluate_reads_the_validation_scenes():
+    from pothole_detector.backend import CPU
+    from pothole_detector.evaluation import evaluate
+    from pothole_detector.params import Config
+
+    root = shared_data("validation", "robot_640x480")
+    found = [s for s in discover(root) if s.scene is not None]
+    assert len(found) == 8 and {s.group for s in found} == {"robot_640x480"}
+    report = evaluate(found[0].scene, Config({"backend": "cpu"}), CPU)
+    text = report.markdown()
+    assert "## Validation scenes" in text and "| robot_640x480 | 1 |" in text
