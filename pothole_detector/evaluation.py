@@ -25,9 +25,12 @@ from .params import Config
 from .pipeline import Pipeline
 from .stages import matching, perspective
 from .stages.road_model import fit_road
+from .survey import survey
 
 # validation scenes: potholes with fewer visible pixels are "don't care"
 MIN_SCORED_PIXELS = 100
+# validation drives: a pothole is to be found when seen (as above) in this many frames
+MIN_DRIVE_SIGHTINGS = 3
 
 # Calibrations used when a dataset ships none (metric outputs only; pixel metrics ignore them).
 FAN_POTHOLES_FOCAL_PX, FAN_POTHOLES_BASELINE_M = 1390.0, 0.1194
@@ -220,6 +223,7 @@ class EvaluationReport:
     pothole_rows: list[dict] = field(default_factory=list)
     disparity_rows: list[dict] = field(default_factory=list)
     scene_tallies: dict[str, "RigTally"] = field(default_factory=dict)
+    drive_rows: list[dict] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
 
     def markdown(self) -> str:
@@ -258,6 +262,20 @@ class EvaluationReport:
                       f"those under {MIN_SCORED_PIXELS} visible pixels not counted either way; "
                       "false potholes per frame)", "",
                       validation_markdown(self.scene_tallies)]
+        if self.drive_rows:
+            lines += ["## Validation drives (the survey's entries against the potholes seen "
+                      f"with at least {MIN_SCORED_PIXELS} px in at least {MIN_DRIVE_SIGHTINGS} "
+                      "frames; an entry within half a pothole's largest extent of its centre "
+                      "is its)", "",
+                      "| drive | frames | failed | entries | potholes seen | found | "
+                      "duplicates | false | position error median / max m |",
+                      "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+            for row in self.drive_rows:
+                lines.append(
+                    f"| {row['name']} | {row['frames']} | {row['failed']} | {row['entries']} "
+                    f"| {row['seen']} | {row['found']} | {row['duplicates']} | {row['false']} "
+                    f"| {row['error_median_m']:.2f} / {row['error_max_m']:.2f} |")
+            lines.append("")
         if self.errors:
             lines += ["## Pairs that failed", ""] + [f"- {e}" for e in self.errors] + [""]
         return "\n".join(lines)
@@ -289,10 +307,18 @@ def evaluate(root: str | Path, config: Config, backend: Backend,
              stream: TextIO = sys.stderr) -> EvaluationReport:
     """Run detection (pothole sets) or matching (disparity sets) on every pair under ``root``."""
     samples = discover(root)
-    if not samples:
+    drives = sorted(path.parent for path in Path(root).rglob("sequence.json")
+                    if (path.parent / "metadata.yaml").is_file())
+    if not samples and not drives:
         raise InputError(f"no evaluable pairs under {root}: expected left.png/right.png/"
-                         "pothole_mask.png folders, KITTI or Middlebury layouts")
+                         "pothole_mask.png folders, validation scenes or drives, KITTI or "
+                         "Middlebury layouts")
     report = EvaluationReport()
+    for drive in drives:
+        try:
+            report.drive_rows.append(score_drive(drive, config))
+        except PotholeError as error:
+            report.errors.append(f"{drive.name}: {error}")
     for sample in progress(samples, stream):
         try:
             if sample.scene is not None:
@@ -394,6 +420,56 @@ def score_scene(tally: "RigTally", result: Any, truth: np.ndarray, meta: dict) -
     for found in result.potholes:
         numbers = (found.area_m2, found.max_depth_m, found.mean_depth_m, found.volume_m3)
         tally.bad_reports += not all(math.isfinite(x) and x > 0 for x in numbers)
+
+
+def score_drive(folder: Path, config: Config) -> dict:
+    """Survey a validation drive (its bag in ``folder``) and score the entries against its
+    potholes (per frame ``NNNNNN/meta.json``): those seen with at least MIN_SCORED_PIXELS px in
+    at least MIN_DRIVE_SIGHTINGS frames are to be found; an entry within half a pothole's
+    largest extent of its centre (on the road) is its (any pothole's), a second one a
+    duplicate, one in none false. The survey's motion
+    frame (the first frame's road frame: x forward, y left) is put into the world by the first
+    frame's camera pose. Position error: each found pothole's nearest entry, m."""
+    sequence = json.loads((folder / "sequence.json").read_text())
+    seen: dict[int, int] = {}
+    truth_xy: dict[int, np.ndarray] = {}
+    radius: dict[int, float] = {}
+    for frame in sequence["frames"]:
+        meta = json.loads((folder / frame["dir"] / "meta.json").read_text())
+        for pothole in meta["potholes"]:
+            truth_xy[pothole["id"]] = np.asarray(pothole["centroid_world_m"][:2], dtype=float)
+            radius[pothole["id"]] = float(pothole["max_extent_m"]) / 2
+            if pothole["pixels"] >= MIN_SCORED_PIXELS:
+                seen[pothole["id"]] = seen.get(pothole["id"], 0) + 1
+    first = json.loads((folder / sequence["frames"][0]["dir"] / "meta.json").read_text())
+    optical_axis = np.asarray(first["R_world_from_cam"], dtype=float)[:, 2]
+    forward = optical_axis[:2] / np.linalg.norm(optical_axis[:2])
+    left = np.array([-forward[1], forward[0]])
+    origin = np.asarray(first["C_left_world"][:2], dtype=float)
+    (drive,) = survey([folder], config)
+    entries = [origin + p.row["odom_x_m"] * forward + p.row["odom_y_m"] * left
+               for p in drive.potholes]
+    wanted = [pothole_id for pothole_id, count in seen.items()
+              if count >= MIN_DRIVE_SIGHTINGS]
+    claimed: dict[int, list[float]] = {}
+    false = 0
+    for position in entries:
+        distances = {pothole_id: float(np.linalg.norm(position - xy))
+                     for pothole_id, xy in truth_xy.items()
+                     if np.linalg.norm(position - xy) <= radius[pothole_id]}
+        if not distances:
+            false += 1
+            continue
+        nearest = min(distances, key=distances.__getitem__)
+        claimed.setdefault(nearest, []).append(distances[nearest])
+    found = [pothole_id for pothole_id in wanted if pothole_id in claimed]
+    errors = [min(claimed[pothole_id]) for pothole_id in found]
+    return {"name": folder.name, "frames": drive.frames, "failed": drive.failed,
+            "entries": len(entries), "seen": len(wanted), "found": len(found),
+            "duplicates": sum(len(claimed[pothole_id]) - 1 for pothole_id in claimed),
+            "false": false,
+            "error_median_m": float(np.median(errors)) if errors else math.nan,
+            "error_max_m": float(max(errors)) if errors else math.nan}
 
 
 def validation_markdown(tallies: dict[str, "RigTally"]) -> str:

@@ -179,3 +179,16 @@ def test_evaluate_reads_the_validation_scenes():
     report = evaluate(found[0].scene, Config({"backend": "cpu"}), CPU)
     text = report.markdown()
     assert "## Validation scenes" in text and "| robot_640x480 | 1 |" in text
+
+
+def test_the_validation_drive_is_surveyed_and_scored():
+    from pothole_detector.evaluation import score_drive
+    from pothole_detector.params import Config
+
+    folder = shared_data("validation", "drive_640x480")
+    row = score_drive(folder, Config({"backend": "cpu"}))
+    assert row["frames"] == 40 and row["seen"] == 2
+    assert row["found"] + row["duplicates"] + row["false"] <= row["entries"]
+    assert 0 <= row["found"] <= row["seen"]
+    if row["found"]:
+        assert 0 <= row["error_median_m"] <= row["error_max_m"]
