@@ -20,6 +20,7 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from . import conversions
 from .backend import get_backend
+from .calibration import StereoCamera
 from .errors import InputError, PotholeError
 from .imageio import write_rgb
 from .motion import latlon_of
@@ -30,7 +31,6 @@ from .pipeline import Pipeline
 from .recordings.bags import (BagFrame, LogSpan, SetCounts, cdr_bytes, convert_set,
                               message_count, open_bag, read_sets_ahead, stereo_sets)
 from .recordings.camera import pipeline_inputs
-from .calibration import StereoCamera
 from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, encode_raw
 from .recordings.readahead import decoded_frames
 from .recordings.topics import INFO_TYPE, StereoTopics, find_stereo_topics
@@ -205,11 +205,6 @@ class FailureTally:
     def add(self, stamp_ns: int, reason: str) -> None:
         entry = self.kinds.setdefault(_reason_kind(reason), [0, reason, stamp_ns])
         entry[0] += 1
-
-    def merge(self, other: "FailureTally") -> None:
-        for kind, (count, reason, stamp) in other.kinds.items():
-            entry = self.kinds.setdefault(kind, [0, reason, stamp])
-            entry[0] += count
 
     @property
     def total(self) -> int:

@@ -4,7 +4,6 @@ their images."""
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -222,14 +221,6 @@ class StereoCamera:
             notes.append(f"right camera_info has Tx = P[0,3] = 0: using baseline "
                          f"{self.baseline_m:g} m (--baseline, baseline_m)")
         return notes
-
-
-@functools.lru_cache(maxsize=8)
-def rectification_maps(camera: StereoCamera) -> tuple[tuple[np.ndarray, np.ndarray],
-                                                       tuple[np.ndarray, np.ndarray]]:
-    """The (map_x, map_y) of the left and right views of ``camera``, built once per
-    calibration (:meth:`CameraModel.rectification_maps`)."""
-    return camera.left.rectification_maps(), camera.right.rectification_maps()
 
 
 def read_camera_info_yaml(path: str | Path) -> dict:

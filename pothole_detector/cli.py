@@ -21,7 +21,7 @@ from .evaluation import draw_progress, evaluate, evaluate_synthetic, synthetic_m
 from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
 from .pipeline import Pipeline, PipelineResult
-from .recordings.camera import pipeline_inputs
+from .recordings.camera import RECTIFY_CHOICES, pipeline_inputs
 from .rig_matrix import RIG_CLASS_NAMES
 from .stages.rectify import Rectification
 
@@ -141,7 +141,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
 def _calibration_overrides(parser: argparse.ArgumentParser, use: str) -> None:
     parser.add_argument("--baseline", type=float, help=f"baseline (m; {use})")
     parser.add_argument("--focal", type=float, help=f"focal length (px; {use})")
-    parser.add_argument("--rectify", choices=("auto", "on", "off"),
+    parser.add_argument("--rectify", choices=RECTIFY_CHOICES,
                         help="override the config's rectify: rectify the images from their "
                              "calibration (auto: where it says they are not rectified)")
 

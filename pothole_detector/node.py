@@ -62,6 +62,13 @@ INFO_HISTORY = 32
 GIL_SWITCH_INTERVAL_S = 0.0005
 
 
+def image_topic(side: str, config: Config) -> str:
+    """The relative image topic of ``side`` (left, right) under ``config``'s image_transport:
+    ``<side>/image_rect``, or image_transport's ``<side>/image_rect/compressed``."""
+    suffix = "/compressed" if config.image_transport == "compressed" else ""
+    return f"{side}/image_rect{suffix}"
+
+
 def descriptor(param: Param) -> ParameterDescriptor:
     """The ROS parameter descriptor of one table row (type, range, description)."""
     kinds = {bool: Parameter.Type.BOOL, int: Parameter.Type.INTEGER,
@@ -329,12 +336,10 @@ class PotholeDetectorNode(Node):
                                          event_callbacks=events,
                                          qos_overriding_options=overrides)
 
-        compressed = config.image_transport == "compressed"
-        kind, suffix = (CompressedImage, "/compressed") if compressed else (Image, "")
-        self._image_type = COMPRESSED_TYPE if compressed else IMAGE_TYPE
+        kind = CompressedImage if config.image_transport == "compressed" else Image
         self._inputs = [
-            subscribe(kind, "left/image_rect" + suffix, lambda m: self._on_image("left", m)),
-            subscribe(kind, "right/image_rect" + suffix, lambda m: self._on_image("right", m)),
+            subscribe(kind, image_topic("left", config), lambda m: self._on_image("left", m)),
+            subscribe(kind, image_topic("right", config), lambda m: self._on_image("right", m)),
             subscribe(CameraInfo, "left/camera_info", lambda m: self._on_info("left", m)),
             subscribe(CameraInfo, "right/camera_info", lambda m: self._on_info("right", m)),
         ]
@@ -623,8 +628,8 @@ class PotholeDetectorNode(Node):
         if snapshot["seconds_since_input"] > config.input_timeout_seconds:
             level, message = DiagnosticStatus.WARN, (
                 f"no stereo image for {snapshot['seconds_since_input']:.1f} s on "
-                f"{self.resolve_topic_name(self._image_topic('left'))} and "
-                f"{self.resolve_topic_name(self._image_topic('right'))}"
+                f"{self.resolve_topic_name(image_topic('left', config))} and "
+                f"{self.resolve_topic_name(image_topic('right', config))}"
                 + (f"; the last input problem: {snapshot['last_error']}" if recent_error
                    else ""))
         if snapshot["failures_in_a_row"] >= config.error_after_failed_frames:
@@ -642,11 +647,6 @@ class PotholeDetectorNode(Node):
         )
         self._outputs["diagnostics"].publish(
             DiagnosticArray(header=self._header_now(), status=[status]))
-
-    def _image_topic(self, side: str) -> str:
-        """The relative image topic of ``side`` under the image_transport parameter."""
-        suffix = "/compressed" if self._config.image_transport == "compressed" else ""
-        return f"{side}/image_rect{suffix}"
 
     def _wall_timer(self, period: float) -> Any:
         """The diagnostics timer, on the steady clock: it keeps firing while a simulated

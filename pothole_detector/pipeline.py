@@ -182,9 +182,7 @@ class Pipeline:
         (*pair, prior), _, levels = self.prepare(
             lambda shifts, prior: (*images, xp.asarray(shifts), xp.asarray(prior)),
             images[0].shape, clock)
-        disparity = self.matcher(*pair, levels, self.config)
-        if self.device_rectification is not None:
-            disparity = invalidate_unseen(self.backend, disparity, self.device_rectification)
+        disparity = self.match(*pair, levels)
         if self.config.gpt_enabled:
             report, _ = self.fit_road(disparity, prior, seeded)
             try:
@@ -213,6 +211,15 @@ class Pipeline:
         targets = out or (None, None)
         return (remap(self.backend, left, tables.left, targets[0]),
                 remap(self.backend, right, tables.right, targets[1]))
+
+    def match(self, left: Any, right: Any, shifts: Any, levels: int) -> Any:
+        """D1 of a prepared pair on the backend (float32 HxW px, NaN invalid): the matcher's,
+        less what the raw cameras did not see where the pipeline rectifies
+        (stages/rectify.invalidate_unseen)."""
+        disparity = self.matcher(left, right, shifts, levels, self.config)
+        if self.device_rectification is None:
+            return disparity
+        return invalidate_unseen(self.backend, disparity, self.device_rectification)
 
     def view(self, left: np.ndarray) -> np.ndarray:
         """The left host image as the results see it (for pictures and coloured clouds):
@@ -271,9 +278,7 @@ class Pipeline:
         config, backend = self.config, self.backend
         xp = backend.xp
         with clock.stage("sgm"):
-            disparity = self.matcher(left, right, shifts, levels, config)
-            if self.device_rectification is not None:
-                disparity = invalidate_unseen(backend, disparity, self.device_rectification)
+            disparity = self.match(left, right, shifts, levels)
         valid = xp.isfinite(disparity)
         with clock.stage("road"):
             report.valid_count[...] = xp.count_nonzero(valid)

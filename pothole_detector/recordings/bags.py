@@ -155,7 +155,6 @@ def stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
     its lead) go into ``collected`` as (topic, log time ns, message), in the same pass. A bag
     damaged part way (cut off mid-chunk) raises InputError saying where, after the sets read
     before it."""
-
     roles = {topics.left: "left", topics.right: "right", topics.left_info: "left_info",
              topics.right_info: "right_info"}
     roles.update({topic: "other" for topic in others if topic not in roles})

@@ -4,16 +4,18 @@ rectified pair, and the rectification where the images come raw)."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any
 
 import numpy as np
 
-from ..calibration import CameraModel, StereoCalibration, StereoCamera, rectification_maps
+from ..calibration import CameraModel, StereoCalibration, StereoCamera
 from ..errors import CalibrationError
+from ..params import PARAMETER_BY_NAME
 from ..stages.rectify import Rectification
 
-RECTIFY_CHOICES = ("auto", "on", "off")
+RECTIFY_CHOICES = PARAMETER_BY_NAME["rectify"].choices or ()
 
 
 def camera_model(info: Any) -> CameraModel:
@@ -43,9 +45,7 @@ def stereo_camera(left: Any, right: Any, width: int, height: int, baseline_m: fl
             raise CalibrationError(
                 f"{side} camera_info K has a focal length <= 0 ({list(k)}); is the camera "
                 "calibrated?")
-        model = camera_model(info)
-        models.append(CameraModel(width, height, model.distortion_model, model.d, model.k,
-                                  model.r, model.p))
+        models.append(dataclasses.replace(camera_model(info), width=width, height=height))
     return StereoCamera(models[0], models[1], float(baseline_m), float(focal_px))
 
 
@@ -60,8 +60,8 @@ def rectifies(camera: StereoCamera, mode: str) -> bool:
 @functools.lru_cache(maxsize=8)
 def rectification(camera: StereoCamera) -> Rectification:
     """The remap tables of ``camera``'s two views (built once per calibration)."""
-    left_maps, right_maps = rectification_maps(camera)
-    return Rectification.from_maps(left_maps, right_maps,
+    return Rectification.from_maps(camera.left.rectification_maps(),
+                                   camera.right.rectification_maps(),
                                    (camera.left.height, camera.left.width))
 
 

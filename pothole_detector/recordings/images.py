@@ -40,7 +40,6 @@ _YUV_TO_RGB = {"yuv422": cv2.COLOR_YUV2RGB_UYVY, "uyvy": cv2.COLOR_YUV2RGB_UYVY,
                "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2, "yuyv": cv2.COLOR_YUV2RGB_YUY2}
 # what a camera may publish (32FC1 is a depth or disparity map's)
 INPUT_ENCODINGS = tuple(name for name in RAW_LAYOUTS if name != "32FC1")
-COMPRESSED_FORMATS = ("jpeg", "png")
 # the largest image decoded (pixels): a header claiming more is refused as a decompression bomb
 MAX_IMAGE_PIXELS = 64_000_000
 

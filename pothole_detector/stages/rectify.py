@@ -2,7 +2,7 @@
 point (1/32 px, as OpenCV's remap), the same integers on the CPU (Numba) and the GPU
 (kernels/rectify.cu).
 
-The tables come from the calibration's maps (calibration.rectification_maps) once per
+The tables come from the calibration's maps (calibration.CameraModel.rectification_maps) once per
 calibration; on the GPU they are uploaded once and every frame's remap runs on the device
 after the frame's one upload.
 """
