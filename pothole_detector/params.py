@@ -169,6 +169,14 @@ PARAMETERS: tuple[Param, ...] = (
           "Metres mode: the road counts as observed (potholes are looked for) only where the "
           "threshold depth is at most this (m); the observed range in the outputs says where.",
           0, 10),
+    Param("road_reference", str, "local",
+          "What a superpixel's depth is measured from: the road around it (local: a robust "
+          "plane fitted to the superpixels within local_road_radius_m on the road, potholes "
+          "left out, that follows crowns, cross slopes and edges that fall away) or the one "
+          "road model of the frame (global, the paper's).", choices=("local", "global")),
+    Param("local_road_radius_m", float, 1.5,
+          "Half the side of the window of the local road reference, along and across the "
+          "road (m): larger than a pothole, smaller than the road's bends.", 0.1, 50),
     Param("superpixel_min_valid_fraction", float, 0.0,
           "A superpixel needs more than this fraction of valid disparities to be selectable "
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),
@@ -178,7 +186,8 @@ PARAMETERS: tuple[Param, ...] = (
           "that rims are not cut at superpixel edges; 0 turns it off.", 0, 1),
     # components
     Param("corner_fraction", float, 0.1,
-          "Components touching a corner square of this fraction of the short side are dropped.",
+          "Components touching a far (top) corner square of this fraction of the short side "
+          "are dropped.",
           0, 0.5),
     Param("min_pothole_superpixels", int, 2, "Components of fewer superpixels are dropped.",
           1, 1000),

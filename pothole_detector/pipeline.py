@@ -18,7 +18,8 @@ from .backend import CPU, Backend, StageClock, to_host
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
-from .stages import components, matching, measure, perspective, refine, road_model, seed
+from .stages import components, local_road, matching, measure, perspective, refine
+from .stages import road_model, seed
 from .stages import superpixels
 from .stages.rectify import Rectification, invalidate_unseen, remap
 from .stages import threshold as thresholding
@@ -80,7 +81,9 @@ class FrameArrays:
     """What :meth:`Pipeline.stages` leaves on the backend: D1, D2, the valid mask, the
     superpixels (of grid step ``region_px``), the candidate mask on the SLIC grid, the pothole
     labels, the bool per-superpixel mask of where the road is observed and the float64
-    per-superpixel threshold drops (px)."""
+    per-superpixel threshold drops (px); ``local``: with the local road reference, float64 per
+    superpixel, how far (px) the road around it lies below the road model
+    (stages/local_road.py)."""
 
     disparity: Any
     transformed: Any
@@ -91,6 +94,7 @@ class FrameArrays:
     observed: Any = None
     drops: Any = None
     region_px: int = 0
+    local: Any = None
 
 
 class FrameReport(Protocol):
@@ -304,6 +308,14 @@ class Pipeline:
                 config.delta_pd_px if pixels else 0.0, config.threshold_noise_sigmas,
                 config.max_threshold_m, report.observed_range)
             drop = config.delta_pd_px if pixels else drops
+            local = None
+            if config.road_reference == "local":
+                usable = observed & (found.valid_fraction > config.superpixel_min_valid_fraction)
+                local = local_road.offsets(
+                    backend, found.means, usable, drops, transformed.shape, region_px,
+                    config.slic_downsample, report.road_params, self.calibration,
+                    config.delta_dt_px, config.local_road_radius_m)
+                drop = drops + local
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 thresholding.reference_for(config.threshold_reference, config.threshold_mode),
@@ -312,7 +324,7 @@ class Pipeline:
                 config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops, region_px)
+                            drops, region_px, local)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -329,6 +341,10 @@ class Pipeline:
                 report.capacity, report.counts[:3])
         with clock.stage("refine"):
             filled, smoothed = refine.smooth(backend, frame.disparity)
+            if frame.local is not None:
+                shift = local_road.pixel_offsets(backend, frame.local, frame.disparity.shape,
+                                                 frame.region_px, config.slic_downsample)
+                filled, smoothed = filled + shift, smoothed + shift
             labels = refine.refine_labels(
                 backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
                 frame.observed, refine.radius(frame.region_px),

@@ -31,7 +31,23 @@ def test_corner_regions_follow_the_valid_area():
     valid[:, :30] = False
     mask = corner_mask(np, valid, 0.2)
     assert mask[0, 30:40].all() and not mask[0, 40:50].any()
-    assert mask[49, 90:100].all() and not mask[20, 35]
+    assert mask[0, 90:100].all() and not mask[20, 35]
+
+
+def test_only_the_far_corners_drop_components():
+    """The top corners are where the road is farthest; a pothole in a near (bottom) corner
+    is seen best and stays."""
+    height, width = 100, 100
+    superpixels, n = grid_superpixels(height, width, 10)
+    valid = np.ones((height, width), bool)
+    mask = corner_mask(np, valid, 0.1)
+    assert mask[:10, :10].all() and mask[:10, 90:].all() and not mask[10:].any()
+    candidate = np.zeros((height, width), bool)
+    candidate[0:20, 80:100] = True        # far corner
+    candidate[80:100, 0:20] = True        # near corner
+    labels, count = components_found(CPU, candidate, valid, superpixels, n, 0.1, 2)
+    assert count == 1
+    assert labels[90, 10] == 1 and labels[10, 90] == 0
 
 
 def test_relabel_renumbers_in_order():

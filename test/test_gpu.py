@@ -1111,3 +1111,25 @@ def test_a_raw_drive_gives_the_same_labels_on_both_backends(gpu):
         assert not isinstance(got, PotholeError) and not isinstance(expected, PotholeError)
         np.testing.assert_array_equal(got.host("labels") > 0, expected.host("labels") > 0)
         assert len(got.potholes) == len(expected.potholes)
+
+
+def test_local_road_matches_the_cpu(gpu):
+    import test_local_road as reference
+    from pothole_detector.stages import local_road
+    calibration, params = reference.flat_road()
+    count = superpixels.grid_count(reference.SHAPE, reference.REGION, reference.DOWNSAMPLE)
+    rng = np.random.default_rng(11)
+    means = (reference.DELTA - rng.normal(0.0, 0.3, count)).astype(np.float32)
+    means[rng.random(count) < 0.05] = np.nan
+    usable = rng.random(count) < 0.9
+    drops = np.full(count, 0.6)
+    args = (reference.SHAPE, reference.REGION, reference.DOWNSAMPLE)
+    cpu = local_road.offsets(CPU, means, usable, drops, *args, params, calibration,
+                             reference.DELTA, 1.5)
+    device = local_road.offsets(gpu, gpu.upload(means), gpu.upload(usable), gpu.upload(drops),
+                                *args, gpu.upload(params), calibration, reference.DELTA, 1.5)
+    np.testing.assert_allclose(to_host(device), cpu, atol=1e-9)
+    np.testing.assert_allclose(
+        to_host(local_road.pixel_offsets(gpu, device, *args)),
+        local_road.pixel_offsets(CPU, cpu, *args), atol=1e-6)
+

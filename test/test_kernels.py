@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pothole_detector import backend
-from pothole_detector.stages import (census_sgm, measure, rectify, refine, road_model,
+from pothole_detector.stages import (census_sgm, local_road, measure, rectify, refine, road_model,
                                      superpixels, threshold)
 
 ARCHITECTURE = "sm_90"
@@ -68,6 +68,7 @@ KERNEL_BUILDS: dict[str, list[dict[str, int]]] = {
     "transform.cu": [road_model.ROAD_DEFINES],
     "sgm.cu": _matcher_builds(),
     "rectify.cu": [rectify.REMAP_DEFINES],
+    "local_road.cu": [local_road._DEFINES],
 }
 
 

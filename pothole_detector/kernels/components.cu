@@ -35,8 +35,8 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
                  + min(col / factor, small_width - 1)];
 }
 
-// One thread per pixel of component c > 0: touched[c] = 1 inside a corner region (the top and
-// bottom `side` rows, within `side` columns of the row's valid span); bit s of present[c]
+// One thread per pixel of component c > 0: touched[c] = 1 inside a far corner region (the top
+// `side` rows, within `side` columns of the row's valid span); bit s of present[c]
 // (words_per_component words) marks superpixel s, and held[c] counts the distinct ones (the
 // thread whose atomicOr sets the bit adds 1; a plain read first spares the atomic once the
 // bit is set). Components past `capacity` (the tables' size) set touched[0], the overflow
@@ -56,8 +56,7 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
         touched[0] = 1;
         return;
     }
-    const bool band = row < side || row >= height - side;
-    if (side > 0 && band && (col < first[row] + side || col > last[row] - side))
+    if (row < side && (col < first[row] + side || col > last[row] - side))
         touched[component] = 1;
     const int superpixel = superpixels[index];
     const unsigned bit = 1u << (superpixel & 31);

@@ -13,11 +13,14 @@ EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 
 def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
-    """HxW bool: the corner regions of the area that has disparities.
+    """HxW bool: the far corner regions of the area that has disparities.
 
-    Side = ``fraction`` x the short image side. In the top and bottom ``side`` rows, the first
-    and last ``side`` columns of each row's valid span are corner (a disparity map's left
-    border is never valid, so the image corner itself is not where the data ends).
+    Side = ``fraction`` x the short image side. In the top ``side`` rows, the first and last
+    ``side`` columns of each row's valid span are corner (a disparity map's left border is
+    never valid, so the image corner itself is not where the data ends). Only the top
+    corners: the road's disparity grows down the image (the seed pass accepts no other
+    road), so they are where the road is farthest, seen at the most grazing angle and
+    departs most from its model, while a pothole in a near corner is seen best.
     """
     height, width = valid.shape
     side = int(round(fraction * min(height, width)))
@@ -30,7 +33,6 @@ def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
     cols = xp.arange(width)[None, :]
     band = xp.zeros(height, dtype=bool)
     band[:side] = True
-    band[height - side:] = True
     near_end = (cols < first[:, None] + side) | (cols > last[:, None] - side)
     return band[:, None] & near_end
 
@@ -40,7 +42,7 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
                        factor: int = 1, capacity: int | None = None,
                        counts: Any = None) -> Any:
     """The components stage: label the 8-connected components of the bool ``candidate`` mask;
-    drop components that touch a corner region of the HxW bool ``valid`` area (see
+    drop components that touch a far corner region of the HxW bool ``valid`` area (see
     corner_mask) or hold fewer than ``min_superpixels`` superpixels (HxW
     ``superpixel_labels``). Returns int32 HxW labels numbered 1..k, 0 elsewhere.
 

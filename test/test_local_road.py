@@ -1,0 +1,89 @@
+from __future__ import annotations
+
+import numpy as np
+
+from pothole_detector.backend import CPU
+from pothole_detector.calibration import StereoCalibration
+from pothole_detector.stages import local_road, road_model, superpixels
+from pothole_detector.stages.road_model import RoadModel
+
+DELTA = 32.0
+SHAPE = (240, 320)
+REGION, DOWNSAMPLE = 16, 2
+
+
+def flat_road():
+    """A camera 1 m above a flat road, looking down 35 deg: its model's kernel parameters."""
+    calibration = StereoCalibration(f=300.0, baseline=0.1, cx=160.0, cy=120.0)
+    pitch = np.deg2rad(35.0)
+    # d = f B / Z on the plane n . P = h, n = (0, cos, sin): d = B (cos (v - cy) / f + sin) f / h
+    a1 = calibration.baseline * np.cos(pitch)
+    a0 = calibration.baseline * np.sin(pitch) * calibration.f - a1 * calibration.cy
+    road = RoadModel(a0=a0, a1=a1, roll_rad=0.0, curvature=(0.0,) * 6, inlier_fraction=1.0,
+                     sigma_px=0.2, kind="planar")
+    return calibration, road.kernel_params()
+
+
+def grid(count):
+    height, width = SHAPE[0] // DOWNSAMPLE, SHAPE[1] // DOWNSAMPLE
+    step = superpixels.grid_step(REGION, DOWNSAMPLE)
+    return -(-height // step), -(-width // step)
+
+
+def run(means, usable=None, drops=0.5, radius_m=1.5):
+    calibration, params = flat_road()
+    count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
+    usable = np.ones(count, bool) if usable is None else usable
+    return local_road.offsets(CPU, means.astype(np.float32), usable, np.full(count, drops),
+                              SHAPE, REGION, DOWNSAMPLE, params, calibration, DELTA, radius_m)
+
+
+def test_a_road_that_tilts_away_from_the_model_is_followed_and_a_pothole_left_out():
+    count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
+    rows, cols = grid(count)
+    i, j = np.mgrid[0:rows, 0:cols]
+    tilt = 0.08 * (j - cols / 2)  # the road falls to the right, 0.08 px per cell: a camber
+    residual = tilt.copy()
+    residual[5:8, 3:6] += 2.0  # a pothole 2 px below the road
+    found = run(DELTA - residual.ravel()).reshape(rows, cols)
+    np.testing.assert_allclose(found, tilt, atol=1e-5)  # means are float32
+    below_local = residual - found
+    assert abs(below_local[6, 4] - 2.0) < 1e-5 and np.abs(below_local[0]).max() < 1e-5
+
+
+def test_without_road_around_it_a_superpixel_keeps_the_model():
+    count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
+    found = run(np.full(count, DELTA - 3.0), usable=np.zeros(count, bool))
+    np.testing.assert_array_equal(found, 0.0)
+
+
+def test_the_window_reaches_the_radius_on_the_road():
+    """A step in the road 1 px deep, 20 cells wide: with a window much smaller than it, the
+    cells far inside it take its level; with one far larger, the plane of the whole view."""
+    count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
+    rows, cols = grid(count)
+    residual = np.zeros((rows, cols))
+    residual[:, :10] = 0.3
+    small = run(DELTA - residual.ravel(), radius_m=0.05, drops=1.0).reshape(rows, cols)
+    assert np.allclose(small[:, 2], 0.3) and np.allclose(small[:, -2], 0.0)
+    large = run(DELTA - residual.ravel(), radius_m=50.0, drops=1.0).reshape(rows, cols)
+    assert np.ptp(large[:, 2]) < 1e-9 and 0.2 < large[0, 2] < 0.4 and large[0, 2] > large[0, -2]
+
+
+def test_pixel_offsets_interpolate_between_cell_centres():
+    count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
+    rows, cols = grid(count)
+    cell_px = superpixels.grid_step(REGION, DOWNSAMPLE) * DOWNSAMPLE
+    values = np.tile(np.arange(cols, dtype=float), rows)
+    found = local_road.pixel_offsets(CPU, values, SHAPE, REGION, DOWNSAMPLE)
+    assert found.shape == SHAPE and found.dtype == np.float32
+    u = np.arange(SHAPE[1])
+    expected = np.clip((u + 0.5) / cell_px - 0.5, 0, cols - 1)
+    np.testing.assert_allclose(found[37], expected, atol=1e-5)
+    constant = local_road.pixel_offsets(CPU, np.full(count, 0.7), SHAPE, REGION, DOWNSAMPLE)
+    np.testing.assert_allclose(constant, 0.7, atol=1e-6)
+
+
+def test_the_flat_road_fixture_is_one_metre_below_the_camera():
+    calibration, params = flat_road()
+    assert abs(float(road_model.params_height(np, params, calibration)) - 1.0) < 1e-12
