@@ -28,7 +28,7 @@ from .recordings import bags, readahead
 from .recordings.topics import StereoTopics, find_stereo_topics
 from .stages.matching import to_gray8
 from .params import Config
-from .tracking import PotholeTracker, Sighting, Track, sightings_of
+from .tracking import PotholeTracker, Sighting, Track, merge_overlapping, sightings_of
 
 ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -345,7 +345,7 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
             by_stamp[observation.stamp_ns] = observation
     frames = [by_stamp[s] for s in sorted(by_stamp)]
     poses = frame_poses(frames, motion)
-    tracked_all = track(frames, poses, config)
+    tracked_all = merge_overlapping(track(frames, poses, config))
     tracks = sorted((t for t in tracked_all if len(t.sightings) >= config.min_sightings
                      and np.all(np.isfinite(t.position))),
                     key=lambda t: t.sightings[0].stamp_ns)

@@ -54,6 +54,59 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int,
     return tuple(made)
 
 
+def radius_of(area_m2: float) -> float:
+    """The radius (m) of a disc of ``area_m2``."""
+    return math.sqrt(max(area_m2, 0.0) / math.pi)
+
+
+def pieces(sightings: Sequence[Sighting]) -> list[list[int]]:
+    """The frame's ``sightings`` grouped into the depressions they are pieces of: two belong
+    together where their discs on the road plane (each a disc of its area about its centroid)
+    touch, and groups chain. Each group's indices in order, the groups by their first."""
+    count = len(sightings)
+    parent = list(range(count))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(count):
+        for j in range(i + 1, count):
+            a, b = sightings[i], sightings[j]
+            gap = math.dist(a.road_xy, b.road_xy)
+            if gap <= radius_of(a.area_m2) + radius_of(b.area_m2):
+                parent[max(root(i), root(j))] = min(root(i), root(j))
+    groups: dict[int, list[int]] = {}
+    for i in range(count):
+        groups.setdefault(root(i), []).append(i)
+    return list(groups.values())
+
+
+def combined(parts: Sequence[Sighting]) -> Sighting:
+    """One sighting of the depression ``parts`` (sightings of one frame) are pieces of: areas
+    and volumes add up, the largest depth is the deepest piece's, the mean depth and the
+    positions are weighted by area, the box holds every piece's."""
+    if len(parts) == 1:
+        return parts[0]
+    weights = np.array([max(p.area_m2, 0.0) for p in parts])
+    weights = weights / weights.sum() if weights.sum() > 0 else np.full(len(parts),
+                                                                         1 / len(parts))
+
+    def weighted(values: Any) -> tuple[float, ...]:
+        return tuple(float(v) for v in weights @ np.asarray(values, dtype=np.float64))
+
+    boxes = np.array([p.bbox_px for p in parts])
+    return Sighting(
+        parts[0].stamp_ns, weighted([p.camera_xyz for p in parts]),
+        weighted([p.road_xy for p in parts]), any(p.observed for p in parts),
+        max(p.max_depth_m for p in parts), float(weights @ [p.mean_depth_m for p in parts]),
+        sum(p.area_m2 for p in parts), sum(p.volume_m3 for p in parts),
+        (int(boxes[:, 0].min()), int(boxes[:, 1].min()), int(boxes[:, 2].max()),
+         int(boxes[:, 3].max())), all(p.whole for p in parts))
+
+
 def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bool:
     x0, y0, x1, y1 = (int(v) for v in bbox_px)
     return (x0 >= margin_px and y0 >= margin_px and x1 < width - margin_px
@@ -78,8 +131,7 @@ class Track:
     @property
     def radius_m(self) -> float:
         """The radius (m) of a disc of its median area."""
-        return math.sqrt(max(float(np.median([s.area_m2 for s in self.sightings])), 0.0)
-                         / math.pi)
+        return radius_of(float(np.median([s.area_m2 for s in self.sightings])))
 
     def best(self) -> Sighting:
         """The nearest sighting that lies whole in the image inside the observed range (else
@@ -119,17 +171,29 @@ class PotholeTracker:
 
     def update(self, sightings: Sequence[Sighting], pose: Pose2) -> list[int]:
         """The id of each of this frame's ``sightings`` (road-frame positions carried into
-        the motion frame by ``pose``)."""
+        the motion frame by ``pose``). Pieces of one depression (:func:`pieces`) take one id
+        and join their track as one sighting (:func:`combined`)."""
         self._frame += 1
         self._active = [t for t in self._active
                         if self._frame - t.last_frame <= self.forget_frames]
         if not sightings:
             return []
+        groups = pieces(sightings)
+        ids = self._update([combined([sightings[i] for i in group]) for group in groups],
+                           pose)
+        given = [0] * len(sightings)
+        for group, track_id in zip(groups, ids):
+            for i in group:
+                given[i] = track_id
+        return given
+
+    def _update(self, sightings: Sequence[Sighting], pose: Pose2) -> list[int]:
+        """:meth:`update` of one sighting per depression."""
         positions = pose.apply(np.array([s.road_xy for s in sightings]))
         candidates = []
         radii = [existing.radius_m for existing in self._active]
         for i, (sighting, position) in enumerate(zip(sightings, positions)):
-            radius = math.sqrt(max(sighting.area_m2, 0.0) / math.pi)
+            radius = radius_of(sighting.area_m2)
             for j, existing in enumerate(self._active):
                 gap = float(np.linalg.norm(existing.positions[-1] - position))
                 if gap < max(self.match_distance_m, radii[j] + radius):
@@ -155,6 +219,52 @@ class PotholeTracker:
             target.last_frame = self._frame
             ids.append(target.id)
         return ids
+
+
+def merge_overlapping(tracks: Sequence[Track]) -> list[Track]:
+    """The tracks of a drive with those that overlap on the road joined: two whose discs
+    (each of its median area about its position in the motion frame) overlap are one
+    depression seen as two (pieces tracked apart, a track lost and started again); joins
+    chain. A joined track keeps the first one's id and holds every sighting, those of one
+    frame combined (:func:`combined`), in time order; the tracks in order of their first
+    sighting."""
+    count = len(tracks)
+    parent = list(range(count))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    finite = [bool(np.all(np.isfinite(t.position))) for t in tracks]
+    for i in range(count):
+        for j in range(i + 1, count):
+            if finite[i] and finite[j] and float(np.linalg.norm(
+                    tracks[i].position - tracks[j].position)) < (tracks[i].radius_m
+                                                                 + tracks[j].radius_m):
+                parent[max(root(i), root(j))] = min(root(i), root(j))
+    groups: dict[int, list[Track]] = {}
+    for i in range(count):
+        groups.setdefault(root(i), []).append(tracks[i])
+    merged = []
+    for group in groups.values():
+        if len(group) == 1:
+            merged.append(group[0])
+            continue
+        by_stamp: dict[int, list[tuple[Sighting, np.ndarray]]] = {}
+        for member in group:
+            for sighting, position in zip(member.sightings, member.positions):
+                by_stamp.setdefault(sighting.stamp_ns, []).append((sighting, position))
+        joined = Track(min(t.id for t in group), last_frame=max(t.last_frame for t in group))
+        for stamp in sorted(by_stamp):
+            parts = by_stamp[stamp]
+            weights = np.array([max(s.area_m2, 0.0) for s, _ in parts]) + 1e-12
+            joined.sightings.append(combined([s for s, _ in parts]))
+            joined.positions.append(np.average([p for _, p in parts], axis=0,
+                                               weights=weights))
+        merged.append(joined)
+    return sorted(merged, key=lambda t: (t.sightings[0].stamp_ns, t.id))
 
 
 def relabel(labels: np.ndarray, potholes: Sequence[Any], ids: Sequence[int]) -> np.ndarray:

@@ -6,12 +6,14 @@ import numpy as np
 
 from pothole_detector.motion import Pose2, RoadFrame
 from pothole_detector.stages.measure import Pothole
-from pothole_detector.tracking import MAX_ID, PotholeTracker, Sighting, relabel, sightings_of
+from pothole_detector.tracking import (MAX_ID, PotholeTracker, Sighting, Track, combined,
+                                       merge_overlapping, pieces, relabel, sightings_of)
 
 
-def _sighting(forward: float, left: float, area: float = 0.03) -> Sighting:
-    return Sighting(0, (0.0, 0.0, 1.0), (forward, left), True, 0.05, 0.03, area, area * 0.03,
-                    (10, 10, 20, 20))
+def _sighting(forward: float, left: float, area: float = 0.03, depth: float = 0.05,
+              stamp: int = 0, box: tuple[int, int, int, int] = (10, 10, 20, 20)) -> Sighting:
+    return Sighting(stamp, (0.0, 0.0, 1.0), (forward, left), True, depth, 0.03, area,
+                    area * 0.03, box)
 
 
 def test_a_pothole_keeps_its_id_while_it_stays_in_view():
@@ -71,3 +73,45 @@ def test_relabel_renames_labels():
     renamed = relabel(labels, [type("P", (), {"label": 1}), type("P", (), {"label": 2})], [7, 3])
     np.testing.assert_array_equal(renamed, [[0, 7, 7], [3, 3, 0]])
     assert renamed.dtype == labels.dtype
+
+
+def test_pieces_of_one_depression_whose_discs_touch_are_one_pothole():
+    """Discs of 0.03 m2 have a radius of 0.098 m: centres 0.15 m apart touch, 0.25 m do not;
+    touching chains."""
+    found = pieces([_sighting(2.0, 0.0), _sighting(2.0, 0.15), _sighting(2.0, 0.30),
+                    _sighting(2.0, 0.60)])
+    assert found == [[0, 1, 2], [3]]
+    one = combined([_sighting(2.0, 0.0, 0.01, 0.04, box=(5, 6, 10, 12)),
+                    _sighting(2.0, 0.2, 0.03, 0.07, box=(8, 2, 30, 9))])
+    assert one.area_m2 == 0.04 and one.max_depth_m == 0.07
+    assert abs(one.volume_m3 - 0.04 * 0.03) < 1e-15 and one.bbox_px == (5, 2, 30, 12)
+    assert abs(one.road_xy[1] - 0.15) < 1e-12
+
+
+def test_pieces_in_a_frame_take_one_id_and_one_sighting():
+    tracker = PotholeTracker(0.25, forget_frames=2)
+    assert tracker.update([_sighting(2.0, 0.0), _sighting(2.0, 0.15), _sighting(4.0, 0.0)],
+                          Pose2()) == [1, 1, 2]
+    assert tracker.update([_sighting(2.0, 0.07)], Pose2()) == [1]
+    first = tracker.tracks[0]
+    assert len(first.sightings) == 2 and abs(first.sightings[0].area_m2 - 0.06) < 1e-12
+
+
+def test_tracks_that_overlap_on_the_road_are_one_entry():
+    """A pothole tracked as two (its pieces apart in some frames), and one nearby that does
+    not overlap it."""
+    def track(track_id, left, stamps, area=0.03):
+        made = Track(track_id)
+        for stamp in stamps:
+            made.sightings.append(_sighting(2.0, left, area, 0.02 + 0.01 * track_id, stamp))
+            made.positions.append(np.array([2.0, left]))
+        return made
+
+    merged = merge_overlapping([track(1, 0.0, [1, 2, 3]), track(2, 0.12, [2, 3, 4]),
+                                track(3, 0.5, [1, 2])])
+    assert [t.id for t in merged] == [1, 3]
+    joined = merged[0]
+    assert [s.stamp_ns for s in joined.sightings] == [1, 2, 3, 4]
+    assert abs(joined.sightings[1].area_m2 - 0.06) < 1e-12
+    assert joined.sightings[1].max_depth_m == 0.04
+    assert abs(joined.position[1] - 0.06) < 1e-9
