@@ -177,6 +177,11 @@ PARAMETERS: tuple[Param, ...] = (
     Param("local_road_radius_m", float, 1.5,
           "Half the side of the window of the local road reference, along and across the "
           "road (m): larger than a pothole, smaller than the road's bends.", 0.1, 50),
+    Param("photometric_factor", float, 3.0,
+          "A component is no pothole where most of its superpixels disagree between the two "
+          "views on the brightness of what was matched by more than this many times the "
+          "road's mean disagreement in the frame (glossy or saturated markings, wet patches); "
+          "0 turns the test off.", 0, 100),
     Param("superpixel_min_valid_fraction", float, 0.0,
           "A superpixel needs more than this fraction of valid disparities to be selectable "
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),
@@ -261,6 +266,11 @@ PARAMETERS: tuple[Param, ...] = (
     Param("log_throttle_seconds", float, 5.0,
           "The same input problem is logged at most once per this many seconds.", 0, 3600,
           group="node"),
+    Param("severity_standard", str, "ltpp",
+          "Survey: how severity is classed: by the largest depth alone (ltpp, the FHWA LTPP "
+          "distress manual, with severity_moderate_depth_m and severity_high_depth_m) or by "
+          "the largest depth and the average diameter on the road (astm_d6433, its pothole "
+          "table).", choices=("ltpp", "astm_d6433"), group="survey"),
     Param("severity_moderate_depth_m", float, 0.025,
           "Survey: a pothole deeper than this (m, its largest depth) is of moderate severity "
           "(FHWA LTPP distress manual: 25 mm).", 0.001, 1.0, group="survey"),

@@ -18,8 +18,8 @@ from .backend import CPU, Backend, StageClock, to_host
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
-from .stages import components, local_road, matching, measure, perspective, refine
-from .stages import road_model, seed
+from .stages import components, local_road, matching, measure, perspective, photometric
+from .stages import refine, road_model, seed
 from .stages import superpixels
 from .stages.rectify import Rectification, invalidate_unseen, remap
 from .stages import threshold as thresholding
@@ -83,7 +83,8 @@ class FrameArrays:
     labels, the bool per-superpixel mask of where the road is observed and the float64
     per-superpixel threshold drops (px); ``local``: with the local road reference, float64 per
     superpixel, how far (px) the road around it lies below the road model
-    (stages/local_road.py)."""
+    (stages/local_road.py); ``inconsistent``: bool per superpixel, where the two views
+    disagree on its brightness (stages/photometric.py)."""
 
     disparity: Any
     transformed: Any
@@ -95,6 +96,7 @@ class FrameArrays:
     drops: Any = None
     region_px: int = 0
     local: Any = None
+    inconsistent: Any = None
 
 
 class FrameReport(Protocol):
@@ -323,8 +325,15 @@ class Pipeline:
                 xp.where(observed, found.valid_fraction, xp.float32(-1)), drop,
                 config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
+            flagged = None
+            if config.photometric_factor > 0:
+                disagreement, _ = superpixels.superpixel_means(
+                    backend, photometric.disagreement(backend, left, right, disparity),
+                    found.labels, found.count)
+                flagged = photometric.inconsistent(backend, disagreement, observed & ~selected,
+                                                   config.photometric_factor)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops, region_px, local)
+                            drops, region_px, local, flagged)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -338,7 +347,7 @@ class Pipeline:
             labels = components.pothole_components(
                 backend, frame.candidate, frame.valid, found.labels, found.count,
                 config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
-                report.capacity, report.counts[:3])
+                report.capacity, report.counts[:3], frame.inconsistent)
         with clock.stage("refine"):
             filled, smoothed = refine.smooth(backend, frame.disparity)
             if frame.local is not None:

@@ -158,12 +158,15 @@ def _row_html(pothole: SurveyPothole) -> str:
          f'{high * 1000:.0f})</span>', r["max_depth_m"], ""),
         (f'{r["mean_depth_m"] * 1000:.0f}', r["mean_depth_m"], ""),
         (f'{r["area_m2"] * 1e4:.0f}', r["area_m2"], ""),
+        (f'{r["length_m"] * 100:.0f} x {r["width_m"] * 100:.0f}'
+         if math.isfinite(r["length_m"]) and math.isfinite(r["width_m"]) else "-",
+         r["length_m"] if math.isfinite(r["length_m"]) else "", ""),
         (f'{r["volume_m3"] * 1e6:.0f}', r["volume_m3"], ""),
         (str(r["sightings"]), r["sightings"], ""),
         (f'{r["odom_x_m"]:.2f}, {r["odom_y_m"]:.2f}', r["odom_x_m"], ""),
         (f'{r["lat"]:.7f}, {r["lon"]:.7f}' if r["lat"] is not None else "-",
          r["lat"] if r["lat"] is not None else "", ""),
-        (f'{(r["best_stamp_ns"]) / 1e9:.3f}', r["best_stamp_ns"], ""),
+        (html.escape(r["best_time_utc"]), r["best_stamp_ns"], ""),
     ]
     return "<tr>" + "".join(
         f'<td class="{cls}"' + (f' data-v="{value}"' if value is not None else "")
@@ -185,8 +188,8 @@ def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
              ("frames failed", str(failed)), ("bags", str(len(surveys)))]
     header = ("<tr><th>id</th><th class=l>bag</th><th class=l>severity</th>"
               "<th>max depth mm (spread)</th><th>mean depth mm</th><th>area cm²</th>"
-              "<th>volume cm³</th><th>sightings</th><th>position x, y m</th>"
-              "<th>lat, lon</th><th>best view s</th></tr>")
+              "<th>length x width cm</th><th>volume cm³</th><th>sightings</th>"
+              "<th>position x, y m</th><th>lat, lon</th><th>best view (UTC)</th></tr>")
     gallery = []
     for drive in surveys:
         for pothole in drive.potholes:

@@ -8,6 +8,7 @@ tracking. No ROS: bags are read with rosbags."""
 
 from __future__ import annotations
 
+import datetime
 import math
 import os
 from dataclasses import dataclass, field
@@ -35,17 +36,45 @@ TF_TYPE = "tf2_msgs/msg/TFMessage"
 GNSS_TYPE = bagtools.GNSS_TYPE
 SEVERITIES = ("low", "moderate", "high")
 CSV_COLUMNS = ("pothole_id", "bag", "first_stamp_ns", "last_stamp_ns", "sightings",
-               "best_stamp_ns", "x_m", "y_m", "z_m", "odom_x_m", "odom_y_m", "lat", "lon",
-               "max_depth_m", "mean_depth_m", "area_m2", "volume_m3", "severity")
+               "best_stamp_ns", "first_time_utc", "last_time_utc", "best_time_utc", "x_m",
+               "y_m", "z_m", "odom_x_m", "odom_y_m", "lat", "lon", "max_depth_m",
+               "mean_depth_m", "area_m2", "volume_m3", "length_m", "width_m", "diameter_m",
+               "severity", "severity_standard")
+# ASTM D6433's pothole severity (asphalt): rows by largest depth (m, up to), columns by average
+# diameter (m, up to); potholes wider than the last column are classed by depth alone
+ASTM_DEPTHS_M = (0.025, 0.050, math.inf)
+ASTM_DIAMETERS_M = (0.200, 0.450, 0.750)
+ASTM_TABLE = (("low", "low", "moderate"),
+              ("low", "moderate", "high"),
+              ("moderate", "moderate", "high"))
+ASTM_WIDE_SHALLOW_M = 0.025
 
 
-def severity(max_depth_m: float, config: Config) -> str:
-    """The severity class of a pothole of largest depth ``max_depth_m`` (m)."""
+def severity(max_depth_m: float, config: Config, diameter_m: float = math.nan) -> str:
+    """The severity class (low, moderate, high) of a pothole of largest depth ``max_depth_m``
+    and average diameter ``diameter_m`` (m) by ``severity_standard``: the FHWA LTPP depths
+    (``severity_moderate_depth_m``, ``severity_high_depth_m``), or ASTM D6433's pothole table
+    (depth up to 25 mm, up to 50 mm, deeper; diameter up to 200 mm, 450 mm, 750 mm; wider:
+    moderate up to 25 mm deep, else high). Under ASTM, one of unknown diameter is classed by
+    the table's narrowest column."""
+    if config.severity_standard == "astm_d6433":
+        if diameter_m > ASTM_DIAMETERS_M[-1]:
+            return "moderate" if max_depth_m <= ASTM_WIDE_SHALLOW_M else "high"
+        row = next(i for i, limit in enumerate(ASTM_DEPTHS_M) if max_depth_m <= limit)
+        column = next((i for i, limit in enumerate(ASTM_DIAMETERS_M) if diameter_m <= limit),
+                      0)
+        return ASTM_TABLE[row][column]
     if max_depth_m > config.severity_high_depth_m:
         return "high"
     if max_depth_m > config.severity_moderate_depth_m:
         return "moderate"
     return "low"
+
+
+def utc_time(stamp_ns: int) -> str:
+    """A time stamp (ns since the epoch) in ISO 8601 UTC, to the millisecond."""
+    moment = datetime.datetime.fromtimestamp(stamp_ns / 1e9, tz=datetime.timezone.utc)
+    return moment.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 @dataclass(frozen=True)
@@ -142,7 +171,8 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                 frame.calibration)
             if kept:
                 observations.append(FrameObservation(
-                    frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height),
+                    frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height,
+                                              frame.calibration),
                     tuple(float(v) for v in outcome.observed_range_m), step,
                     axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
     finally:
@@ -358,18 +388,24 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
         latlon = to_latlon(position[None, :])[0] if to_latlon else (math.nan, math.nan)
         depths = [s.max_depth_m for s in tracked.sightings]
         areas = [s.area_m2 for s in tracked.sightings]
+        first, last = tracked.sightings[0].stamp_ns, tracked.sightings[-1].stamp_ns
+        average_diameter = (best.length_m + best.width_m) / 2
         row = {
             "pothole_id": first_id + offset, "bag": Path(bag).name,
-            "first_stamp_ns": tracked.sightings[0].stamp_ns,
-            "last_stamp_ns": tracked.sightings[-1].stamp_ns,
+            "first_stamp_ns": first, "last_stamp_ns": last,
             "sightings": len(tracked.sightings), "best_stamp_ns": best.stamp_ns,
+            "first_time_utc": utc_time(first), "last_time_utc": utc_time(last),
+            "best_time_utc": utc_time(best.stamp_ns),
             "x_m": best.camera_xyz[0], "y_m": best.camera_xyz[1], "z_m": best.camera_xyz[2],
             "odom_x_m": float(position[0]), "odom_y_m": float(position[1]),
             "lat": float(latlon[0]) if to_latlon else None,
             "lon": float(latlon[1]) if to_latlon else None,
             "max_depth_m": best.max_depth_m, "mean_depth_m": best.mean_depth_m,
             "area_m2": best.area_m2, "volume_m3": best.volume_m3,
-            "severity": severity(best.max_depth_m, config),
+            "length_m": best.length_m, "width_m": best.width_m,
+            "diameter_m": 2 * math.sqrt(max(best.area_m2, 0.0) / math.pi),
+            "severity": severity(best.max_depth_m, config, average_diameter),
+            "severity_standard": config.severity_standard,
         }
         rows.append(SurveyPothole(row, (min(depths), max(depths)), (min(areas), max(areas)),
                                   best.bbox_px))

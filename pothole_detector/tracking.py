@@ -11,6 +11,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .calibration import StereoCalibration
 from .motion import Pose2, RoadFrame
 
 # the largest id the node publishes: the label image (pothole_labels) is mono16
@@ -21,8 +22,10 @@ MAX_ID = 65535
 class Sighting:
     """One pothole in one frame: its centroid in the left optical frame and on the road
     (road frame x forward, y left; m), whether it lies inside the observed range, its
-    measurements, its bounding box (x0, y0, x1, y1 px) and whether it lies whole in the
-    image (its box off the image border)."""
+    measurements, its bounding box (x0, y0, x1, y1 px), whether it lies whole in the image
+    (its box off the image border) and where its footprint on the road reaches
+    (``extent_m``: least and largest forward, least and largest left coordinate in the road
+    frame, m; NaN where not measured)."""
 
     stamp_ns: int
     camera_xyz: tuple[float, float, float]
@@ -34,14 +37,58 @@ class Sighting:
     volume_m3: float
     bbox_px: tuple[int, int, int, int]
     whole: bool = True
+    extent_m: tuple[float, float, float, float] = (math.nan,) * 4
+
+    @property
+    def length_m(self) -> float:
+        """Its length on the road along the road frame's forward axis (the direction of
+        travel of a camera looking ahead), m; NaN where its footprint was not measured."""
+        return self.extent_m[1] - self.extent_m[0]
+
+    @property
+    def width_m(self) -> float:
+        """Its width on the road across the forward axis, m; NaN where not measured."""
+        return self.extent_m[3] - self.extent_m[2]
 
 
-def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int,
-                 height: int) -> tuple[Sighting, ...]:
+def footprint_extents(labels: np.ndarray, count: int, plane: RoadFrame,
+                      calibration: StereoCalibration) -> np.ndarray:
+    """Per pothole label 1..``count`` of the int HxW ``labels``, where its footprint on the
+    road plane of ``plane`` reaches: float64 (count, 4), least and largest forward, least and
+    largest left coordinate (m), each pixel's ray meeting the plane (the opening the pothole
+    makes in the road, free of the disparity noise); NaN for a label without a pixel whose
+    ray meets the plane ahead."""
+    extents = np.full((count, 4), np.nan)
+    rows, cols = np.nonzero(labels > 0)
+    if count == 0 or rows.size == 0:
+        return extents
+    rays = np.stack([(cols - calibration.cx) / calibration.f,
+                     (rows - calibration.cy) / calibration.f, np.ones(rows.size)], axis=1)
+    normal = plane.axes[2]
+    facing = rays @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = (plane.origin @ normal) / facing
+    ahead = np.isfinite(reach) & (reach > 0)
+    road = plane.from_camera(rays[ahead] * reach[ahead, None])
+    label = labels[rows, cols][ahead] - 1
+    for column, values, pick in ((0, road[:, 0], np.minimum), (1, road[:, 0], np.maximum),
+                                 (2, road[:, 1], np.minimum), (3, road[:, 1], np.maximum)):
+        found = np.full(count, np.inf if pick is np.minimum else -np.inf)
+        pick.at(found, label, values)
+        extents[:, column] = np.where(np.isfinite(found), found, np.nan)
+    return extents
+
+
+def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, height: int,
+                 calibration: StereoCalibration | None = None) -> tuple[Sighting, ...]:
     """The sightings of a PipelineResult's potholes, in its order, on the road frame
     ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
-    position, which matches no track)."""
+    position, which matches no track); with the result's ``calibration``, their footprints'
+    extents (:func:`footprint_extents`, from the labels read back)."""
     near, far = result.observed_range_m
+    extents = footprint_extents(result.host("labels"), len(result.potholes), plane,
+                                calibration) \
+        if calibration is not None and result.potholes else None
     made = []
     for pothole in result.potholes:
         centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
@@ -50,7 +97,9 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int,
             stamp_ns, tuple(float(v) for v in centre), (float(forward), float(left)),
             bool(near <= forward <= far), float(pothole.max_depth_m),
             float(pothole.mean_depth_m), float(pothole.area_m2), float(pothole.volume_m3),
-            tuple(int(v) for v in pothole.bbox_px), _off_border(pothole.bbox_px, width, height)))
+            tuple(int(v) for v in pothole.bbox_px), _off_border(pothole.bbox_px, width, height),
+            (math.nan,) * 4 if extents is None
+            else tuple(float(v) for v in extents[pothole.label - 1])))
     return tuple(made)
 
 
@@ -87,7 +136,7 @@ def pieces(sightings: Sequence[Sighting]) -> list[list[int]]:
 def combined(parts: Sequence[Sighting]) -> Sighting:
     """One sighting of the depression ``parts`` (sightings of one frame) are pieces of: areas
     and volumes add up, the largest depth is the deepest piece's, the mean depth and the
-    positions are weighted by area, the box holds every piece's."""
+    positions are weighted by area, the box and the footprint's extent hold every piece's."""
     if len(parts) == 1:
         return parts[0]
     weights = np.array([max(p.area_m2, 0.0) for p in parts])
@@ -98,13 +147,16 @@ def combined(parts: Sequence[Sighting]) -> Sighting:
         return tuple(float(v) for v in weights @ np.asarray(values, dtype=np.float64))
 
     boxes = np.array([p.bbox_px for p in parts])
+    reach = np.array([p.extent_m for p in parts])
     return Sighting(
         parts[0].stamp_ns, weighted([p.camera_xyz for p in parts]),
         weighted([p.road_xy for p in parts]), any(p.observed for p in parts),
         max(p.max_depth_m for p in parts), float(weights @ [p.mean_depth_m for p in parts]),
         sum(p.area_m2 for p in parts), sum(p.volume_m3 for p in parts),
         (int(boxes[:, 0].min()), int(boxes[:, 1].min()), int(boxes[:, 2].max()),
-         int(boxes[:, 3].max())), all(p.whole for p in parts))
+         int(boxes[:, 3].max())), all(p.whole for p in parts),
+        (float(reach[:, 0].min()), float(reach[:, 1].max()), float(reach[:, 2].min()),
+         float(reach[:, 3].max())))
 
 
 def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bool:

@@ -73,3 +73,19 @@ def test_labelling_the_reduced_grid_gives_the_full_resolution_labels():
         found = components_found(CPU, small, valid, superpixels, n, 0.1, 1, factor=factor)
         assert found[1] == expected[1] > 3
         np.testing.assert_array_equal(found[0], expected[0])
+
+
+def test_a_component_mostly_of_inconsistent_superpixels_is_dropped():
+    """Two components of four superpixels each: one with three flagged (dropped), one with two
+    (kept: no more than half)."""
+    height, width = 60, 100
+    superpixels, n = grid_superpixels(height, width, 10)
+    candidate = np.zeros((height, width), bool)
+    candidate[20:40, 10:30] = True        # superpixels 21, 22, 31, 32
+    candidate[20:40, 60:80] = True        # superpixels 26, 27, 36, 37
+    flagged = np.zeros(n, bool)
+    flagged[[21, 22, 31]] = True
+    flagged[[26, 27]] = True
+    labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
+                                     0.1, 2, inconsistent=flagged)
+    assert count == 1 and labels[30, 70] == 1 and labels[30, 20] == 0

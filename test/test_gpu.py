@@ -547,13 +547,15 @@ def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min
     sp = (np.arange(height)[:, None] // 10 * 16 + np.arange(width)[None, :] // 10)
     sp = sp.astype(np.int32)
     n = int(sp.max()) + 1
-    cpu = components.components_found(CPU, candidate, valid, sp, n, corner_fraction,
-                                        min_superpixels)
-    dev = components.components_found(gpu, gpu.upload(small), gpu.upload(valid),
-                                        gpu.upload(sp), n, corner_fraction, min_superpixels,
-                                        factor=factor)
-    assert dev[1] == cpu[1] > 0
-    np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
+    for flagged in (None, rng.random(n) < 0.3):
+        cpu = components.components_found(CPU, candidate, valid, sp, n, corner_fraction,
+                                            min_superpixels, inconsistent=flagged)
+        dev = components.components_found(
+            gpu, gpu.upload(small), gpu.upload(valid), gpu.upload(sp), n, corner_fraction,
+            min_superpixels, factor=factor,
+            inconsistent=None if flagged is None else gpu.upload(flagged))
+        assert dev[1] == cpu[1] > 0
+        np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
 
 
 def test_component_filters_with_thousands_of_components(gpu):
@@ -1133,3 +1135,21 @@ def test_local_road_matches_the_cpu(gpu):
         to_host(local_road.pixel_offsets(gpu, device, *args)),
         local_road.pixel_offsets(CPU, cpu, *args), atol=1e-6)
 
+
+
+def test_photometric_disagreement_matches_the_cpu(gpu):
+    from pothole_detector.stages import photometric
+    rng = np.random.default_rng(13)
+    left = rng.integers(0, 256, (48, 80), dtype=np.uint8)
+    right = rng.integers(0, 256, (48, 80), dtype=np.uint8)
+    disparity = rng.uniform(0, 12, (48, 80)).astype(np.float32)
+    disparity[rng.random((48, 80)) < 0.1] = np.nan
+    cpu = photometric.disagreement(CPU, left, right, disparity)
+    device = photometric.disagreement(gpu, gpu.upload(left), gpu.upload(right),
+                                      gpu.upload(disparity))
+    np.testing.assert_allclose(to_host(device), cpu, rtol=1e-5, atol=1e-3)
+    means = rng.uniform(0, 4, 50).astype(np.float32)
+    road = rng.random(50) < 0.7
+    np.testing.assert_array_equal(
+        to_host(photometric.inconsistent(gpu, gpu.upload(means), gpu.upload(road), 2.0)),
+        photometric.inconsistent(CPU, means, road, 2.0))

@@ -17,7 +17,7 @@ from pothole_detector.motion import Pose2, enu_of, latlon_of
 from pothole_detector.params import Config
 from pothole_detector.survey import (CSV_COLUMNS, FrameObservation, Sighting, assemble,
                                      chunk_spans, drive_topics, severity, survey, track,
-                                     write_csv, write_geojson, MotionSeries)
+                                     utc_time, write_csv, write_geojson, MotionSeries)
 
 
 def _sighting(stamp, forward, left, depth=0.03, area=0.02, observed=True):
@@ -33,6 +33,21 @@ def test_severity_follows_the_fhwa_bounds_and_the_parameters():
     assert severity(0.015, strict) == "moderate"
     with pytest.raises(Exception, match="severity_high_depth_m must be larger"):
         Config({"severity_moderate_depth_m": 0.06})
+
+
+def test_severity_by_astm_d6433_takes_depth_and_diameter():
+    astm = Config({"severity_standard": "astm_d6433"})
+    cases = [(0.02, 0.15, "low"), (0.02, 0.30, "low"), (0.02, 0.60, "moderate"),
+             (0.04, 0.15, "low"), (0.04, 0.30, "moderate"), (0.04, 0.60, "high"),
+             (0.06, 0.15, "moderate"), (0.06, 0.30, "moderate"), (0.06, 0.60, "high"),
+             (0.02, 0.90, "moderate"), (0.03, 0.90, "high"), (0.06, float("nan"), "moderate")]
+    assert [severity(depth, astm, diameter) for depth, diameter, _ in cases] == \
+        [expected for _, _, expected in cases]
+
+
+def test_times_are_iso_8601_utc():
+    assert utc_time(1_700_000_000_123_456_789) == "2023-11-14T22:13:20.123Z"
+    assert utc_time(0) == "1970-01-01T00:00:00.000Z"
 
 
 def test_tracking_keeps_one_id_per_pothole_as_the_vehicle_moves():
@@ -107,6 +122,14 @@ def _truth(scenes, samples, kind):
     return truths
 
 
+def _extents(shape):
+    """(length along the drive, width across it) m of a generated pothole's ellipse."""
+    angle = np.deg2rad(shape.angle_deg)
+    along = np.hypot(shape.a_m * np.sin(angle), shape.b_m * np.cos(angle))
+    across = np.hypot(shape.a_m * np.cos(angle), shape.b_m * np.sin(angle))
+    return 2 * along, 2 * across
+
+
 @pytest.mark.parametrize("kind", ["none", "odom", "gnss"])
 def test_a_drive_reports_each_pothole_once_where_it_is(survey_drive_bags, kind, tmp_path):
     bags, scenes, samples = survey_drive_bags
@@ -124,6 +147,10 @@ def test_a_drive_reports_each_pothole_once_where_it_is(survey_drive_bags, kind, 
         assert gaps[nearest] < 0.2, (pothole.row, truths[nearest])
         assert pothole.row["severity"] == severity(truths[nearest][1], Config())
         assert pothole.row["sightings"] >= 3
+        length, width = _extents(scenes[0].potholes[nearest])
+        assert abs(pothole.row["length_m"] / length - 1) < 0.2, (pothole.row, length)
+        assert abs(pothole.row["width_m"] / width - 1) < 0.2, (pothole.row, width)
+        assert pothole.row["best_time_utc"] == utc_time(pothole.row["best_stamp_ns"])
     matched = {int(np.argmin([np.linalg.norm(f - t) for t, _, _ in truths])) for f in found}
     assert matched == set(range(len(truths)))  # no duplicate, none missed
     if kind == "gnss":

@@ -6,8 +6,10 @@ import numpy as np
 
 from pothole_detector.motion import Pose2, RoadFrame
 from pothole_detector.stages.measure import Pothole
+from pothole_detector.calibration import StereoCalibration
 from pothole_detector.tracking import (MAX_ID, PotholeTracker, Sighting, Track, combined,
-                                       merge_overlapping, pieces, relabel, sightings_of)
+                                       footprint_extents, merge_overlapping, pieces, relabel,
+                                       sightings_of)
 
 
 def _sighting(forward: float, left: float, area: float = 0.03, depth: float = 0.05,
@@ -115,3 +117,17 @@ def test_tracks_that_overlap_on_the_road_are_one_entry():
     assert abs(joined.sightings[1].area_m2 - 0.06) < 1e-12
     assert joined.sightings[1].max_depth_m == 0.04
     assert abs(joined.position[1] - 0.06) < 1e-9
+
+
+def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():
+    """A level camera 1 m above a flat road (f 500 px): pixel (u, v) below the horizon meets the
+    road f / (v - cy) m ahead and -(u - cx) / (v - cy) m to the left."""
+    calibration = StereoCalibration(f=500.0, baseline=0.1, cx=320.0, cy=240.0)
+    plane = RoadFrame(np.array([0.0, 1.0, 0.0]),
+                      np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+    labels = np.zeros((480, 640), np.int32)
+    labels[290:340, 300:340] = 1
+    labels[200:230, 10:20] = 2  # above the horizon: never meets the road
+    found = footprint_extents(labels, 3, plane, calibration)
+    np.testing.assert_allclose(found[0], [500 / 99, 500 / 50, -19 / 50, 20 / 50])
+    assert np.isnan(found[1:]).all()

@@ -39,14 +39,15 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
 // `side` rows, within `side` columns of the row's valid span); bit s of present[c]
 // (words_per_component words) marks superpixel s, and held[c] counts the distinct ones (the
 // thread whose atomicOr sets the bit adds 1; a plain read first spares the atomic once the
-// bit is set). Components past `capacity` (the tables' size) set touched[0], the overflow
-// flag; the caller then runs again with a larger capacity.
+// bit is set), inconsistent[c] those of them flagged in `flagged` (one byte per superpixel).
+// Components past `capacity` (the tables' size) set touched[0], the overflow flag; the caller
+// then runs again with a larger capacity.
 extern "C" __global__ void component_marks(const int* small, const int* superpixels,
-                                           const int* first, const int* last, int height,
-                                           int width, int factor, int small_height,
-                                           int small_width, int side, int words_per_component,
-                                           int capacity, int* touched, int* held,
-                                           unsigned* present) {
+                                           const bool* flagged, const int* first,
+                                           const int* last, int height, int width, int factor,
+                                           int small_height, int small_width, int side,
+                                           int words_per_component, int capacity, int* touched,
+                                           int* held, int* inconsistent, unsigned* present) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     if (index >= (long long)height * width) return;
     const int row = (int)(index / width), col = (int)(index % width);
@@ -61,15 +62,20 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
     const int superpixel = superpixels[index];
     const unsigned bit = 1u << (superpixel & 31);
     unsigned* word = present + (long long)component * words_per_component + (superpixel >> 5);
-    if (!(*word & bit) && !(atomicOr(word, bit) & bit)) atomicAdd(&held[component], 1);
+    if (!(*word & bit) && !(atomicOr(word, bit) & bit)) {
+        atomicAdd(&held[component], 1);
+        if (flagged[superpixel]) atomicAdd(&inconsistent[component], 1);
+    }
 }
 
 // One block: component c (1..count, count = min(*components, capacity)) is kept when it
-// touches no corner and holds at least min_superpixels superpixels; new_id[c] (capacity + 1
-// entries) numbers the kept ones 1..m in order (0 otherwise); kept[0] = m.
+// touches no corner, holds at least min_superpixels superpixels and no more than half of them
+// are inconsistent; new_id[c] (capacity + 1 entries) numbers the kept ones 1..m in order (0
+// otherwise); kept[0] = m.
 extern "C" __global__ void component_keep(const int* touched, const int* held,
-                                          const int* components, int capacity,
-                                          int min_superpixels, int* new_id, int* kept) {
+                                          const int* inconsistent, const int* components,
+                                          int capacity, int min_superpixels, int* new_id,
+                                          int* kept) {
     __shared__ int warp_totals[32];
     __shared__ int carry;
     const int count = min(components[0], capacity);
@@ -78,7 +84,8 @@ extern "C" __global__ void component_keep(const int* touched, const int* held,
     for (int start = 0; start <= capacity; start += blockDim.x) {
         const int component = start + threadIdx.x;
         const int flag = component > 0 && component <= count && !touched[component]
-                         && held[component] >= min_superpixels;
+                         && held[component] >= min_superpixels
+                         && 2 * inconsistent[component] <= held[component];
         const int inclusive = block_inclusive_scan(flag, warp_totals) + carry;
         if (component <= capacity) new_id[component] = flag ? inclusive : 0;
         __syncthreads();

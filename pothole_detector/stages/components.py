@@ -40,11 +40,13 @@ def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                        n_superpixels: int, corner_fraction: float, min_superpixels: int,
                        factor: int = 1, capacity: int | None = None,
-                       counts: Any = None) -> Any:
+                       counts: Any = None, inconsistent: Any = None) -> Any:
     """The components stage: label the 8-connected components of the bool ``candidate`` mask;
     drop components that touch a far corner region of the HxW bool ``valid`` area (see
-    corner_mask) or hold fewer than ``min_superpixels`` superpixels (HxW
-    ``superpixel_labels``). Returns int32 HxW labels numbered 1..k, 0 elsewhere.
+    corner_mask), hold fewer than ``min_superpixels`` superpixels (HxW
+    ``superpixel_labels``), or of whose superpixels more than half are flagged in the bool
+    (n_superpixels,) ``inconsistent`` (where given). Returns int32 HxW labels numbered 1..k, 0
+    elsewhere.
 
     ``candidate`` is HxW, or the mask on the SLIC grid reduced by ``factor`` whose
     nearest-neighbour enlargement (superpixels.upsample_labels) is the HxW mask: enlarging by
@@ -64,7 +66,8 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
             capacity = max(int(to_host(found)[0]), 1)
         counts = xp.empty(3, dtype=xp.int32) if counts is None else counts
         return filter_on_device(backend, small, found, valid, superpixel_labels, n_superpixels,
-                                corner_fraction, min_superpixels, factor, capacity, counts)
+                                corner_fraction, min_superpixels, factor, capacity, counts,
+                                inconsistent)
     components, count = label_components(backend, candidate)
     components = upsample_labels(backend, components, factor, valid.shape)
     if count == 0:
@@ -76,8 +79,11 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
         pairs = components.ravel().astype(xp.int64) * n_superpixels + superpixel_labels.ravel()
         present = xp.bincount(pairs[components.ravel() > 0],
                               minlength=(count + 1) * n_superpixels)
-        superpixel_count = (present.reshape(count + 1, n_superpixels) > 0).sum(axis=1)
+        held = present.reshape(count + 1, n_superpixels) > 0
+        superpixel_count = held.sum(axis=1)
         keep &= superpixel_count >= min_superpixels
+        if inconsistent is not None:
+            keep &= 2 * (held & inconsistent[None, :]).sum(axis=1) <= superpixel_count
         labels, kept = relabel(xp, components, keep)
     if counts is not None:
         counts[...] = (count, kept, int(capacity is not None and count > capacity))
@@ -86,12 +92,13 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
 
 def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                      n_superpixels: int, corner_fraction: float, min_superpixels: int,
-                     factor: int = 1) -> tuple[Any, int]:
+                     factor: int = 1, inconsistent: Any = None) -> tuple[Any, int]:
     """:func:`pothole_components` with every component and the kept count read back:
     (int32 HxW labels, k)."""
     counts = backend.xp.zeros(3, dtype=backend.xp.int32)
     labels = pothole_components(backend, candidate, valid, superpixel_labels, n_superpixels,
-                                corner_fraction, min_superpixels, factor, counts=counts)
+                                corner_fraction, min_superpixels, factor, counts=counts,
+                                inconsistent=inconsistent)
     return labels, int(to_host(counts)[1])
 
 
@@ -155,11 +162,13 @@ def _words(n_superpixels: int) -> int:
 
 def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
                      superpixel_labels: Any, n_superpixels: int, corner_fraction: float,
-                     min_superpixels: int, factor: int, capacity: int, counts: Any) -> Any:
-    """The corner and superpixel filters of pothole_components on labels ``small`` of the
-    (reduced) candidate mask with the device component ``count``: kernels/components.cu reads
-    them at full resolution by index arithmetic (per-row valid spans, corner and superpixel
-    marks, the keep/renumber table in one block, the final labels). Writes ``counts`` as
+                     min_superpixels: int, factor: int, capacity: int, counts: Any,
+                     inconsistent: Any = None) -> Any:
+    """The corner, superpixel and consistency filters of pothole_components on labels
+    ``small`` of the (reduced) candidate mask with the device component ``count``:
+    kernels/components.cu reads them at full resolution by index arithmetic (per-row valid
+    spans, corner, superpixel and consistency marks, the keep/renumber table in one block, the
+    final labels). Writes ``counts`` as
     :func:`components_on_device` does."""
     xp = backend.xp
     height, width = valid.shape
@@ -171,21 +180,24 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
         ((height + 7) // 8,), (256,),
         (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
     words = _words(n_superpixels)
-    marks = xp.zeros((capacity + 1) * (2 + words), dtype=xp.int32)
-    touched, held = marks[:capacity + 1], marks[capacity + 1:2 * (capacity + 1)]
-    present = marks[2 * (capacity + 1):].view(xp.uint32)
+    marks = xp.zeros((capacity + 1) * (3 + words), dtype=xp.int32)
+    touched, held, flagged_held = (marks[k * (capacity + 1):(k + 1) * (capacity + 1)]
+                                   for k in range(3))
+    present = marks[3 * (capacity + 1):].view(xp.uint32)
+    flagged = xp.zeros(max(n_superpixels, 1), dtype=xp.bool_) if inconsistent is None \
+        else xp.ascontiguousarray(inconsistent, dtype=xp.bool_)
     side = int(round(corner_fraction * min(height, width)))
     size = height * width
     grid = ((size + 255) // 256,)
     _kernel(backend, "component_marks")(
         grid, (256,),
-        (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), first, last,
-         i32(height), i32(width), i32(factor), i32(small_height), i32(small_width), i32(side),
-         i32(words), i32(capacity), touched, held, present))
+        (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), flagged, first,
+         last, i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
+         i32(side), i32(words), i32(capacity), touched, held, flagged_held, present))
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     _kernel(backend, "component_keep")(
-        (1,), (1024,), (touched, held, count, i32(capacity), i32(min_superpixels), new_id,
-                        counts[1:2]))
+        (1,), (1024,), (touched, held, flagged_held, count, i32(capacity),
+                        i32(min_superpixels), new_id, counts[1:2]))
     counts[0:1] = count
     counts[2:3] = touched[0:1]
     labels = xp.empty((height, width), dtype=xp.int32)

@@ -1,0 +1,71 @@
+"""Photometric consistency: whether the two views agree on the brightness of what they matched.
+
+A road surface scatters light alike towards both cameras, so the pixels the matcher pairs show
+the same brightness up to the cameras' gain. A glossy lane marking, a wet patch or a saturated
+stripe does not: its brightness depends on the view (a highlight moves between the cameras,
+one camera clips where the other does not), the census words match its edges and smudges
+rather than a surface, and the disparities read as depressions. Such a region is measured by
+its disagreement against the road's own, in the same frame.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..backend import Backend
+
+# side (px) of the square over which each view's brightness is averaged before comparing
+BRIGHTNESS_WINDOW_PX = 5
+# the gain is taken again, GAIN_ROUNDS times, over the pixels that disagree by at most
+# GAIN_TRIM times the mean disagreement of those kept before, so that a highlight does not
+# bias it
+GAIN_TRIM = 3.0
+GAIN_ROUNDS = 3
+
+
+def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any:
+    """Per left pixel, how far (grey levels) the brightness of its BRIGHTNESS_WINDOW_PX square
+    lies from that of the right image's square it was matched to, after the gain between the
+    views (the ratio of their summed brightness over the matched pixels, taken again over
+    those that agree, GAIN_ROUNDS): float32 HxW, NaN
+    where the disparity is. ``left``, ``right``: uint8 HxW on the backend; ``disparity``:
+    float32 HxW px, NaN invalid. Nothing read back."""
+    xp, ndimage = backend.xp, backend.ndimage
+    width = disparity.shape[1]
+    valid = xp.isfinite(disparity)
+    columns = xp.arange(width, dtype=xp.float32)[None, :] - xp.where(valid, disparity,
+                                                                     xp.float32(0))
+    partner = xp.clip(xp.rint(columns), 0, width - 1).astype(xp.int32)
+    left_mean = ndimage.uniform_filter(left.astype(xp.float32), BRIGHTNESS_WINDOW_PX,
+                                       mode="nearest")
+    right_mean = xp.take_along_axis(
+        ndimage.uniform_filter(right.astype(xp.float32), BRIGHTNESS_WINDOW_PX,
+                               mode="nearest"), partner, axis=1)
+    agreeing = valid
+    for _ in range(GAIN_ROUNDS):
+        difference = xp.abs(left_mean - _gain(xp, left_mean, right_mean, agreeing) * right_mean)
+        typical = xp.sum(xp.where(agreeing, difference, 0), dtype=xp.float64) / xp.maximum(
+            xp.count_nonzero(agreeing), 1)
+        agreeing = valid & (difference <= GAIN_TRIM * typical)
+    difference = xp.abs(left_mean - _gain(xp, left_mean, right_mean, agreeing) * right_mean)
+    return xp.where(valid, difference, xp.float32(np.nan)).astype(xp.float32)
+
+
+def _gain(xp: Any, left_mean: Any, right_mean: Any, where: Any) -> Any:
+    """The ratio of the summed brightness of the two views over ``where`` (a float32 backend
+    scalar)."""
+    return (xp.sum(xp.where(where, left_mean, 0), dtype=xp.float64) / xp.maximum(
+        xp.sum(xp.where(where, right_mean, 0), dtype=xp.float64), 1.0)).astype(xp.float32)
+
+
+def inconsistent(backend: Backend, means: Any, road: Any, factor: float) -> Any:
+    """Bool (n,): the superpixels whose mean disagreement ``means`` (float32 (n,), NaN where
+    none is valid) exceeds ``factor`` times the mean over the superpixels of the road (bool
+    (n,) ``road``: observed and not selected). Nothing read back."""
+    xp = backend.xp
+    finite = xp.isfinite(means)
+    weight = (road & finite).astype(xp.float64)
+    level = xp.sum(weight * xp.where(finite, means, 0)) / xp.maximum(weight.sum(), 1.0)
+    return finite & (means > factor * level)
