@@ -16,7 +16,7 @@ import numpy as np
 from . import __version__
 from .backend import BACKEND_CHOICES, get_backend
 from .calibration import StereoCalibration, load_stereo_camera_info
-from .errors import InputError, PotholeError
+from .errors import ConfigError, InputError, PotholeError
 from .evaluation import draw_progress, evaluate, evaluate_synthetic, synthetic_markdown
 from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
@@ -283,6 +283,7 @@ def run_process(args: argparse.Namespace) -> int:
 
 
 def run_survey(args: argparse.Namespace) -> int:
+    from .gis import write_gis
     from .report import write_report
     from .survey import best_view_picture, survey, write_csv, write_geojson, write_summary
 
@@ -309,6 +310,11 @@ def run_survey(args: argparse.Namespace) -> int:
     write_csv(surveys, out / "survey.csv")
     summary = write_summary(surveys, out / "summary.json")
     geojson = write_geojson(surveys, out / "survey.geojson")
+    try:
+        gis_files = write_gis(surveys, out)
+    except ConfigError as exc:
+        gis_files = []
+        print(f"survey.gpkg and survey.kml not written: {exc}", file=sys.stderr)
     write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(
         drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px, config))
     potholes = [p for drive in surveys for p in drive.potholes]
@@ -330,7 +336,8 @@ def run_survey(args: argparse.Namespace) -> int:
     print(f"{len(potholes)} potholes ({by_class}) in {frames} frames, "
           f"{frames / max(elapsed, 1e-9):.1f} frames/s; wrote {out / 'survey.csv'}, "
           f"{out / 'summary.json'}"
-          + (f", {out / 'survey.geojson'}" if geojson else "") + f", {out / 'report.html'}")
+          + (f", {out / 'survey.geojson'}" if geojson else "")
+          + "".join(f", {path}" for path in gis_files) + f", {out / 'report.html'}")
     if summary["processed"] == 0:
         reasons = [line for drive in surveys for line in
                    ([drive.error] if drive.error else

@@ -316,13 +316,18 @@ def track(observations: Sequence[FrameObservation], poses: Sequence[Pose2 | None
 
 @dataclass(frozen=True)
 class SurveyPothole:
-    """One row of the survey (CSV_COLUMNS) and the spread of its measurements over its
-    sightings (min, max of the largest depth, m, and of the area, m2)."""
+    """One row of the survey (CSV_COLUMNS), the spread of its measurements over its sightings
+    (min, max of the largest depth, m, and of the area, m2), its box in the best view and its
+    outline on the road at the best view: ``outline_xy`` float64 (N, 2) in the motion frame
+    (m), ``outline_latlon`` (N, 2) degrees where the drive has GNSS (both empty where not
+    measured)."""
 
     row: dict[str, Any]
     depth_spread_m: tuple[float, float]
     area_spread_m2: tuple[float, float]
     bbox_px: tuple[int, int, int, int]
+    outline_xy: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    outline_latlon: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
 
 
 @dataclass
@@ -407,8 +412,12 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
             "severity": severity(best.max_depth_m, config, average_diameter),
             "severity_standard": config.severity_standard,
         }
+        outline = tracked.outlines[tracked.sightings.index(best)] if tracked.outlines \
+            else np.empty((0, 2))
+        outline_latlon = to_latlon(outline) if to_latlon and len(outline) \
+            else np.empty((0, 2))
         rows.append(SurveyPothole(row, (min(depths), max(depths)), (min(areas), max(areas)),
-                                  best.bbox_px))
+                                  best.bbox_px, outline, np.asarray(outline_latlon)))
     start = frames[0].stamp_ns if frames else 0
     failures = [(f.stamp_ns, (f.stamp_ns - start) / 1e9, pose.x if pose else math.nan,
                  pose.y if pose else math.nan, f.failure)
@@ -632,16 +641,27 @@ def _csv_value(value: Any) -> Any:
 
 
 def write_geojson(surveys: Sequence[DriveSurvey], path: str | Path) -> bool:
-    """survey.geojson: a point per pothole with GNSS position, the row as its properties;
-    False (nothing written) when no bag has GNSS."""
+    """survey.geojson: a point per pothole with GNSS position and, where measured, a polygon
+    of its outline on the road, the row as the properties of both; False (nothing written)
+    when no bag has GNSS."""
     import json
 
-    features = [{"type": "Feature",
-                 "geometry": {"type": "Point",
-                              "coordinates": [pothole.row["lon"], pothole.row["lat"]]},
-                 "properties": pothole.row}
-                for drive in surveys for pothole in drive.potholes
-                if pothole.row["lat"] is not None]
+    features = []
+    for drive in surveys:
+        for pothole in drive.potholes:
+            if pothole.row["lat"] is None:
+                continue
+            features.append({"type": "Feature",
+                             "geometry": {"type": "Point",
+                                          "coordinates": [pothole.row["lon"],
+                                                          pothole.row["lat"]]},
+                             "properties": pothole.row})
+            if len(pothole.outline_latlon) >= 3:
+                ring = [[float(lon), float(lat)] for lat, lon in pothole.outline_latlon]
+                features.append({"type": "Feature",
+                                 "geometry": {"type": "Polygon",
+                                              "coordinates": [ring + ring[:1]]},
+                                 "properties": pothole.row})
     if not features:
         return False
     Path(path).write_text(json.dumps({"type": "FeatureCollection", "features": features},

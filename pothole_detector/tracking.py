@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 
 from .calibration import StereoCalibration
@@ -16,6 +17,8 @@ from .motion import Pose2, RoadFrame
 
 # the largest id the node publishes: the label image (pothole_labels) is mono16
 MAX_ID = 65535
+# how far (px) a simplified outline may depart from the labels' boundary
+OUTLINE_TOLERANCE_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -25,7 +28,8 @@ class Sighting:
     measurements, its bounding box (x0, y0, x1, y1 px), whether it lies whole in the image
     (its box off the image border) and where its footprint on the road reaches
     (``extent_m``: least and largest forward, least and largest left coordinate in the road
-    frame, m; NaN where not measured)."""
+    frame, m; NaN where not measured) and its outline there (``outline_m``: the footprint's
+    boundary as (forward, left) points, m; empty where not measured)."""
 
     stamp_ns: int
     camera_xyz: tuple[float, float, float]
@@ -38,6 +42,7 @@ class Sighting:
     bbox_px: tuple[int, int, int, int]
     whole: bool = True
     extent_m: tuple[float, float, float, float] = (math.nan,) * 4
+    outline_m: tuple[tuple[float, float], ...] = ()
 
     @property
     def length_m(self) -> float:
@@ -79,16 +84,46 @@ def footprint_extents(labels: np.ndarray, count: int, plane: RoadFrame,
     return extents
 
 
+def footprint_outlines(labels: np.ndarray, count: int, plane: RoadFrame,
+                       calibration: StereoCalibration) -> list[np.ndarray]:
+    """Per pothole label 1..``count`` of the int HxW ``labels``, the boundary of its largest
+    region (OpenCV's contour, simplified to within OUTLINE_TOLERANCE_PX) on the road plane
+    of ``plane``: float64 (N, 2) (forward, left) points, m, each boundary pixel's ray meeting
+    the plane; empty where fewer than three meet it ahead."""
+    outlines = []
+    normal = plane.axes[2]
+    for label in range(1, count + 1):
+        mask = (labels == label).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        if not contours:
+            outlines.append(np.empty((0, 2)))
+            continue
+        boundary = cv2.approxPolyDP(max(contours, key=cv2.contourArea), OUTLINE_TOLERANCE_PX,
+                                    True).reshape(-1, 2).astype(np.float64)
+        rays = np.stack([(boundary[:, 0] - calibration.cx) / calibration.f,
+                         (boundary[:, 1] - calibration.cy) / calibration.f,
+                         np.ones(len(boundary))], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            reach = (plane.origin @ normal) / (rays @ normal)
+        ahead = np.isfinite(reach) & (reach > 0)
+        points = plane.from_camera(rays[ahead] * reach[ahead, None])[:, :2]
+        outlines.append(points if len(points) >= 3 else np.empty((0, 2)))
+    return outlines
+
+
 def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, height: int,
                  calibration: StereoCalibration | None = None) -> tuple[Sighting, ...]:
     """The sightings of a PipelineResult's potholes, in its order, on the road frame
     ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
     position, which matches no track); with the result's ``calibration``, their footprints'
-    extents (:func:`footprint_extents`, from the labels read back)."""
+    extents and outlines (:func:`footprint_extents`, :func:`footprint_outlines`, from the
+    labels read back)."""
     near, far = result.observed_range_m
-    extents = footprint_extents(result.host("labels"), len(result.potholes), plane,
-                                calibration) \
-        if calibration is not None and result.potholes else None
+    extents = outlines = None
+    if calibration is not None and result.potholes:
+        labels = result.host("labels")
+        extents = footprint_extents(labels, len(result.potholes), plane, calibration)
+        outlines = footprint_outlines(labels, len(result.potholes), plane, calibration)
     made = []
     for pothole in result.potholes:
         centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
@@ -99,7 +134,9 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
             float(pothole.mean_depth_m), float(pothole.area_m2), float(pothole.volume_m3),
             tuple(int(v) for v in pothole.bbox_px), _off_border(pothole.bbox_px, width, height),
             (math.nan,) * 4 if extents is None
-            else tuple(float(v) for v in extents[pothole.label - 1])))
+            else tuple(float(v) for v in extents[pothole.label - 1]),
+            () if outlines is None
+            else tuple((float(f), float(lt)) for f, lt in outlines[pothole.label - 1])))
     return tuple(made)
 
 
@@ -136,7 +173,8 @@ def pieces(sightings: Sequence[Sighting]) -> list[list[int]]:
 def combined(parts: Sequence[Sighting]) -> Sighting:
     """One sighting of the depression ``parts`` (sightings of one frame) are pieces of: areas
     and volumes add up, the largest depth is the deepest piece's, the mean depth and the
-    positions are weighted by area, the box and the footprint's extent hold every piece's."""
+    positions are weighted by area, the box and the footprint's extent hold every piece's,
+    the outline is the convex hull of theirs."""
     if len(parts) == 1:
         return parts[0]
     weights = np.array([max(p.area_m2, 0.0) for p in parts])
@@ -156,7 +194,19 @@ def combined(parts: Sequence[Sighting]) -> Sighting:
         (int(boxes[:, 0].min()), int(boxes[:, 1].min()), int(boxes[:, 2].max()),
          int(boxes[:, 3].max())), all(p.whole for p in parts),
         (float(reach[:, 0].min()), float(reach[:, 1].max()), float(reach[:, 2].min()),
-         float(reach[:, 3].max())))
+         float(reach[:, 3].max())), tuple(map(tuple, hull([p.outline_m for p in parts]))))
+
+
+def hull(outlines: Sequence[Any]) -> np.ndarray:
+    """The convex hull (float64 (N, 2), N >= 3, or empty) of the points of ``outlines``
+    (sequences of 2D points): the outline of pieces taken together."""
+    points = [np.asarray(o, dtype=np.float64).reshape(-1, 2) for o in outlines if len(o)]
+    if not points:
+        return np.empty((0, 2))
+    together = np.concatenate(points)
+    if len(together) < 3:
+        return np.empty((0, 2))
+    return cv2.convexHull(together.astype(np.float32)).reshape(-1, 2).astype(np.float64)
 
 
 def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bool:
@@ -168,12 +218,14 @@ def _off_border(bbox_px: Any, width: int, height: int, margin_px: int = 2) -> bo
 @dataclass
 class Track:
     """One physical pothole: its id, sightings and their positions in the motion frame (m),
-    and the frame it was last seen in."""
+    the frame it was last seen in, and each sighting's outline in the motion frame (float64
+    (N, 2) m, empty where not measured)."""
 
     id: int
     sightings: list[Sighting] = field(default_factory=list)
     positions: list[np.ndarray] = field(default_factory=list)
     last_frame: int = 0
+    outlines: list[np.ndarray] = field(default_factory=list)
 
     @property
     def position(self) -> np.ndarray:
@@ -268,6 +320,8 @@ class PotholeTracker:
                 self._active.append(target)
             target.sightings.append(sighting)
             target.positions.append(position)
+            target.outlines.append(pose.apply(np.asarray(sighting.outline_m).reshape(-1, 2))
+                                   if sighting.outline_m else np.empty((0, 2)))
             target.last_frame = self._frame
             ids.append(target.id)
         return ids
@@ -304,17 +358,21 @@ def merge_overlapping(tracks: Sequence[Track]) -> list[Track]:
         if len(group) == 1:
             merged.append(group[0])
             continue
-        by_stamp: dict[int, list[tuple[Sighting, np.ndarray]]] = {}
+        by_stamp: dict[int, list[tuple[Sighting, np.ndarray, np.ndarray]]] = {}
         for member in group:
-            for sighting, position in zip(member.sightings, member.positions):
-                by_stamp.setdefault(sighting.stamp_ns, []).append((sighting, position))
+            outlines = member.outlines or [np.empty((0, 2))] * len(member.sightings)
+            for sighting, position, outline in zip(member.sightings, member.positions,
+                                                   outlines):
+                by_stamp.setdefault(sighting.stamp_ns, []).append((sighting, position,
+                                                                   outline))
         joined = Track(min(t.id for t in group), last_frame=max(t.last_frame for t in group))
         for stamp in sorted(by_stamp):
             parts = by_stamp[stamp]
-            weights = np.array([max(s.area_m2, 0.0) for s, _ in parts]) + 1e-12
-            joined.sightings.append(combined([s for s, _ in parts]))
-            joined.positions.append(np.average([p for _, p in parts], axis=0,
+            weights = np.array([max(s.area_m2, 0.0) for s, _, _ in parts]) + 1e-12
+            joined.sightings.append(combined([s for s, _, _ in parts]))
+            joined.positions.append(np.average([p for _, p, _ in parts], axis=0,
                                                weights=weights))
+            joined.outlines.append(hull([o for _, _, o in parts]))
         merged.append(joined)
     return sorted(merged, key=lambda t: (t.sightings[0].stamp_ns, t.id))
 

@@ -8,7 +8,7 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".[test,ros,msgs,fleet]"
+.venv/bin/python -m pip install --quiet -e ".[test,ros,msgs,fleet,gis]"
 scripts/build_msgs.sh
 # the CPU kernels (Numba) compiled into their cache now: no first run waits for the compiler
 .venv/bin/python -m pothole_detector.stages

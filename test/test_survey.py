@@ -156,11 +156,19 @@ def test_a_drive_reports_each_pothole_once_where_it_is(survey_drive_bags, kind, 
     if kind == "gnss":
         assert write_geojson([drive], tmp_path / "survey.geojson")
         features = json.loads((tmp_path / "survey.geojson").read_text())["features"]
-        assert len(features) == len(truths)
-        for feature in features:
+        points = [f for f in features if f["geometry"]["type"] == "Point"]
+        outlines = [f for f in features if f["geometry"]["type"] == "Polygon"]
+        assert len(points) == len(outlines) == len(truths)
+        for feature in points:
             lon, lat = feature["geometry"]["coordinates"]
             east_north = enu_of(np.array([lat]), np.array([lon]), *SURVEY_ORIGIN_LATLON)[0]
             assert min(np.linalg.norm(east_north - t) for t, _, _ in truths) < 0.2
+        for feature, shape_truth in zip(outlines, drive.potholes):
+            ring = np.array(feature["geometry"]["coordinates"][0])
+            corners = enu_of(ring[:, 1], ring[:, 0], *SURVEY_ORIGIN_LATLON)
+            x, y = corners[:, 0], corners[:, 1]
+            area = abs(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1])) / 2
+            assert abs(area / shape_truth.row["area_m2"] - 1) < 0.3, (area, shape_truth.row)
     else:
         assert drive.route_latlon is None
 
