@@ -236,3 +236,151 @@ def latlon_of(enu: np.ndarray, lat0_deg: float, lon0_deg: float) -> np.ndarray:
     lat = lat0_deg + np.degrees(enu[:, 1] / EARTH_RADIUS_M)
     lon = lon0_deg + np.degrees(enu[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0_deg))))
     return np.stack([lat, lon], axis=-1)
+
+
+def fit_rigid_2d_weighted(source: np.ndarray, target: np.ndarray,
+                          weights: np.ndarray) -> Pose2:
+    """The rigid motion taking (N, 2) ``source`` points to ``target`` by weighted least
+    squares (weighted Kabsch; ``weights`` (N,) non-negative, not all 0)."""
+    weights = weights / weights.sum()
+    mean_s, mean_t = weights @ source, weights @ target
+    h = (source - mean_s).T @ ((target - mean_t) * weights[:, None])
+    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
+    c, s = math.cos(yaw), math.sin(yaw)
+    shift = mean_t - np.array([[c, -s], [s, c]]) @ mean_s
+    return Pose2(float(shift[0]), float(shift[1]), yaw)
+
+
+# the least stretch of the drive (m) the fixes must cover to place it
+MIN_SPAN_M = 0.5
+# a fix takes part in a frame's alignment where its Gaussian weight of distance is above this
+# (within 3.7 half-widths of the window); frames with none so close lie in a gap
+WINDOW_REACH = 1e-3
+
+
+@dataclass
+class GnssFusion:
+    """Odometry whose drift GNSS corrects along the drive: for each frame of the route, the
+    rigid motion taking odometry positions near it to the GNSS track (east, north, m, from
+    ``origin`` (lat, lon)); and the fixes' residuals after it (m; NaN for fixes outside the
+    route's time) with the robust weight each kept (0: rejected as an outlier)."""
+
+    route_xy: np.ndarray
+    alignments: list[Pose2 | None]
+    blends: list[tuple[int, int, float]]
+    origin: np.ndarray
+    residuals_m: np.ndarray
+    kept: np.ndarray
+
+    def map_at(self, frame: int, point: np.ndarray) -> np.ndarray:
+        """A (2,) odometry position (m) in east, north (m) by the mapping of route frame
+        ``frame`` (its alignment, or in a gap the blend of those about it)."""
+        low, high, weight = self.blends[frame]
+        mapped = self.alignments[low].apply(point[None, :])[0]
+        if weight == 0.0:
+            return mapped
+        return (1 - weight) * mapped + weight * self.alignments[high].apply(point[None, :])[0]
+
+    def to_enu(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) odometry positions (m) in east, north (m): each by the mapping of the route
+        frame nearest to it."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        nearest = np.argmin(((xy[:, None, :] - self.route_xy[None, :, :]) ** 2).sum(axis=2),
+                            axis=1)
+        return np.array([self.map_at(int(i), point)
+                         for i, point in zip(nearest, xy)]).reshape(-1, 2)
+
+    def to_latlon(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) odometry positions (m) as (lat, lon) degrees."""
+        return latlon_of(self.to_enu(xy), *self.origin)
+
+
+def fuse_gnss(route_stamps_ns: np.ndarray, route_xy: np.ndarray, gnss_stamps_ns: np.ndarray,
+              gnss_latlon: np.ndarray, gnss_sigma_m: np.ndarray, window_m: float,
+              outlier_sigmas: float = 3.0, rounds: int = 3) -> GnssFusion | None:
+    """Odometry (frame stamps, (N, 2) positions in its own frame, m) fused with GNSS fixes
+    (stamps, (K, 2) lat/lon, (K,) horizontal sigma m, NaN where the fix gave none): for each
+    frame, the rigid motion fitted by weighted least squares to the fixes within about
+    ``window_m`` of travel around it (a drive shorter than that: all of it; Gaussian weights
+    of half-width ``window_m`` / 2 in distance along the odometry's path, times the fix's
+    1 / sigma^2), so that the odometry's drift of scale and heading is taken out along the
+    drive rather than once for all of it.
+    Rounds of Huber weights down-weight fixes more than ``outlier_sigmas`` sigmas off
+    (three times as far: rejected). A frame whose window holds fixes along less than half of
+    it (a gap in the fixes, or the drive's end) has no alignment of its own: it blends those
+    of the nearest frames with one on either side by distance along the route, so that the
+    odometry carries the drive through the gap. None where the fixes cover less than
+    MIN_SPAN_M of the drive."""
+    route_xy = np.asarray(route_xy, dtype=np.float64).reshape(-1, 2)
+    times = np.asarray(route_stamps_ns, dtype=np.float64)
+    stamps = np.asarray(gnss_stamps_ns, dtype=np.float64)
+    inside = (stamps >= times[0]) & (stamps <= times[-1]) if len(times) else stamps < 0
+    if len(route_xy) < 2 or inside.sum() < 2:
+        return None
+    origin = np.asarray(gnss_latlon[0], dtype=np.float64)
+    enu = enu_of(gnss_latlon[:, 0], gnss_latlon[:, 1], *origin)
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route_xy, axis=0),
+                                                                axis=1))])
+    odometry = np.stack([np.interp(stamps, times, route_xy[:, 0]),
+                         np.interp(stamps, times, route_xy[:, 1])], axis=1)
+    along = np.interp(stamps, times, travelled)
+    sigma = np.asarray(gnss_sigma_m, dtype=np.float64)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma,
+                     np.nanmedian(np.where(sigma > 0, sigma, np.nan))
+                     if np.any(np.isfinite(sigma) & (sigma > 0)) else 1.0)
+    precision = np.where(inside, 1.0 / sigma ** 2, 0.0)
+    robust = np.ones(len(stamps))
+    span = float(np.ptp(along[inside]))
+    if span < MIN_SPAN_M:
+        return None
+    half = min(window_m, span) / 2
+    alignments: list[Pose2 | None] = []
+    fusion = None
+    for _ in range(max(rounds, 1)):
+        alignments = []
+        for position in travelled:
+            closeness = np.exp(-0.5 * ((along - position) / half) ** 2)
+            useful = (closeness > WINDOW_REACH) & (precision * robust > 0)
+            weight = precision * robust * closeness
+            spread = np.ptp(odometry[useful], axis=0).max() if useful.sum() >= 3 else 0.0
+            alignments.append(fit_rigid_2d_weighted(odometry[useful], enu[useful],
+                                                    weight[useful])
+                              if useful.sum() >= 3 and spread >= half else None)
+        if all(a is None for a in alignments):
+            return None
+        fusion = GnssFusion(route_xy, alignments, _gap_blends(alignments, travelled), origin,
+                            np.zeros(0), np.zeros(0))
+        nearest = np.clip(np.searchsorted(times, stamps), 0, len(times) - 1)
+        residual = np.array([np.linalg.norm(fusion.map_at(int(i), o) - e)
+                             for i, o, e in zip(nearest, odometry, enu)])
+        limit = outlier_sigmas * sigma
+        robust = np.where(residual <= limit, 1.0, limit / np.maximum(residual, 1e-12))
+        robust = np.where(residual > 3 * limit, 0.0, robust)
+    assert fusion is not None
+    fusion.residuals_m = np.where(inside, residual, np.nan)
+    fusion.kept = np.where(inside, robust, 0.0)
+    return fusion
+
+
+def _gap_blends(alignments: list[Pose2 | None], travelled: np.ndarray
+                ) -> list[tuple[int, int, float]]:
+    """Per frame, how its mapping is made: (i, j, w) maps a point by the alignments of frames
+    i and j blended as (1 - w) A_i(p) + w A_j(p); a frame with its own alignment is (k, k, 0),
+    one in a gap blends the nearest ones with an alignment on either side by distance along
+    the route (``travelled``, m), one past the route's aligned ends takes the nearest."""
+    present = np.array([i for i, a in enumerate(alignments) if a is not None])
+    blends = []
+    for index, alignment in enumerate(alignments):
+        if alignment is not None:
+            blends.append((index, index, 0.0))
+            continue
+        after = int(np.searchsorted(present, index))
+        if after == 0 or after == len(present):
+            nearest = int(present[min(after, len(present) - 1)])
+            blends.append((nearest, nearest, 0.0))
+            continue
+        low, high = int(present[after - 1]), int(present[after])
+        span = travelled[high] - travelled[low]
+        weight = (travelled[index] - travelled[low]) / span if span > 0 else 0.0
+        blends.append((low, high, float(weight)))
+    return blends

@@ -277,6 +277,11 @@ PARAMETERS: tuple[Param, ...] = (
     Param("severity_high_depth_m", float, 0.05,
           "Survey: a pothole deeper than this (m) is of high severity (FHWA LTPP: 50 mm).",
           0.001, 1.0, group="survey"),
+    Param("gnss_window_m", float, 20.0,
+          "Survey: GNSS corrects the odometry's drift over this much travel about each frame "
+          "(m): long enough to average the fixes' noise, short enough that the odometry "
+          "drifts little inside it (1 % of scale error drifts 0.1 m in 20 m).", 1, 100000,
+          group="survey"),
     Param("track_match_distance_m", float, 0.25,
           "Survey: a sighting joins a tracked pothole whose position on the road (m, after "
           "ego-motion) is this close, or closer than the sum of their radii.", 0.01, 10.0,

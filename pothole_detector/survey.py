@@ -23,7 +23,7 @@ from .bagtools import FailureTally
 from .backend import get_backend
 from .conversions import stamp_ns
 from .errors import InputError, PotholeError
-from .motion import (Pose2, StereoOdometry, enu_of, fit_rigid_2d, interpolate_poses, latlon_of,
+from .motion import (GnssFusion, Pose2, StereoOdometry, enu_of, fuse_gnss, interpolate_poses,
                      planar_pose, road_frame)
 from .recordings import bags, readahead
 from .recordings.topics import StereoTopics, find_stereo_topics
@@ -198,13 +198,14 @@ def _until_damaged(results: Iterable[tuple[bags.BagFrame, Any]],
 @dataclass
 class MotionSeries:
     """Poses of the road frame from the bag itself: odometry or /tf (planar x, y, yaw of
-    ``base_frame``), and GNSS fixes (lat, lon, deg)."""
+    ``base_frame``), and GNSS fixes (lat, lon, deg; horizontal sigma, m, NaN unknown)."""
 
     stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     poses: list[Pose2] = field(default_factory=list)
     source: str = "visual odometry"
     gnss_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     gnss_latlon: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    gnss_sigma_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass
@@ -232,8 +233,18 @@ def motion_samples(messages: Iterable[tuple[str, int, Any]], topics: DriveTopics
                 if transform.child_frame_id.strip("/") == topics.base_frame]
         elif topic == topics.gnss and msg.status.status >= 0 and math.isfinite(msg.latitude):
             samples.gnss.append((stamp_ns(msg.header),
-                                 (float(msg.latitude), float(msg.longitude))))
+                                 (float(msg.latitude), float(msg.longitude), _fix_sigma(msg))))
     return samples
+
+
+def _fix_sigma(fix: Any) -> float:
+    """A NavSatFix's horizontal position sigma (m): the root mean of its east and north
+    variances; NaN where its covariance is unknown."""
+    covariance = np.asarray(fix.position_covariance, dtype=np.float64)
+    if int(fix.position_covariance_type) == 0 or covariance.size < 5:
+        return math.nan
+    variance = (covariance[0] + covariance[4]) / 2
+    return math.sqrt(variance) if math.isfinite(variance) and variance > 0 else math.nan
 
 
 def motion_series(parts: Iterable[MotionSamples], topics: DriveTopics) -> MotionSeries:
@@ -257,7 +268,10 @@ def motion_series(parts: Iterable[MotionSamples], topics: DriveTopics) -> Motion
     if gnss:
         gnss.sort(key=lambda sample: sample[0])
         series.gnss_stamps_ns = np.array([stamp for stamp, _ in gnss], dtype=np.int64)
-        series.gnss_latlon = np.array([fix for _, fix in gnss], dtype=np.float64)
+        fixes = np.array([fix for _, fix in gnss], dtype=np.float64)
+        series.gnss_latlon = fixes[:, :2]
+        series.gnss_sigma_m = fixes[:, 2] if fixes.shape[1] > 2 \
+            else np.full(len(fixes), np.nan)
         if not poses:
             series.source = f"GNSS ({topics.gnss})"
     return series
@@ -337,7 +351,8 @@ class DriveSurvey:
     of road (m), the frame counts, how many tracked potholes were seen in fewer than
     ``min_sightings`` frames (left out), the topics it was read from, the frames that
     failed: (stamp ns, seconds into the drive, motion-frame x, y (m; NaN where unknown), why),
-    and why the bag could not be read at all, if so."""
+    and why the bag could not be read at all, if so; where the bag has GNSS, the fixes'
+    residuals after the fusion with the odometry (fixes, rejected, median_m, p95_m, max_m)."""
 
     bag: Path
     potholes: list[SurveyPothole]
@@ -350,6 +365,7 @@ class DriveSurvey:
     topics: DriveTopics | None = None
     failures: list[tuple[int, float, float, float, str]] = field(default_factory=list)
     error: str = ""
+    gnss_residuals: dict[str, Any] | None = None
 
     @classmethod
     def unreadable(cls, bag: str | Path, error: str) -> "DriveSurvey":
@@ -384,7 +400,8 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     tracks = sorted((t for t in tracked_all if len(t.sightings) >= config.min_sightings
                      and np.all(np.isfinite(t.position))),
                     key=lambda t: t.sightings[0].stamp_ns)
-    to_latlon = _gnss_alignment(frames, poses, motion)
+    fusion = _gnss_fusion(frames, poses, motion, config)
+    to_latlon = fusion.to_latlon if fusion is not None else None
     route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)
     rows = []
     for offset, tracked in enumerate(tracks):
@@ -425,31 +442,38 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     return DriveSurvey(Path(bag), rows, route,
                        to_latlon(route) if to_latlon and len(route) else None, motion.source,
                        _observed_length(frames, poses), len(frames),
-                       len(tracked_all) - len(tracks), topics, failures)
+                       len(tracked_all) - len(tracks), topics, failures,
+                       gnss_residuals=_residual_summary(fusion))
 
 
-def _gnss_alignment(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
-                    motion: MotionSeries) -> Callable[[np.ndarray], np.ndarray] | None:
-    """A map from motion-frame positions to (lat, lon): the rigid motion between the frames'
-    positions and the GNSS track at their stamps; None without GNSS or with too short a
-    track."""
+def _residual_summary(fusion: GnssFusion | None) -> dict[str, Any] | None:
+    """The GNSS fixes' residuals after the fusion: fixes used, rejected as outliers, median,
+    95th percentile and largest residual of those used (m); None without GNSS."""
+    if fusion is None:
+        return None
+    inside = np.isfinite(fusion.residuals_m)
+    used = fusion.residuals_m[inside & (fusion.kept > 0)]
+    return {"fixes": int(inside.sum()), "rejected": int((inside & (fusion.kept == 0)).sum()),
+            "median_m": float(np.median(used)) if len(used) else None,
+            "p95_m": float(np.percentile(used, 95)) if len(used) else None,
+            "max_m": float(used.max()) if len(used) else None}
+
+
+def _gnss_fusion(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
+                 motion: MotionSeries, config: Config) -> GnssFusion | None:
+    """The frames' motion-frame route fused with the GNSS track (motion.fuse_gnss, over
+    ``gnss_window_m``); None without GNSS or with too short a track."""
     if len(motion.gnss_latlon) < 2:
         return None
-    origin = motion.gnss_latlon[0]
-    enu = enu_of(motion.gnss_latlon[:, 0], motion.gnss_latlon[:, 1], *origin)
-    times = motion.gnss_stamps_ns.astype(np.float64)
-    pairs = [((pose.x, pose.y), (np.interp(frame.stamp_ns, times, enu[:, 0]),
-                                 np.interp(frame.stamp_ns, times, enu[:, 1])))
-             for frame, pose in zip(frames, poses)
-             if pose is not None and times[0] <= frame.stamp_ns <= times[-1]]
-    if len(pairs) < 2:
+    placed = [(frame.stamp_ns, (pose.x, pose.y)) for frame, pose in zip(frames, poses)
+              if pose is not None]
+    if len(placed) < 2:
         return None
-    source = np.array([p for p, _ in pairs])
-    target = np.array([q for _, q in pairs])
-    if np.ptp(source, axis=0).max() < 0.5 or np.ptp(target, axis=0).max() < 0.5:
-        return None
-    alignment = fit_rigid_2d(source, target)
-    return lambda xy: latlon_of(alignment.apply(xy), *origin)
+    sigma = motion.gnss_sigma_m if len(motion.gnss_sigma_m) == len(motion.gnss_latlon) \
+        else np.full(len(motion.gnss_latlon), np.nan)
+    return fuse_gnss(np.array([stamp for stamp, _ in placed], dtype=np.int64),
+                     np.array([xy for _, xy in placed]), motion.gnss_stamps_ns,
+                     motion.gnss_latlon, sigma, config.gnss_window_m)
 
 
 def _observed_length(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None]
@@ -602,7 +626,7 @@ def write_summary(surveys: Sequence[DriveSurvey], path: str | Path) -> dict[str,
             "topics": None if drive.topics is None else drive.topics.stereo.describe(),
             "motion_source": drive.motion_source, "frames": drive.frames,
             "processed": drive.frames - drive.failed, "failed": drive.failed,
-            "potholes": len(drive.potholes),
+            "potholes": len(drive.potholes), "gnss_residuals": drive.gnss_residuals,
             "failures_by_reason": [{"count": count, "reason": reason, "first_stamp_ns": stamp}
                                    for count, reason, stamp in drive.failure_tally().rows()],
             "failed_frames": [{"stamp_ns": stamp, "seconds": round(seconds, 3),
