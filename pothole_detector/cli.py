@@ -316,7 +316,8 @@ def run_survey(args: argparse.Namespace) -> int:
         gis_files = []
         print(f"survey.gpkg and survey.kml not written: {exc}", file=sys.stderr)
     write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(
-        drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px, config))
+        drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px, config),
+        (config.report_tiles_url, config.report_tiles_attribution))
     potholes = [p for drive in surveys for p in drive.potholes]
     by_class = ", ".join(f"{sum(p.row['severity'] == s for p in potholes)} {s}"
                          for s in ("low", "moderate", "high"))

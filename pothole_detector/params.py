@@ -277,6 +277,11 @@ PARAMETERS: tuple[Param, ...] = (
     Param("severity_high_depth_m", float, 0.05,
           "Survey: a pothole deeper than this (m) is of high severity (FHWA LTPP: 50 mm).",
           0.001, 1.0, group="survey"),
+    Param("report_tiles_url", str, "https://tile.openstreetmap.org/{z}/{x}/{y}.png",
+          "Survey: the base map of report.html where the page is online (a tile URL "
+          "template with {z}, {x}, {y}); offline the route's drawing stays.", group="survey"),
+    Param("report_tiles_attribution", str, "&copy; OpenStreetMap contributors",
+          "Survey: the attribution the base map's tiles require.", group="survey"),
     Param("gnss_window_m", float, 20.0,
           "Survey: GNSS corrects the odometry's drift over this much travel about each frame "
           "(m): long enough to average the fixes' noise, short enough that the odometry "

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import base64
 import html
+import json
 import math
 from pathlib import Path
 from typing import Callable, Sequence
@@ -17,6 +18,43 @@ import numpy as np
 from .survey import SEVERITIES, DriveSurvey, SurveyPothole
 
 SEVERITY_COLOURS = {"low": "#f2c230", "moderate": "#f07d19", "high": "#d7261e"}
+# the base map: Leaflet from its CDN, loaded only where the page is online; offline the
+# route's drawing stays
+LEAFLET_URL = "https://unpkg.com/leaflet@1.9.4/dist/"
+# the most route points a map draws (the route is thinned to them)
+MAP_ROUTE_POINTS = 2000
+_MAP = """
+(function () {
+  var maps = document.querySelectorAll("div.map");
+  if (!maps.length) return;
+  var css = document.createElement("link");
+  css.rel = "stylesheet"; css.href = LEAFLET + "leaflet.css";
+  document.head.appendChild(css);
+  var js = document.createElement("script");
+  js.src = LEAFLET + "leaflet.js";
+  js.onload = function () {
+    maps.forEach(function (div) {
+      var d = JSON.parse(div.dataset.map);
+      div.style.display = "block";
+      div.nextElementSibling.style.display = "none";
+      var map = L.map(div);
+      L.tileLayer(d.tiles, {maxZoom: 22, maxNativeZoom: 19, attribution: d.attribution})
+        .addTo(map);
+      var line = L.polyline(d.route, {color: "#3d6fb6", weight: 4}).addTo(map);
+      d.potholes.forEach(function (p) {
+        if (p.outline.length > 2)
+          L.polygon(p.outline, {color: "#222", weight: 1, fillColor: p.colour,
+                                fillOpacity: 0.6}).addTo(map);
+        L.circleMarker([p.lat, p.lon], {radius: 6, color: "#222", weight: 1,
+                                        fillColor: p.colour, fillOpacity: 1})
+          .bindTooltip("#" + p.id + " " + p.label).addTo(map);
+      });
+      map.fitBounds(line.getBounds().pad(0.1));
+    });
+  };
+  document.head.appendChild(js);
+})();
+"""
 _STYLE = """
 body{font-family:system-ui,sans-serif;margin:24px;color:#222;max-width:1200px}
 h1{margin:0 0 4px}h2{margin-top:28px}.muted{color:#666}
@@ -58,11 +96,18 @@ def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
         holes = xy(np.array([[p.row["lat"], p.row["lon"]] for p in drive.potholes])
                    .reshape(-1, 2))
         axes = "east / north (m, from GNSS)"
+
+        def outline_xy(pothole: SurveyPothole) -> np.ndarray:
+            return xy(pothole.outline_latlon) if len(pothole.outline_latlon) \
+                else np.zeros((0, 2))
     else:
         route = drive.route_xy
         holes = np.array([[p.row["odom_x_m"], p.row["odom_y_m"]] for p in drive.potholes]
                          ).reshape(-1, 2)
         axes = f"x / y (m, motion frame: {drive.motion_source})"
+
+        def outline_xy(pothole: SurveyPothole) -> np.ndarray:
+            return pothole.outline_xy
     failed = np.array([[x, y] for _, _, x, y, _ in drive.failures
                        if math.isfinite(x) and math.isfinite(y)]).reshape(-1, 2)
     if use_gnss:
@@ -91,6 +136,13 @@ def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
         parts.append(f'<path d="M{x - 4:.1f},{y - 4:.1f}L{x + 4:.1f},{y + 4:.1f}M{x - 4:.1f},'
                      f'{y + 4:.1f}L{x + 4:.1f},{y - 4:.1f}" stroke="#888" stroke-width="2">'
                      '<title>a frame that failed</title></path>')
+    for pothole in drive.potholes:
+        outline = outline_xy(pothole)
+        if len(outline) >= 3:
+            corners = " ".join(f"{x:.1f},{y:.1f}" for x, y in to_svg(outline))
+            parts.append(f'<polygon points="{corners}" fill="'
+                         f'{SEVERITY_COLOURS[pothole.row["severity"]]}" stroke="#222" '
+                         'stroke-width="1" opacity="0.8"/>')
     for pothole, (x, y) in zip(drive.potholes, to_svg(holes)):
         colour = SEVERITY_COLOURS[pothole.row["severity"]]
         parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="7" fill="{colour}" '
@@ -173,10 +225,33 @@ def _row_html(pothole: SurveyPothole) -> str:
         + f">{text}</td>" for text, value, cls in cells) + "</tr>"
 
 
+def _map_div(drive: DriveSurvey, tiles: tuple[str, str]) -> str:
+    """A drive's base map (hidden until Leaflet loads, then shown in place of the route's
+    drawing that follows it): the route, the potholes and their outlines in lat/lon, the
+    tiles ``(URL template, attribution)``; empty without GNSS."""
+    if drive.route_latlon is None or not len(drive.route_latlon):
+        return ""
+    step = max(1, -(-len(drive.route_latlon) // MAP_ROUTE_POINTS))
+    route = np.concatenate([drive.route_latlon[::step], drive.route_latlon[-1:]])
+    potholes = [{"id": p.row["pothole_id"], "lat": p.row["lat"], "lon": p.row["lon"],
+                 "colour": SEVERITY_COLOURS[p.row["severity"]],
+                 "label": f'{p.row["severity"]}, {p.row["max_depth_m"] * 1000:.0f} mm',
+                 "outline": np.round(p.outline_latlon, 8).tolist()}
+                for p in drive.potholes if p.row["lat"] is not None]
+    data = {"route": np.round(route, 8).tolist(), "potholes": potholes, "tiles": tiles[0],
+            "attribution": tiles[1]}
+    return (f'<div class=map style="display:none;height:420px;max-width:900px" '
+            f'data-map="{html.escape(json.dumps(data))}"></div>')
+
+
 def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
-                 picture: Callable[[DriveSurvey, SurveyPothole], np.ndarray | None]) -> None:
+                 picture: Callable[[DriveSurvey, SurveyPothole], np.ndarray | None],
+                 tiles: tuple[str, str] = ("https://tile.openstreetmap.org/{z}/{x}/{y}.png",
+                                           "&copy; OpenStreetMap contributors")) -> None:
     """Write report.html for ``surveys``; ``picture(drive, pothole)`` gives the best-view
-    crop (HxWx3 RGB) of a pothole, or None."""
+    crop (HxWx3 RGB) of a pothole, or None. Where the page is online, drives with GNSS are
+    drawn over a base map of ``tiles`` (a Leaflet URL template and its attribution); offline
+    the route's drawing stays."""
     potholes = [p for drive in surveys for p in drive.potholes]
     counts = {s: sum(p.row["severity"] == s for p in potholes) for s in SEVERITIES}
     observed = sum(d.observed_length_m for d in surveys)
@@ -201,14 +276,19 @@ def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
                            f'<figcaption>#{r["pothole_id"]} {r["severity"]}, '
                            f'{r["max_depth_m"] * 1000:.0f} mm, {r["area_m2"] * 1e4:.0f} cm²'
                            f'</figcaption></figure>')
-    routes = "".join(f"<h3>{html.escape(d.bag.name)}</h3>{_route_svg(d)}" for d in surveys)
+    routes = "".join(f"<h3>{html.escape(d.bag.name)}</h3>{_map_div(d, tiles)}"
+                     f"<div>{_route_svg(d)}</div>" for d in surveys)
+    standards = sorted({p.row["severity_standard"] for p in potholes}) or ["ltpp"]
+    standard = " / ".join({"ltpp": "largest depth (FHWA LTPP)",
+                           "astm_d6433": "largest depth and diameter (ASTM D6433)"}[s]
+                          for s in standards)
     legend = " ".join(f'<span class="sev" style="background:{SEVERITY_COLOURS[s]}">{s}</span>'
                       for s in SEVERITIES)
     page = f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>Pothole survey</title>
 <style>{_STYLE}</style></head><body>
 <h1>Pothole survey</h1>
-<p class=muted>{len(surveys)} drive(s); severity by largest depth (FHWA LTPP): {legend}</p>
+<p class=muted>{len(surveys)} drive(s); severity by {standard}: {legend}</p>
 <div class=cards>{"".join(f"<div class=card><b>{v}</b>{k}</div>" for k, v in cards)}</div>
 <h2>Route</h2>{routes}
 <h2>Potholes</h2><p class=muted>Click a column to sort.</p>
@@ -220,6 +300,7 @@ def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
 {_histogram_svg([p.row["max_depth_m"] for p in potholes], "largest depth", 1000, "mm")}
 {_histogram_svg([p.row["area_m2"] for p in potholes], "area", 1e4, "cm²")}
 <h2>Frames that failed</h2>{_failures_html(surveys)}
-<script>{_SORT}</script></body></html>
+<script>{_SORT}</script>
+<script>var LEAFLET = "{LEAFLET_URL}";{_MAP}</script></body></html>
 """
     Path(path).write_text(page, encoding="utf-8")

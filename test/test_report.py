@@ -3,6 +3,8 @@ headless Chromium (the screenshot is kept in out/test-artifacts/)."""
 
 from __future__ import annotations
 
+import html
+import json
 import re
 import shutil
 import subprocess
@@ -12,7 +14,7 @@ import pytest
 from conftest import REPO, rewrite_bag
 
 from pothole_detector.params import Config
-from pothole_detector.report import write_report
+from pothole_detector.report import LEAFLET_URL, write_report
 from pothole_detector.survey import best_view_picture, survey
 
 CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser",
@@ -38,7 +40,27 @@ def test_the_report_holds_route_table_pictures_and_distributions(report):
     assert len(re.findall(r"<tr><td", text)) == count
     assert text.count('aria-label="route"') == 2 and "east / north (m, from GNSS)" in text
     assert 'aria-label="largest depth"' in text and 'aria-label="area"' in text
-    assert "road observed" in text and "http" not in text.replace("http://www.w3.org", "")
+    assert "road observed" in text
+    # offline, nothing is fetched: the only addresses are the base map's, loaded by script
+    addresses = set(re.findall(r"https?://[^\s\"'&]+", text))
+    assert addresses <= {"http://www.w3.org/2000/svg", LEAFLET_URL,
+                         "https://tile.openstreetmap.org/{z}/{x}/{y}.png"}, addresses
+
+
+def test_a_gnss_drive_has_a_base_map_with_its_outlines(report):
+    """The GNSS drive's map (shown where Leaflet loads) holds the route and each pothole
+    with its outline around it; the drive without GNSS has none."""
+    path, surveys = report
+    maps = re.findall(r'<div class=map [^>]*data-map="([^"]*)"', path.read_text())
+    assert len(maps) == 1
+    data = json.loads(html.unescape(maps[0]))
+    gnss = surveys[0]
+    assert len(data["route"]) >= 2 and len(data["potholes"]) == len(gnss.potholes)
+    for pothole in data["potholes"]:
+        outline = np.array(pothole["outline"])
+        assert len(outline) >= 3
+        assert outline[:, 0].min() < pothole["lat"] < outline[:, 0].max()
+        assert outline[:, 1].min() < pothole["lon"] < outline[:, 1].max()
 
 
 def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):
