@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import cv2
 import numpy as np
@@ -149,7 +149,16 @@ def pieces(sightings: Sequence[Sighting]) -> list[list[int]]:
     """The frame's ``sightings`` grouped into the depressions they are pieces of: two belong
     together where their discs on the road plane (each a disc of its area about its centroid)
     touch, and groups chain. Each group's indices in order, the groups by their first."""
-    count = len(sightings)
+    def touch(i: int, j: int) -> bool:
+        a, b = sightings[i], sightings[j]
+        return math.dist(a.road_xy, b.road_xy) <= radius_of(a.area_m2) + radius_of(b.area_m2)
+
+    return _groups(len(sightings), touch)
+
+
+def _groups(count: int, joined: Callable[[int, int], bool]) -> list[list[int]]:
+    """Indices 0..``count`` - 1 grouped where ``joined(i, j)`` (i < j) links them, links
+    chaining (union-find); each group's indices in order, the groups by their first."""
     parent = list(range(count))
 
     def root(i: int) -> int:
@@ -160,9 +169,7 @@ def pieces(sightings: Sequence[Sighting]) -> list[list[int]]:
 
     for i in range(count):
         for j in range(i + 1, count):
-            a, b = sightings[i], sightings[j]
-            gap = math.dist(a.road_xy, b.road_xy)
-            if gap <= radius_of(a.area_m2) + radius_of(b.area_m2):
+            if joined(i, j):
                 parent[max(root(i), root(j))] = min(root(i), root(j))
     groups: dict[int, list[int]] = {}
     for i in range(count):
@@ -334,27 +341,17 @@ def merge_overlapping(tracks: Sequence[Track]) -> list[Track]:
     chain. A joined track keeps the first one's id and holds every sighting, those of one
     frame combined (:func:`combined`), in time order; the tracks in order of their first
     sighting."""
-    count = len(tracks)
-    parent = list(range(count))
+    positions = [t.position for t in tracks]
+    radii = [t.radius_m for t in tracks]
+    finite = [bool(np.all(np.isfinite(p))) for p in positions]
 
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
+    def overlap(i: int, j: int) -> bool:
+        return finite[i] and finite[j] and float(
+            np.linalg.norm(positions[i] - positions[j])) < radii[i] + radii[j]
 
-    finite = [bool(np.all(np.isfinite(t.position))) for t in tracks]
-    for i in range(count):
-        for j in range(i + 1, count):
-            if finite[i] and finite[j] and float(np.linalg.norm(
-                    tracks[i].position - tracks[j].position)) < (tracks[i].radius_m
-                                                                 + tracks[j].radius_m):
-                parent[max(root(i), root(j))] = min(root(i), root(j))
-    groups: dict[int, list[Track]] = {}
-    for i in range(count):
-        groups.setdefault(root(i), []).append(tracks[i])
     merged = []
-    for group in groups.values():
+    for indices in _groups(len(tracks), overlap):
+        group = [tracks[i] for i in indices]
         if len(group) == 1:
             merged.append(group[0])
             continue
