@@ -31,6 +31,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pothole_detector.bagtools import RecordingForm, write_drive_bag  # noqa: E402
+from pothole_detector.fleet import ray_chunks  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.report import write_report  # noqa: E402
 from pothole_detector.survey import best_view_picture, survey, write_csv  # noqa: E402
@@ -58,7 +59,7 @@ def raw_sample(scene: object, camera: object) -> object:
 def bench(bag: Path, config: Config, use_ray: bool, jobs: int, out: Path
           ) -> tuple[float, int, int]:
     start = time.perf_counter()
-    surveys = survey([bag], config, use_ray=use_ray, jobs=jobs)
+    surveys = survey([bag], config, jobs=jobs, chunks=ray_chunks() if use_ray else None)
     write_csv(surveys, out / "survey.csv")
     write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
         d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px, config))

@@ -283,6 +283,7 @@ def run_process(args: argparse.Namespace) -> int:
 
 
 def run_survey(args: argparse.Namespace) -> int:
+    from .fleet import ray_chunks
     from .gis import write_gis
     from .report import write_report
     from .survey import best_view_picture, survey, write_csv, write_geojson, write_summary
@@ -304,7 +305,7 @@ def run_survey(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     label = "survey (chunks)" if args.ray is not None or args.jobs > 1 else "survey"
-    surveys = survey(args.bags, config, ray_address=args.ray, use_ray=args.ray is not None,
+    surveys = survey(args.bags, config, chunks=None if args.ray is None else ray_chunks(args.ray),
                      progress=lambda index, total: draw_progress(index, total, start, label),
                      jobs=args.jobs, **names)
     write_csv(surveys, out / "survey.csv")

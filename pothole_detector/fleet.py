@@ -10,7 +10,13 @@ from .recordings.bags import LogSpan
 from .errors import InputError
 from .params import Config
 from .stages.matching import set_host_threads
-from .survey import ChunkResult, DriveTopics, Plan, observe_chunk
+from .survey import ChunkResult, ChunkRunner, DriveTopics, Plan, observe_chunk
+
+
+def ray_chunks(address: str | None = None) -> ChunkRunner:
+    """The chunk runner of survey.survey that makes every chunk a Ray task
+    (:func:`observe_on_ray`) on the cluster at ``address``, or a local one."""
+    return lambda plans, config, progress: observe_on_ray(plans, config, address, progress)
 
 
 def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = None,

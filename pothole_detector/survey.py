@@ -526,6 +526,10 @@ def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
 
 Plan = tuple[Path, DriveTopics, list[bags.LogSpan]]
 ChunkResult = tuple[list[FrameObservation], MotionSamples]
+# runs the chunks of every (bag, topics, chunk spans) plan with the config, reporting
+# (done, total) to the progress callback; per bag, its chunks' results in order
+ChunkRunner = Callable[[Sequence[Plan], Config, Callable[[int, int], None] | None],
+                       list[list[ChunkResult]]]
 
 
 def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
@@ -559,13 +563,13 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
         return [[future.result() for future in per_bag] for per_bag in futures]
 
 
-def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None = None,
-           use_ray: bool = False, progress: Callable[[int, int], None] | None = None,
-           jobs: int = 1, **names: Any) -> list[DriveSurvey]:
-    """Survey every bag (one id sequence over all of them). With ``use_ray``, every chunk of
-    every bag is a Ray task (one GPU each on GPU nodes, else one CPU), on the cluster at
-    ``ray_address`` or a local one; with ``jobs`` > 1, a task of one of ``jobs`` worker
-    processes here (:func:`observe_in_processes`)."""
+def survey(bags: Iterable[str | Path], config: Config,
+           progress: Callable[[int, int], None] | None = None, jobs: int = 1,
+           chunks: ChunkRunner | None = None, **names: Any) -> list[DriveSurvey]:
+    """Survey every bag (one id sequence over all of them). With ``chunks``, that runs every
+    chunk of every bag (fleet.ray_chunks: a Ray task each); with ``jobs`` > 1, a task of one
+    of ``jobs`` worker processes here (:func:`observe_in_processes`); else one after the
+    other here."""
     plans: list[Plan] = []
     unreadable: dict[int, DriveSurvey] = {}
     total = 0
@@ -578,9 +582,8 @@ def survey(bags: Iterable[str | Path], config: Config, ray_address: str | None =
             continue
         plans.append((Path(bag), topics, spans))
         total += count
-    if use_ray:
-        from .fleet import observe_on_ray
-        chunked = observe_on_ray(plans, config, ray_address, progress)
+    if chunks is not None:
+        chunked = chunks(plans, config, progress)
     elif jobs > 1:
         chunked = observe_in_processes(plans, config, jobs, progress)
     else:

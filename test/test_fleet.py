@@ -10,6 +10,7 @@ from conftest import REPO  # noqa: E402
 from test_survey import assert_same_potholes  # noqa: E402
 
 from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.fleet import ray_chunks  # noqa: E402
 from pothole_detector.survey import survey  # noqa: E402
 
 
@@ -19,7 +20,7 @@ def test_ray_chunks_give_the_sequential_survey(survey_drive_bags):
     drives = [bags["none"], REPO / "bags" / "sample_drive"]
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        on_ray = survey(drives, config, use_ray=True)
+        on_ray = survey(drives, config, chunks=ray_chunks())
     finally:
         ray.shutdown()
     here = survey(drives, Config({"backend": "cpu"}))
