@@ -40,6 +40,16 @@ def _sgbm(levels: int, block: int, p1: int, p2: int, mode: str, uniqueness: int,
     )
 
 
+def matched_columns(xp: Any, disparity: Any) -> Any:
+    """int32 HxW: the right image's column each left pixel of a float32 HxW disparity map
+    (px, NaN invalid) was matched to, u - d rounded and clipped to the image (u itself where
+    the disparity is NaN)."""
+    width = disparity.shape[1]
+    columns = xp.arange(width, dtype=xp.float32)[None, :] - xp.where(
+        xp.isfinite(disparity), disparity, xp.float32(0))
+    return xp.clip(xp.rint(columns), 0, width - 1).astype(xp.int32)
+
+
 def to_gray8(image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """uint8 grey image (HxW) from mono8/mono16 (HxW) or RGB/RGBA (HxWx3 or 4) host arrays.
 

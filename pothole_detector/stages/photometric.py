@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend
+from .matching import matched_columns
 
 # side (px) of the square over which each view's brightness is averaged before comparing
 BRIGHTNESS_WINDOW_PX = 5
@@ -29,20 +30,16 @@ def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any
     """Per left pixel, how far (grey levels) the brightness of its BRIGHTNESS_WINDOW_PX square
     lies from that of the right image's square it was matched to, after the gain between the
     views (the ratio of their summed brightness over the matched pixels, taken again over
-    those that agree, GAIN_ROUNDS): float32 HxW, NaN
-    where the disparity is. ``left``, ``right``: uint8 HxW on the backend; ``disparity``:
-    float32 HxW px, NaN invalid. Nothing read back."""
+    those that agree, GAIN_ROUNDS): float32 HxW, NaN where the disparity is. ``left``,
+    ``right``: uint8 HxW on the backend; ``disparity``: float32 HxW px, NaN invalid. Nothing
+    read back."""
     xp, ndimage = backend.xp, backend.ndimage
-    width = disparity.shape[1]
     valid = xp.isfinite(disparity)
-    columns = xp.arange(width, dtype=xp.float32)[None, :] - xp.where(valid, disparity,
-                                                                     xp.float32(0))
-    partner = xp.clip(xp.rint(columns), 0, width - 1).astype(xp.int32)
     left_mean = ndimage.uniform_filter(left.astype(xp.float32), BRIGHTNESS_WINDOW_PX,
                                        mode="nearest")
     right_mean = xp.take_along_axis(
         ndimage.uniform_filter(right.astype(xp.float32), BRIGHTNESS_WINDOW_PX,
-                               mode="nearest"), partner, axis=1)
+                               mode="nearest"), matched_columns(xp, disparity), axis=1)
     agreeing = valid
     for _ in range(GAIN_ROUNDS):
         difference = xp.abs(left_mean - _gain(xp, left_mean, right_mean, agreeing) * right_mean)

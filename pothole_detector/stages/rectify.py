@@ -18,6 +18,7 @@ import numpy as np
 
 from ..backend import Backend
 from .census_sgm import BORDER_X, BORDER_Y
+from .matching import matched_columns
 
 REMAP_FRACTION_BITS = 5
 _ONE = 1 << REMAP_FRACTION_BITS
@@ -112,12 +113,8 @@ def invalidate_unseen(backend: Backend, disparity: Any, rectification: "Rectific
     pixel, or the right pixel it was matched to, is unseen by its raw camera (RemapTable's
     ``unseen``): the black outside a raw image matches anything."""
     xp = backend.xp
-    height, width = disparity.shape
-    finite = xp.isfinite(disparity)
-    columns = xp.arange(width, dtype=xp.float32)[None, :] - xp.where(finite, disparity,
-                                                                     xp.float32(0))
-    partner = xp.clip(xp.rint(columns), 0, width - 1).astype(xp.int32)
-    right_unseen = xp.take_along_axis(rectification.right.unseen, partner, axis=1)
+    right_unseen = xp.take_along_axis(rectification.right.unseen,
+                                      matched_columns(xp, disparity), axis=1)
     return xp.where(rectification.left.unseen | right_unseen, xp.float32(np.nan), disparity)
 
 
