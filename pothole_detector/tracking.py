@@ -56,6 +56,20 @@ class Sighting:
         return self.extent_m[3] - self.extent_m[2]
 
 
+def on_road(cols: np.ndarray, rows: np.ndarray, plane: RoadFrame,
+            calibration: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rays of pixels (``cols``, ``rows``, px) meet the road plane of ``plane``:
+    float64 (M, 2) (forward, left) m of those whose ray meets it ahead, and the bool (N,) mask
+    of which do."""
+    rays = np.stack([(cols - calibration.cx) / calibration.f,
+                     (rows - calibration.cy) / calibration.f, np.ones(len(cols))], axis=1)
+    normal = plane.axes[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = (plane.origin @ normal) / (rays @ normal)
+    ahead = np.isfinite(reach) & (reach > 0)
+    return plane.from_camera(rays[ahead] * reach[ahead, None])[:, :2], ahead
+
+
 def footprint_extents(labels: np.ndarray, count: int, plane: RoadFrame,
                       calibration: StereoCalibration) -> np.ndarray:
     """Per pothole label 1..``count`` of the int HxW ``labels``, where its footprint on the
@@ -67,14 +81,7 @@ def footprint_extents(labels: np.ndarray, count: int, plane: RoadFrame,
     rows, cols = np.nonzero(labels > 0)
     if count == 0 or rows.size == 0:
         return extents
-    rays = np.stack([(cols - calibration.cx) / calibration.f,
-                     (rows - calibration.cy) / calibration.f, np.ones(rows.size)], axis=1)
-    normal = plane.axes[2]
-    facing = rays @ normal
-    with np.errstate(divide="ignore", invalid="ignore"):
-        reach = (plane.origin @ normal) / facing
-    ahead = np.isfinite(reach) & (reach > 0)
-    road = plane.from_camera(rays[ahead] * reach[ahead, None])
+    road, ahead = on_road(cols, rows, plane, calibration)
     label = labels[rows, cols][ahead] - 1
     for column, values, pick in ((0, road[:, 0], np.minimum), (1, road[:, 0], np.maximum),
                                  (2, road[:, 1], np.minimum), (3, road[:, 1], np.maximum)):
@@ -91,7 +98,6 @@ def footprint_outlines(labels: np.ndarray, count: int, plane: RoadFrame,
     of ``plane``: float64 (N, 2) (forward, left) points, m, each boundary pixel's ray meeting
     the plane; empty where fewer than three meet it ahead."""
     outlines = []
-    normal = plane.axes[2]
     for label in range(1, count + 1):
         mask = (labels == label).astype(np.uint8)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
@@ -100,13 +106,7 @@ def footprint_outlines(labels: np.ndarray, count: int, plane: RoadFrame,
             continue
         boundary = cv2.approxPolyDP(max(contours, key=cv2.contourArea), OUTLINE_TOLERANCE_PX,
                                     True).reshape(-1, 2).astype(np.float64)
-        rays = np.stack([(boundary[:, 0] - calibration.cx) / calibration.f,
-                         (boundary[:, 1] - calibration.cy) / calibration.f,
-                         np.ones(len(boundary))], axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            reach = (plane.origin @ normal) / (rays @ normal)
-        ahead = np.isfinite(reach) & (reach > 0)
-        points = plane.from_camera(rays[ahead] * reach[ahead, None])[:, :2]
+        points, _ = on_road(boundary[:, 0], boundary[:, 1], plane, calibration)
         outlines.append(points if len(points) >= 3 else np.empty((0, 2)))
     return outlines
 
