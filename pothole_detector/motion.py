@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .calibration import StereoCalibration
 from .stages.road_model import RoadModel
@@ -89,10 +91,14 @@ def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
-def fit_rigid_2d(source: np.ndarray, target: np.ndarray) -> Pose2:
-    """The rigid motion (least squares, Kabsch) taking (N, 2) ``source`` points to ``target``."""
-    mean_s, mean_t = source.mean(axis=0), target.mean(axis=0)
-    h = (source - mean_s).T @ (target - mean_t)
+def fit_rigid_2d(source: np.ndarray, target: np.ndarray,
+                 weights: np.ndarray | None = None) -> Pose2:
+    """The rigid motion taking (N, 2) ``source`` points to ``target`` by least squares
+    (Kabsch), weighted by ``weights`` (N,) where given (non-negative, not all 0)."""
+    weights = np.full(len(source), 1.0 / len(source)) if weights is None \
+        else weights / weights.sum()
+    mean_s, mean_t = weights @ source, weights @ target
+    h = (source - mean_s).T @ ((target - mean_t) * weights[:, None])
     yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
     c, s = math.cos(yaw), math.sin(yaw)
     shift = mean_t - np.array([[c, -s], [s, c]]) @ mean_s
@@ -238,19 +244,6 @@ def latlon_of(enu: np.ndarray, lat0_deg: float, lon0_deg: float) -> np.ndarray:
     return np.stack([lat, lon], axis=-1)
 
 
-def fit_rigid_2d_weighted(source: np.ndarray, target: np.ndarray,
-                          weights: np.ndarray) -> Pose2:
-    """The rigid motion taking (N, 2) ``source`` points to ``target`` by weighted least
-    squares (weighted Kabsch; ``weights`` (N,) non-negative, not all 0)."""
-    weights = weights / weights.sum()
-    mean_s, mean_t = weights @ source, weights @ target
-    h = (source - mean_s).T @ ((target - mean_t) * weights[:, None])
-    yaw = math.atan2(h[0, 1] - h[1, 0], h[0, 0] + h[1, 1])
-    c, s = math.cos(yaw), math.sin(yaw)
-    shift = mean_t - np.array([[c, -s], [s, c]]) @ mean_s
-    return Pose2(float(shift[0]), float(shift[1]), yaw)
-
-
 # the least stretch of the drive (m) the fixes must cover to place it
 MIN_SPAN_M = 0.5
 # a fix takes part in a frame's alignment where its Gaussian weight of distance is above this
@@ -281,12 +274,16 @@ class GnssFusion:
             return mapped
         return (1 - weight) * mapped + weight * self.alignments[high].apply(point[None, :])[0]
 
+    @cached_property
+    def _route_tree(self) -> cKDTree:
+        """A k-d tree of the route's positions, for the frame nearest to a point."""
+        return cKDTree(self.route_xy)
+
     def to_enu(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) odometry positions (m) in east, north (m): each by the mapping of the route
         frame nearest to it."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        nearest = np.argmin(((xy[:, None, :] - self.route_xy[None, :, :]) ** 2).sum(axis=2),
-                            axis=1)
+        _, nearest = self._route_tree.query(xy)
         return np.array([self.map_at(int(i), point)
                          for i, point in zip(nearest, xy)]).reshape(-1, 2)
 
@@ -334,7 +331,7 @@ def fuse_gnss(route_stamps_ns: np.ndarray, route_xy: np.ndarray, gnss_stamps_ns:
     if span < MIN_SPAN_M:
         return None
     half = min(window_m, span) / 2
-    alignments: list[Pose2 | None] = []
+    nearest = np.clip(np.searchsorted(times, stamps), 0, len(times) - 1)
     fusion = None
     for _ in range(max(rounds, 1)):
         alignments = []
@@ -343,14 +340,12 @@ def fuse_gnss(route_stamps_ns: np.ndarray, route_xy: np.ndarray, gnss_stamps_ns:
             useful = (closeness > WINDOW_REACH) & (precision * robust > 0)
             weight = precision * robust * closeness
             spread = np.ptp(odometry[useful], axis=0).max() if useful.sum() >= 3 else 0.0
-            alignments.append(fit_rigid_2d_weighted(odometry[useful], enu[useful],
-                                                    weight[useful])
+            alignments.append(fit_rigid_2d(odometry[useful], enu[useful], weight[useful])
                               if useful.sum() >= 3 and spread >= half else None)
         if all(a is None for a in alignments):
             return None
         fusion = GnssFusion(route_xy, alignments, _gap_blends(alignments, travelled), origin,
                             np.zeros(0), np.zeros(0))
-        nearest = np.clip(np.searchsorted(times, stamps), 0, len(times) - 1)
         residual = np.array([np.linalg.norm(fusion.map_at(int(i), o) - e)
                              for i, o, e in zip(nearest, odometry, enu)])
         limit = outlier_sigmas * sigma

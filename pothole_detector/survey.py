@@ -269,9 +269,7 @@ def motion_series(parts: Iterable[MotionSamples], topics: DriveTopics) -> Motion
         gnss.sort(key=lambda sample: sample[0])
         series.gnss_stamps_ns = np.array([stamp for stamp, _ in gnss], dtype=np.int64)
         fixes = np.array([fix for _, fix in gnss], dtype=np.float64)
-        series.gnss_latlon = fixes[:, :2]
-        series.gnss_sigma_m = fixes[:, 2] if fixes.shape[1] > 2 \
-            else np.full(len(fixes), np.nan)
+        series.gnss_latlon, series.gnss_sigma_m = fixes[:, :2], fixes[:, 2]
         if not poses:
             series.source = f"GNSS ({topics.gnss})"
     return series
@@ -469,11 +467,9 @@ def _gnss_fusion(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | Non
               if pose is not None]
     if len(placed) < 2:
         return None
-    sigma = motion.gnss_sigma_m if len(motion.gnss_sigma_m) == len(motion.gnss_latlon) \
-        else np.full(len(motion.gnss_latlon), np.nan)
     return fuse_gnss(np.array([stamp for stamp, _ in placed], dtype=np.int64),
                      np.array([xy for _, xy in placed]), motion.gnss_stamps_ns,
-                     motion.gnss_latlon, sigma, config.gnss_window_m)
+                     motion.gnss_latlon, motion.gnss_sigma_m, config.gnss_window_m)
 
 
 def _observed_length(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None]
