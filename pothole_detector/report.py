@@ -15,6 +15,7 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
+from .params import PARAMETER_BY_NAME
 from .survey import SEVERITIES, DriveSurvey, SurveyPothole
 
 SEVERITY_COLOURS = {"low": "#f2c230", "moderate": "#f07d19", "high": "#d7261e"}
@@ -246,8 +247,9 @@ def _map_div(drive: DriveSurvey, tiles: tuple[str, str]) -> str:
 
 def write_report(surveys: Sequence[DriveSurvey], path: str | Path,
                  picture: Callable[[DriveSurvey, SurveyPothole], np.ndarray | None],
-                 tiles: tuple[str, str] = ("https://tile.openstreetmap.org/{z}/{x}/{y}.png",
-                                           "&copy; OpenStreetMap contributors")) -> None:
+                 tiles: tuple[str, str] = (
+                     PARAMETER_BY_NAME["report_tiles_url"].default,
+                     PARAMETER_BY_NAME["report_tiles_attribution"].default)) -> None:
     """Write report.html for ``surveys``; ``picture(drive, pothole)`` gives the best-view
     crop (HxWx3 RGB) of a pothole, or None. Where the page is online, drives with GNSS are
     drawn over a base map of ``tiles`` (a Leaflet URL template and its attribution); offline
