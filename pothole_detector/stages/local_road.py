@@ -47,7 +47,7 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     xp = backend.xp
     height, width = shape[0] // downsample, shape[1] // downsample
     step = superpixels.grid_step(region_size_px, downsample)
-    cells_y, cells_x = -(-height // step), -(-width // step)
+    cells_y, cells_x = superpixels.grid_shape(shape, region_size_px, downsample)
     if backend.is_gpu:
         cells = cells_y * cells_x
         reference = xp.empty(cells, dtype=xp.float64)
@@ -149,11 +149,9 @@ def pixel_offsets(backend: Backend, cell_offsets: Any, shape: tuple[int, int],
     HxW map over the full-resolution ``shape``: bilinear between the grid cells' centres
     (superpixels.cell_centres), constant past the outer centres."""
     xp = backend.xp
-    height, width = shape[0] // downsample, shape[1] // downsample
-    step = superpixels.grid_step(region_size_px, downsample)
-    cells_y, cells_x = -(-height // step), -(-width // step)
+    cells_y, cells_x = superpixels.grid_shape(shape, region_size_px, downsample)
     grid = cell_offsets.reshape(cells_y, cells_x).astype(xp.float32)
-    cell_px = float(step * downsample)
+    cell_px = float(superpixels.grid_step(region_size_px, downsample) * downsample)
     columns = _interpolation(xp, shape[1], cells_x, cell_px)
     rows = _interpolation(xp, shape[0], cells_y, cell_px)
     across = grid[:, columns[0]] * columns[2] + grid[:, columns[1]] * columns[3]

@@ -259,11 +259,18 @@ def region_size(region_size_px: int, width: int, axis_sine: float = 1.0) -> int:
     return max(MIN_REGION_PX, round(width * share / REGIONS_ACROSS))
 
 
-def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
-    """The label count :func:`superpixel_grid` returns for an HxW map, from its size alone."""
+def grid_shape(shape: tuple[int, int], region_size_px: int,
+               downsample: int = 1) -> tuple[int, int]:
+    """The (rows, columns) of the SLIC grid of an HxW map, from its size alone."""
     height, width = shape[0] // downsample, shape[1] // downsample
     step = grid_step(region_size_px, downsample)
-    return -(-height // step) * -(-width // step)
+    return -(-height // step), -(-width // step)
+
+
+def grid_count(shape: tuple[int, int], region_size_px: int, downsample: int = 1) -> int:
+    """The label count :func:`superpixel_grid` returns for an HxW map, from its size alone."""
+    rows, cols = grid_shape(shape, region_size_px, downsample)
+    return rows * cols
 
 
 def cell_centres(xp: Any, shape: tuple[int, int], region_size_px: int,
@@ -273,7 +280,7 @@ def cell_centres(xp: Any, shape: tuple[int, int], region_size_px: int,
     where it ends. Computed on the backend from the size alone."""
     height, width = shape[0] // downsample, shape[1] // downsample
     step = grid_step(region_size_px, downsample)
-    cells_x = -(-width // step)
+    _, cells_x = grid_shape(shape, region_size_px, downsample)
     label = xp.arange(grid_count(shape, region_size_px, downsample), dtype=xp.float64)
     row, col = xp.floor(label / cells_x), label % cells_x
     u = xp.minimum((col + 0.5) * step, width - 0.5) * downsample
