@@ -37,8 +37,8 @@ setup(
         "test": ["pytest>=7", "nvidia-cuda-nvrtc>=13,<14"],
         # surveys of many bags as Ray tasks (pothole-detector survey --ray)
         "fleet": ["ray>=2.9"],
-        # the survey's GeoPackage and KML (pothole_detector/gis.py)
-        "gis": ["pyogrio>=0.7", "shapely>=2"],
+        # the survey's GeoPackage, KML and map GeoTIFF (pothole_detector/survey/gis.py)
+        "gis": ["pyogrio>=0.7", "shapely>=2", "rasterio>=1.3"],
         # ROS 2 Jazzy from pip wheels, for the node, play and record (on a ROS install these
         # come from the distribution); process, survey, detect and evaluate need none of it
         "ros": [

@@ -31,10 +31,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pothole_detector.bagtools import RecordingForm, write_drive_bag  # noqa: E402
-from pothole_detector.fleet import ray_chunks  # noqa: E402
+from pothole_detector.survey.fleet import ray_chunks  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
-from pothole_detector.report import write_report  # noqa: E402
-from pothole_detector.survey import best_view_picture, survey, write_csv  # noqa: E402
+from pothole_detector.survey.report import write_report  # noqa: E402
+from pothole_detector.survey.drive import best_view_picture, survey, write_csv  # noqa: E402
 from pothole_detector.synthetic import (raw_camera, render, render_raw,  # noqa: E402
                                         survey_drive)
 

@@ -18,12 +18,12 @@ from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
-from . import conversions
+from . import conversions, msgtypes
 from .backend import get_backend
 from .calibration import StereoCamera
 from .errors import InputError, PotholeError
 from .imageio import write_rgb
-from .motion import latlon_of
+from .geodesy import latlon_of
 from .msgtypes import message, serialize, typestore
 from .outputs import OFFLINE_OUTPUTS, OUTPUT_TYPES, failure_messages, output_messages
 from .params import Config
@@ -418,7 +418,7 @@ GNSS_TYPE = "sensor_msgs/msg/NavSatFix"
 def odometry_message(stamp_ns: int, x: float, y: float, yaw: float,
                      frame_id: str = "odom", child_frame_id: str = "base_link") -> Any:
     """nav_msgs/Odometry of a planar pose (m, rad)."""
-    msg = message(ODOMETRY_TYPE)(header=conversions.header_at(stamp_ns, frame_id),
+    msg = message(ODOMETRY_TYPE)(header=msgtypes.header_at(stamp_ns, frame_id),
                                  child_frame_id=child_frame_id)
     msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
     msg.pose.pose.orientation.z = math.sin(yaw / 2)
@@ -429,7 +429,7 @@ def odometry_message(stamp_ns: int, x: float, y: float, yaw: float,
 def gnss_message(stamp_ns: int, lat_deg: float, lon_deg: float,
                  frame_id: str = "gnss") -> Any:
     """sensor_msgs/NavSatFix of a fix (status FIX, GPS)."""
-    msg = message(GNSS_TYPE)(header=conversions.header_at(stamp_ns, frame_id),
+    msg = message(GNSS_TYPE)(header=msgtypes.header_at(stamp_ns, frame_id),
                              latitude=float(lat_deg), longitude=float(lon_deg))
     msg.status.status, msg.status.service = 0, 1
     return msg
@@ -537,7 +537,7 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
                                                                typestore=store)
                 writer.write(connections[topic], int(stamp_ns),
                              serialize(extra, extra_types[topic]))
-            header = conversions.header_at(stamp_ns, frame_id)
+            header = msgtypes.header_at(stamp_ns, frame_id)
             height, width = sample.left.shape[:2]
             if form.camera is not None:
                 infos = [conversions.camera_info_of(model, header)

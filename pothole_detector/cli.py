@@ -283,10 +283,10 @@ def run_process(args: argparse.Namespace) -> int:
 
 
 def run_survey(args: argparse.Namespace) -> int:
-    from .fleet import ray_chunks
-    from .gis import write_gis
-    from .report import write_report
-    from .survey import best_view_picture, survey, write_csv, write_geojson, write_summary
+    from .survey.fleet import ray_chunks
+    from .survey.gis import write_gis, write_maps
+    from .survey.report import write_report
+    from .survey.drive import best_view_picture, survey, write_csv, write_geojson, write_summary
 
     config = _config(args.config, args.backend, args)
     if args.read_processes is not None:
@@ -316,6 +316,10 @@ def run_survey(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         gis_files = []
         print(f"survey.gpkg and survey.kml not written: {exc}", file=sys.stderr)
+    try:
+        gis_files += write_maps(surveys, out)
+    except ConfigError as exc:
+        print(f"the road map's GeoTIFF not written: {exc}", file=sys.stderr)
     write_report(surveys, out / "report.html", lambda drive, pothole: best_view_picture(
         drive.bag, drive.topics, pothole.row["best_stamp_ns"], pothole.bbox_px, config),
         (config.report_tiles_url, config.report_tiles_attribution))
@@ -331,8 +335,9 @@ def run_survey(args: argparse.Namespace) -> int:
         print(f"{drive.bag.name}: {drive.frames} frames ({drive.failed} failed), "
               f"{len(drive.potholes)} potholes, {drive.observed_length_m:.1f} m of road "
               f"observed, motion from {drive.motion_source}"
-              + (f"; {drive.left_out} seen in fewer than min_sightings "
-                 f"({config.min_sightings}) frames left out" if drive.left_out else ""))
+              + (f"; {drive.left_out} tracked left out (seen in fewer than min_sightings "
+                 f"({config.min_sightings}) frames, or no depression in the road map)"
+                 if drive.left_out else ""))
         for line in drive.failure_tally().lines():
             print(f"  {line}")
     print(f"{len(potholes)} potholes ({by_class}) in {frames} frames, "

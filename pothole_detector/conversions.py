@@ -42,17 +42,6 @@ POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("depth_below_
                         ("label", "<u4")])
 
 
-def stamp_ns(header: Header) -> int:
-    """The stamp of ``header`` in integer nanoseconds."""
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
-def header_at(nanoseconds: int, frame_id: str = "") -> Header:
-    """A std_msgs/Header stamped ``nanoseconds`` (ns) in ``frame_id``."""
-    sec, nanosec = divmod(int(nanoseconds), 1_000_000_000)
-    return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
-
-
 def _bytes(values: np.ndarray) -> array.array | np.ndarray:
     """The bytes of ``values`` as a uint8[] field takes them (rclpy: array.array)."""
     if not msgtypes.ROS:

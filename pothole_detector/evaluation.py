@@ -25,7 +25,7 @@ from .params import Config
 from .pipeline import Pipeline
 from .stages import matching, perspective
 from .stages.road_model import fit_road
-from .survey import survey
+from .survey.drive import survey
 
 # validation scenes: potholes with fewer visible pixels are "don't care"
 MIN_SCORED_PIXELS = 100

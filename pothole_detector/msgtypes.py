@@ -157,3 +157,16 @@ def deserialize(raw: bytes, msgtype: str) -> Any:
         from rclpy.serialization import deserialize_message
         return deserialize_message(raw, message(msgtype))
     return typestore().deserialize_cdr(raw, msgtype)
+
+
+def stamp_ns(header: Any) -> int:
+    """The stamp of a std_msgs/Header in integer nanoseconds."""
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def header_at(nanoseconds: int, frame_id: str = "") -> Any:
+    """A std_msgs/Header stamped ``nanoseconds`` (ns) in ``frame_id``."""
+    sec, nanosec = divmod(int(nanoseconds), 1_000_000_000)
+    return message("std_msgs/msg/Header")(
+        stamp=message("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec),
+        frame_id=frame_id)

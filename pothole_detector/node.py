@@ -34,7 +34,7 @@ from visualization_msgs.msg import MarkerArray
 
 from pothole_detector_msgs.msg import PotholeArray
 
-from . import conversions
+from . import msgtypes
 from .backend import Backend, get_backend
 from .calibration import StereoCalibration, StereoCamera
 from .errors import ConfigError, InputError, PotholeError
@@ -45,8 +45,8 @@ from .recordings.camera import pipeline_inputs, stereo_camera
 from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
 from .stages import census_sgm, rectify
 from .sync import StereoSynchronizer
-from .motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
-from .tracking import MAX_ID, PotholeTracker, sightings_of
+from .survey.motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
+from .survey.tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group in ("pipeline", "input"))
@@ -376,7 +376,7 @@ class PotholeDetectorNode(Node):
     def _on_odometry(self, msg: Odometry) -> None:
         pose = planar_pose(msg.pose.pose.position, msg.pose.pose.orientation)
         with self._lock:
-            self._odometry.append((conversions.stamp_ns(msg.header), pose))
+            self._odometry.append((msgtypes.stamp_ns(msg.header), pose))
 
     def _on_info(self, side: str, msg: CameraInfo) -> None:
         with self._lock:
@@ -390,11 +390,11 @@ class PotholeDetectorNode(Node):
     def _infos_reached(self, stamp_ns: int) -> bool:
         """Both camera_info streams have reached ``stamp_ns`` (ns, less the sync tolerance)."""
         earliest = stamp_ns - self._synchronizer.tolerance_ns
-        return all(history and conversions.stamp_ns(history[-1].header) >= earliest
+        return all(history and msgtypes.stamp_ns(history[-1].header) >= earliest
                    for history in self._infos.values())
 
     def _on_image(self, side: str, msg: Image) -> None:
-        stamp_ns = conversions.stamp_ns(msg.header)
+        stamp_ns = msgtypes.stamp_ns(msg.header)
         self._stats.image(msg.header.frame_id)
         with self._lock:
             outcome = self._synchronizer.add(side, stamp_ns, msg)
@@ -457,7 +457,7 @@ class PotholeDetectorNode(Node):
         """The camera_info of ``side`` stamped ``stamp_ns`` (within the sync tolerance)."""
         tolerance = self._synchronizer.tolerance_ns
         for info in reversed(self._infos[side]):
-            if abs(conversions.stamp_ns(info.header) - stamp_ns) <= tolerance:
+            if abs(msgtypes.stamp_ns(info.header) - stamp_ns) <= tolerance:
                 return info
         return None
 

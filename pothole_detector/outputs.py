@@ -11,7 +11,6 @@ import numpy as np
 from .calibration import StereoCalibration
 from .imageio import overlay
 from .pipeline import PipelineResult
-from .tracking import relabel
 
 if TYPE_CHECKING:
     from std_msgs.msg import Header
@@ -104,3 +103,12 @@ def failure_messages(header: "Header", reason: str) -> dict[str, Any]:
 
     return {"potholes": conversions.failed_potholes_message(header, reason)}
 
+
+def relabel(labels: np.ndarray, potholes: Sequence[Any], ids: Sequence[int]) -> np.ndarray:
+    """``labels`` (int HxW, 0 = road, k = the pothole of label k) with each of ``potholes``
+    renamed to its entry of ``ids``."""
+    table = np.zeros(max((p.label for p in potholes), default=0) + 1, dtype=np.int64)
+    for pothole, given in zip(potholes, ids):
+        table[pothole.label] = given
+    inside = (labels > 0) & (labels < table.size)
+    return np.where(inside, table[np.where(inside, labels, 0)], 0).astype(labels.dtype)

@@ -287,6 +287,21 @@ PARAMETERS: tuple[Param, ...] = (
           "(m): long enough to average the fixes' noise, short enough that the odometry "
           "drifts little inside it (1 % of scale error drifts 0.1 m in 20 m).", 1, 100000,
           group="survey"),
+    Param("map_cell_m", float, 0.02,
+          "Survey and node: cell size (m) of the fused road elevation map, in which each "
+          "frame's road is placed by the ego-motion and potholes are measured from all the "
+          "views that saw them; 0 turns the map off (the survey's entries then come from "
+          "the tracker alone).", 0, 1.0, group="survey"),
+    Param("map_overview_cell_m", float, 0.10,
+          "Survey: cell size (m) of the map of the whole road the survey writes (GeoTIFF or "
+          "NumPy); the potholes' map (map_cell_m) keeps only the road around them.", 0.01, 10.0,
+          group="survey"),
+    Param("map_publish_rate_hz", float, 1.0,
+          "Node: publish the local road map (map_cloud, map_potholes) at most this often "
+          "while somebody subscribes to them; 0 never.", 0, 30, group="node"),
+    Param("map_radius_m", float, 15.0,
+          "Node: the live road map keeps, and publishes, the road within this distance of "
+          "the camera (m); older road is forgotten.", 2, 500, group="node"),
     Param("track_match_distance_m", float, 0.25,
           "Survey: a sighting joins a tracked pothole whose position on the road (m, after "
           "ego-motion) is this close, or closer than the sum of their radii.", 0.01, 10.0,

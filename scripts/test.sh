@@ -3,7 +3,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
-# headless Chromium checks report.html (test_report.py skips without it): Debian's package
+# headless Chromium checks report.html (test_survey_report.py skips without it): Debian's package
 if ! command -v chromium > /dev/null && command -v apt-get > /dev/null && [ "$(id -u)" = 0 ]; then
     apt-get install -y -q chromium > /dev/null 2>&1 \
         || echo "note: could not install chromium; the report's browser check will skip"

@@ -22,10 +22,10 @@ from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 from visualization_msgs.msg import MarkerArray
 
-from pothole_detector import conversions
+from pothole_detector import msgtypes
 from pothole_detector.recordings.images import decode_raw  # noqa: E402
 from pothole_detector.recordings import bags
-from pothole_detector.conversions import stamp_ns
+from pothole_detector.msgtypes import stamp_ns
 from pothole_detector.transport import large_image_transport
 from pothole_detector_msgs.msg import PotholeArray
 
@@ -46,7 +46,7 @@ def isolate_ros_graph() -> None:
 
 
 def header_at(nanoseconds: int, frame_id: str = "stereo_left_optical_frame") -> Header:
-    return conversions.header_at(nanoseconds, frame_id)
+    return msgtypes.header_at(nanoseconds, frame_id)
 
 
 def sample_frames(count: int) -> list[dict[str, Any]]:

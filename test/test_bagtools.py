@@ -11,7 +11,7 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from pothole_detector import bagtools, conversions  # noqa: E402
+from pothole_detector import bagtools, conversions, msgtypes  # noqa: E402
 from pothole_detector.recordings.images import decode_raw  # noqa: E402
 from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
@@ -66,7 +66,7 @@ def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, 
     expected = {stamp: pipeline.run(s.left, s.right) for stamp, s in drive_frames}
     seen = set()
     for topic, stamp, msg in bags.read_messages(out, ["/cam/disparity", "/cam/potholes"]):
-        assert conversions.stamp_ns(msg.header) == stamp
+        assert msgtypes.stamp_ns(msg.header) == stamp
         assert msg.header.frame_id == "stereo_left_optical_frame"
         if topic == "/cam/disparity":
             np.testing.assert_array_equal(conversions.disparity_from_message(msg),

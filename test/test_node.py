@@ -22,7 +22,7 @@ from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
-from pothole_detector import conversions  # noqa: E402
+from pothole_detector import conversions, msgtypes  # noqa: E402
 from pothole_detector.recordings.camera import pipeline_inputs, stereo_camera  # noqa: E402
 from pothole_detector.recordings.images import decode_raw  # noqa: E402
 from pothole_detector.backend import gpu_available  # noqa: E402
@@ -307,7 +307,7 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
         assert p.spin(15, lambda: stamp + 500_000_000 in p.stamps()), node.text()
         # the refused set has its PotholeArray too: status FAILED and why
         (refused,) = [m for m in p.received["potholes"]
-                      if conversions.stamp_ns(m.header) == stamp]
+                      if msgtypes.stamp_ns(m.header) == stamp]
         assert refused.status == refused.FAILED and words in refused.reason
         assert not refused.potholes
     p.publish(good, T0 + 2)
@@ -545,7 +545,7 @@ def test_the_shipped_parameters_take_every_frame_of_a_640x480_vehicle_drive(node
     p.wait_connected()
     for index in range(6):
         sample = render(vehicle_scene(640, 480, camera_y_m=0.5 * index))
-        header = conversions.header_at(T0, "stereo_left_optical_frame")
+        header = msgtypes.header_at(T0, "stereo_left_optical_frame")
         frame = {"left": conversions.array_to_image(sample.left, "mono8", header),
                  "right": conversions.array_to_image(sample.right, "mono8", header),
                  "left_info": conversions.camera_info_message(sample.calibration, 640, 480,

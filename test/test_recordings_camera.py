@@ -9,14 +9,14 @@ import cv2
 import numpy as np
 import pytest
 
-from pothole_detector import conversions
+from pothole_detector import conversions, msgtypes
 from pothole_detector.calibration import StereoCalibration
 from pothole_detector.errors import CalibrationError
 from pothole_detector.recordings.camera import (pipeline_inputs, rectifies, rectification,
                                                 stereo_camera)
 from pothole_detector.synthetic import LENS_DISTORTION, raw_camera
 
-HEADER = conversions.header_at(0, "cam")
+HEADER = msgtypes.header_at(0, "cam")
 CAL = StereoCalibration(700.0, 0.12, 320.5, 180.25)
 
 

@@ -20,7 +20,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 
 from ..calibration import StereoCalibration, StereoCamera
-from ..conversions import stamp_ns
+from ..msgtypes import stamp_ns
 from ..errors import InputError
 from ..msgtypes import deserialize, typestore
 from ..params import Config

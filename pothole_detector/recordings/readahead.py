@@ -23,7 +23,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from ..conversions import header_at
+from ..msgtypes import header_at
 from ..errors import PotholeError
 from ..msgtypes import deserialize, serialize
 from ..params import Config

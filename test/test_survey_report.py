@@ -14,8 +14,8 @@ import pytest
 from conftest import REPO, rewrite_bag
 
 from pothole_detector.params import Config
-from pothole_detector.report import LEAFLET_URL, write_report
-from pothole_detector.survey import best_view_picture, survey
+from pothole_detector.survey.report import LEAFLET_URL, write_report
+from pothole_detector.survey.drive import best_view_picture, survey
 
 CHROMIUM = next((shutil.which(name) for name in ("chromium", "chromium-browser",
                                                 "google-chrome") if shutil.which(name)), None)
@@ -78,7 +78,7 @@ def test_a_best_view_picture_is_found_however_early_its_image_was_logged(tmp_pat
     """The sample drive with every message logged 0.5 s before its stamp: the picture at a
     stamp is still that frame's left image."""
     from pothole_detector.recordings import bags
-    from pothole_detector.survey import drive_topics
+    from pothole_detector.survey.drive import drive_topics
 
     source, early = REPO / "bags" / "sample_drive", tmp_path / "early"
     rewrite_bag(source, early, lambda topic, timestamp: timestamp - 500_000_000)

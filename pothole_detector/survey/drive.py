@@ -18,17 +18,19 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import cv2
 import numpy as np
 
-from . import bagtools
-from .bagtools import FailureTally
-from .backend import get_backend
-from .conversions import stamp_ns
-from .errors import InputError, PotholeError
-from .motion import (GnssFusion, Pose2, StereoOdometry, enu_of, fuse_gnss, interpolate_poses,
+from .. import bagtools
+from ..bagtools import FailureTally
+from ..backend import get_backend
+from ..msgtypes import stamp_ns
+from ..errors import InputError, PotholeError
+from ..geodesy import enu_of, latlon_of
+from .motion import (GnssFusion, Pose2, StereoOdometry, fuse_gnss, interpolate_poses,
                      planar_pose, road_frame)
-from .recordings import bags, readahead
-from .recordings.topics import StereoTopics, find_stereo_topics
-from .stages.matching import to_gray8
-from .params import Config
+from ..recordings import bags, readahead
+from ..recordings.topics import StereoTopics, find_stereo_topics
+from ..stages.matching import to_gray8
+from ..params import Config
+from .roadmap import MapPothole, RoadMap, RoadPatch, around_potholes, road_map, road_patch
 from .tracking import PotholeTracker, Sighting, Track, merge_overlapping, sightings_of
 
 ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
@@ -39,7 +41,7 @@ CSV_COLUMNS = ("pothole_id", "bag", "first_stamp_ns", "last_stamp_ns", "sighting
                "best_stamp_ns", "first_time_utc", "last_time_utc", "best_time_utc", "x_m",
                "y_m", "z_m", "odom_x_m", "odom_y_m", "lat", "lon", "max_depth_m",
                "mean_depth_m", "area_m2", "volume_m3", "length_m", "width_m", "diameter_m",
-               "severity", "severity_standard")
+               "severity", "severity_standard", "map_views", "max_depth_sigma_m")
 # ASTM D6433's pothole severity (asphalt): rows by largest depth (m, up to), columns by average
 # diameter (m, up to); potholes wider than the last column are classed by depth alone
 ASTM_DEPTHS_M = (0.025, 0.050, math.inf)
@@ -82,8 +84,9 @@ class FrameObservation:
     """What the survey keeps of one stereo frame: its potholes, the observed range (near, far,
     m along the road; NaN when none), the visual-odometry step from the previous frame (None
     on the first frame, when it failed or when the bag has odometry), its road frame's axes
-    (rows forward, left, up in the left optical frame; None when the frame failed) and, when
-    the frame failed, why."""
+    (rows forward, left, up in the left optical frame; None when the frame failed), when
+    the frame failed, why, and its road samples for the maps (None without a map): at
+    map_cell_m around its potholes, at map_overview_cell_m over all its observed road."""
 
     stamp_ns: int
     sightings: tuple[Sighting, ...]
@@ -91,6 +94,8 @@ class FrameObservation:
     step: Pose2 | None
     failure: str = ""
     axes: tuple[tuple[float, ...], ...] | None = None
+    patch: RoadPatch | None = None
+    overview: RoadPatch | None = None
 
 
 @dataclass(frozen=True)
@@ -170,11 +175,21 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                 to_gray8(frame.left_view()), outcome.host("disparity"), plane,
                 frame.calibration)
             if kept:
+                patch = overview = None
+                if config.map_cell_m > 0:
+                    disparity, observed = outcome.host("disparity"), outcome.host("observed")
+                    near = observed & around_potholes(
+                        observed.shape, [p.bbox_px for p in outcome.potholes])
+                    patch = road_patch(disparity, near, outcome.road, plane, frame.calibration,
+                                       config.map_cell_m)
+                    overview = road_patch(disparity, observed, outcome.road, plane,
+                                          frame.calibration, config.map_overview_cell_m)
                 observations.append(FrameObservation(
                     frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height,
                                               frame.calibration),
                     tuple(float(v) for v in outcome.observed_range_m), step,
-                    axes=tuple(tuple(float(v) for v in row) for row in plane.axes)))
+                    axes=tuple(tuple(float(v) for v in row) for row in plane.axes),
+                    patch=patch, overview=overview))
     finally:
         reader.close()
     return observations, motion_samples(motion_messages, topics)
@@ -329,10 +344,10 @@ def track(observations: Sequence[FrameObservation], poses: Sequence[Pose2 | None
 @dataclass(frozen=True)
 class SurveyPothole:
     """One row of the survey (CSV_COLUMNS), the spread of its measurements over its sightings
-    (min, max of the largest depth, m, and of the area, m2), its box in the best view and its
-    outline on the road at the best view: ``outline_xy`` float64 (N, 2) in the motion frame
-    (m), ``outline_latlon`` (N, 2) degrees where the drive has GNSS (both empty where not
-    measured)."""
+    (min, max of the largest depth, m, and of the area, m2), its box in the best view, its
+    outline on the road (the map's, else the best view's): ``outline_xy`` float64 (N, 2) in
+    the motion frame (m), ``outline_latlon`` (N, 2) degrees where the drive has GNSS (both
+    empty where not measured) and the largest depth the best view alone gave (m)."""
 
     row: dict[str, Any]
     depth_spread_m: tuple[float, float]
@@ -340,17 +355,20 @@ class SurveyPothole:
     bbox_px: tuple[int, int, int, int]
     outline_xy: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
     outline_latlon: np.ndarray = field(default_factory=lambda: np.empty((0, 2)))
+    best_view_depth_m: float = math.nan
 
 
 @dataclass
 class DriveSurvey:
     """The survey of one bag: its potholes, the route (motion-frame positions of the frames),
-    the GNSS route (lat, lon) where the bag has GNSS, the motion source, the observed length
-    of road (m), the frame counts, how many tracked potholes were seen in fewer than
-    ``min_sightings`` frames (left out), the topics it was read from, the frames that
-    failed: (stamp ns, seconds into the drive, motion-frame x, y (m; NaN where unknown), why),
-    and why the bag could not be read at all, if so; where the bag has GNSS, the fixes'
-    residuals after the fusion with the odometry (fixes, rejected, median_m, p95_m, max_m)."""
+    the GNSS route (lat, lon) where the bag has GNSS, the motion source, the observed length of
+    road (m), the frame counts, how many tracked potholes were left out (seen in fewer than
+    ``min_sightings`` frames, or on road the map saw without a depression), the topics it was
+    read from, the frames that failed: (stamp ns, seconds into the drive, motion-frame x, y (m;
+    NaN where unknown), why), and why the bag could not be read at all, if so; where the bag
+    has GNSS, the fixes' residuals after the fusion with the odometry (fixes, rejected,
+    median_m, p95_m, max_m); the fused map of the whole road (None without one) and, where it
+    lies in east, north about a GNSS origin, that origin (lat, lon)."""
 
     bag: Path
     potholes: list[SurveyPothole]
@@ -364,6 +382,8 @@ class DriveSurvey:
     failures: list[tuple[int, float, float, float, str]] = field(default_factory=list)
     error: str = ""
     gnss_residuals: dict[str, Any] | None = None
+    roadmap: RoadMap | None = None
+    map_origin_latlon: tuple[float, float] | None = None
 
     @classmethod
     def unreadable(cls, bag: str | Path, error: str) -> "DriveSurvey":
@@ -386,7 +406,8 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
              config: Config, first_id: int = 1, topics: DriveTopics | None = None
              ) -> DriveSurvey:
     """Merge chunk observations (a frame processed by two chunks counts once, the one with a
-    visual-odometry step kept), then poses, tracking and the report rows."""
+    visual-odometry step kept), then poses, tracking, the fused road map and the report
+    rows."""
     by_stamp: dict[int, FrameObservation] = {}
     for observation in observations:
         kept = by_stamp.get(observation.stamp_ns)
@@ -395,53 +416,174 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     frames = [by_stamp[s] for s in sorted(by_stamp)]
     poses = frame_poses(frames, motion)
     tracked_all = merge_overlapping(track(frames, poses, config))
-    tracks = sorted((t for t in tracked_all if len(t.sightings) >= config.min_sightings
-                     and np.all(np.isfinite(t.position))),
-                    key=lambda t: t.sightings[0].stamp_ns)
     fusion = _gnss_fusion(frames, poses, motion, config)
-    to_latlon = fusion.to_latlon if fusion is not None else None
+    roadmap, overview = fused_maps(frames, poses, fusion, config)
     route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)
-    rows = []
-    for offset, tracked in enumerate(tracks):
-        best = tracked.best()
-        position = tracked.position
-        latlon = to_latlon(position[None, :])[0] if to_latlon else (math.nan, math.nan)
-        depths = [s.max_depth_m for s in tracked.sightings]
-        areas = [s.area_m2 for s in tracked.sightings]
-        first, last = tracked.sightings[0].stamp_ns, tracked.sightings[-1].stamp_ns
-        average_diameter = (best.length_m + best.width_m) / 2
-        row = {
-            "pothole_id": first_id + offset, "bag": Path(bag).name,
-            "first_stamp_ns": first, "last_stamp_ns": last,
-            "sightings": len(tracked.sightings), "best_stamp_ns": best.stamp_ns,
-            "first_time_utc": utc_time(first), "last_time_utc": utc_time(last),
-            "best_time_utc": utc_time(best.stamp_ns),
-            "x_m": best.camera_xyz[0], "y_m": best.camera_xyz[1], "z_m": best.camera_xyz[2],
-            "odom_x_m": float(position[0]), "odom_y_m": float(position[1]),
-            "lat": float(latlon[0]) if to_latlon else None,
-            "lon": float(latlon[1]) if to_latlon else None,
-            "max_depth_m": best.max_depth_m, "mean_depth_m": best.mean_depth_m,
-            "area_m2": best.area_m2, "volume_m3": best.volume_m3,
-            "length_m": best.length_m, "width_m": best.width_m,
-            "diameter_m": 2 * math.sqrt(max(best.area_m2, 0.0) / math.pi),
-            "severity": severity(best.max_depth_m, config, average_diameter),
-            "severity_standard": config.severity_standard,
-        }
-        outline = tracked.outlines[tracked.sightings.index(best)] if tracked.outlines \
-            else np.empty((0, 2))
-        outline_latlon = to_latlon(outline) if to_latlon and len(outline) \
-            else np.empty((0, 2))
-        rows.append(SurveyPothole(row, (min(depths), max(depths)), (min(areas), max(areas)),
-                                  best.bbox_px, outline, np.asarray(outline_latlon)))
+    place = MapFrame(fusion, route)
+    entries = map_entries(tracked_all, roadmap, place, config)
+    rows = [survey_pothole(first_id + offset, bag, tracks, found, place, config)
+            for offset, (tracks, found) in enumerate(entries)]
     start = frames[0].stamp_ns if frames else 0
     failures = [(f.stamp_ns, (f.stamp_ns - start) / 1e9, pose.x if pose else math.nan,
                  pose.y if pose else math.nan, f.failure)
                 for f, pose in zip(frames, poses) if f.failure]
     return DriveSurvey(Path(bag), rows, route,
-                       to_latlon(route) if to_latlon and len(route) else None, motion.source,
-                       _observed_length(frames, poses), len(frames),
-                       len(tracked_all) - len(tracks), topics, failures,
-                       gnss_residuals=_residual_summary(fusion))
+                       fusion.to_latlon(route) if fusion is not None and len(route) else None,
+                       motion.source, _observed_length(frames, poses), len(frames),
+                       len(tracked_all) - sum(len(tracks) for tracks, _ in entries), topics,
+                       failures, gnss_residuals=_residual_summary(fusion), roadmap=overview,
+                       map_origin_latlon=tuple(float(v) for v in fusion.origin)
+                       if fusion is not None else None)
+
+
+@dataclass(frozen=True)
+class MapFrame:
+    """The frame of a drive's road map: east, north (m) about the GNSS origin where the drive
+    has GNSS fused with its motion, else the motion frame; and the route in it."""
+
+    fusion: GnssFusion | None
+    route_xy: np.ndarray
+
+    def of_motion(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) motion-frame positions (m) in the map frame (m)."""
+        return self.fusion.to_enu(xy) if self.fusion is not None else np.asarray(xy)
+
+    def to_motion(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) map-frame positions (m) in the motion frame (m)."""
+        return self.fusion.from_enu(xy) if self.fusion is not None else np.asarray(xy)
+
+    def to_latlon(self, xy: np.ndarray) -> np.ndarray | None:
+        """(N, 2) map-frame positions as (lat, lon) degrees; None without GNSS."""
+        return latlon_of(xy, *self.fusion.origin) if self.fusion is not None else None
+
+    def heading_at(self, xy: np.ndarray) -> np.ndarray:
+        """The unit direction of travel (2,) in the map frame at the route point nearest to
+        ``xy`` (m, map frame); the map's x axis without a route."""
+        route = self.of_motion(self.route_xy) if len(self.route_xy) >= 2 else None
+        if route is None:
+            return np.array([1.0, 0.0])
+        nearest = int(np.argmin(np.linalg.norm(route - xy, axis=1)))
+        low, high = max(0, nearest - 2), min(len(route) - 1, nearest + 2)
+        step = route[high] - route[low]
+        length = float(np.linalg.norm(step))
+        return step / length if length > 0 else np.array([1.0, 0.0])
+
+
+def fused_maps(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
+               fusion: GnssFusion | None, config: Config
+               ) -> tuple[RoadMap | None, RoadMap | None]:
+    """The drive's road maps (roadmap.RoadMap): of the potholes (map_cell_m, the road around
+    them) and of the whole road (map_overview_cell_m). Each placed frame's road samples are
+    carried by its pose into the motion frame and, where GNSS is fused, by the frame's
+    alignment into east, north. None where map_cell_m is 0 or no frame has samples."""
+    if config.map_cell_m <= 0:
+        return None, None
+    potholes = road_map(config)
+    whole = road_map(config.replace(map_cell_m=config.map_overview_cell_m))
+    placed = 0
+    for frame, pose in zip(frames, poses):
+        if pose is None:
+            continue
+        index, placed = placed, placed + 1
+        for roadmap, patch in ((potholes, frame.patch), (whole, frame.overview)):
+            if patch is None or not len(patch):
+                continue
+            xy = pose.apply(patch.xy)
+            if fusion is not None:
+                xy = fusion.map_at(index, xy)
+            roadmap.add(xy, patch.depth, patch.sigma)
+    return (potholes if potholes.tiles else None), (whole if whole.tiles else None)
+
+
+def map_entries(tracks: Sequence[Track], roadmap: RoadMap | None, place: MapFrame,
+                config: Config) -> list[tuple[list[Track], MapPothole | None]]:
+    """The survey's entries, in the order first seen: each depression of the map with the
+    tracks that lie on it (within track_match_distance_m of its outline), where they were seen
+    in min_sightings frames together; and each track of min_sightings on road the map did
+    not see twice. A track on road the map saw, with no depression under it, is left out:
+    its views together do not show it. Without a map, each track of min_sightings."""
+    usable = [t for t in tracks if np.all(np.isfinite(t.position))]
+    if roadmap is None:
+        return [([t], None) for t in usable if len(t.sightings) >= config.min_sightings]
+    found = roadmap.potholes()
+    positions = place.of_motion(np.array([t.position for t in usable]).reshape(-1, 2))
+    on: list[list[Track]] = [[] for _ in found]
+    unseen: list[Track] = []
+    for tracked, xy in zip(usable, positions):
+        gaps = [max(0.0, -cv2.pointPolygonTest(p.outline.astype(np.float32).reshape(-1, 1, 2),
+                                               (float(xy[0]), float(xy[1])), True))
+                for p in found]
+        nearest = int(np.argmin(gaps)) if gaps else -1
+        if nearest >= 0 and gaps[nearest] <= config.track_match_distance_m:
+            on[nearest].append(tracked)
+        elif roadmap.views_at(xy[None, :])[0] < 2:
+            unseen.append(tracked)
+    entries = [(joined, pothole) for joined, pothole in zip(on, found)
+               if sum(len(t.sightings) for t in joined) >= config.min_sightings]
+    entries += [([t], None) for t in unseen if len(t.sightings) >= config.min_sightings]
+    return sorted(entries, key=lambda e: min(t.sightings[0].stamp_ns for t in e[0]))
+
+
+def survey_pothole(pothole_id: int, bag: str | Path, tracks: Sequence[Track],
+                   found: MapPothole | None, place: MapFrame, config: Config) -> SurveyPothole:
+    """One entry: times, sightings and the best view from ``tracks`` (together); depth, area,
+    volume, length, width and outline from the map's depression ``found`` (all the views that
+    saw it; its outline runs through its edge cells' centres, so its length and width are one
+    cell more than the outline's), or from the best view where the map has none."""
+    pairs = sorted(((s, p, o) for t in tracks
+                    for s, p, o in zip(t.sightings, t.positions,
+                                       t.outlines or [np.empty((0, 2))] * len(t.sightings))),
+                   key=lambda item: item[0].stamp_ns)
+    together = Track(pothole_id, [s for s, _, _ in pairs], [p for _, p, _ in pairs],
+                     outlines=[o for _, _, o in pairs])
+    best = together.best()
+    depths = [s.max_depth_m for s in together.sightings]
+    areas = [s.area_m2 for s in together.sightings]
+    first, last = together.sightings[0].stamp_ns, together.sightings[-1].stamp_ns
+    if found is not None:
+        xy_map = np.array(found.xy)
+        odom = place.to_motion(xy_map[None, :])[0]
+        outline_map = found.outline
+        outline = place.to_motion(outline_map)
+        along = place.heading_at(xy_map)
+        across = np.array([-along[1], along[0]])
+        length = float(np.ptp(outline_map @ along)) + config.map_cell_m
+        width = float(np.ptp(outline_map @ across)) + config.map_cell_m
+        measures = (found.max_depth_m, found.mean_depth_m, found.area_m2, found.volume_m3,
+                    length, width)
+        views, sigma = found.views, found.max_depth_sigma_m
+    else:
+        odom = together.position
+        xy_map = place.of_motion(odom[None, :])[0]
+        outline = together.outlines[together.sightings.index(best)]
+        outline_map = place.of_motion(outline) if len(outline) else np.empty((0, 2))
+        measures = (best.max_depth_m, best.mean_depth_m, best.area_m2, best.volume_m3,
+                    best.length_m, best.width_m)
+        views, sigma = 1, math.nan
+    max_depth, mean_depth, area, volume, length, width = (float(v) for v in measures)
+    latlon = place.to_latlon(xy_map[None, :])
+    outline_latlon = place.to_latlon(outline_map) if len(outline_map) else None
+    row = {
+        "pothole_id": pothole_id, "bag": Path(bag).name,
+        "first_stamp_ns": first, "last_stamp_ns": last,
+        "sightings": len(together.sightings), "best_stamp_ns": best.stamp_ns,
+        "first_time_utc": utc_time(first), "last_time_utc": utc_time(last),
+        "best_time_utc": utc_time(best.stamp_ns),
+        "x_m": best.camera_xyz[0], "y_m": best.camera_xyz[1], "z_m": best.camera_xyz[2],
+        "odom_x_m": float(odom[0]), "odom_y_m": float(odom[1]),
+        "lat": float(latlon[0, 0]) if latlon is not None else None,
+        "lon": float(latlon[0, 1]) if latlon is not None else None,
+        "max_depth_m": max_depth, "mean_depth_m": mean_depth,
+        "area_m2": area, "volume_m3": volume, "length_m": length, "width_m": width,
+        "diameter_m": 2 * math.sqrt(max(area, 0.0) / math.pi),
+        "severity": severity(max_depth, config, (length + width) / 2),
+        "severity_standard": config.severity_standard,
+        "map_views": views, "max_depth_sigma_m": float(sigma),
+    }
+    return SurveyPothole(row, (min(depths), max(depths)), (min(areas), max(areas)),
+                         best.bbox_px, np.asarray(outline, dtype=np.float64).reshape(-1, 2),
+                         np.asarray(outline_latlon if outline_latlon is not None
+                                    else np.empty((0, 2))), best.max_depth_m)
 
 
 def _residual_summary(fusion: GnssFusion | None) -> dict[str, Any] | None:
@@ -544,7 +686,7 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    from .stages.matching import set_host_threads
+    from ..stages.matching import set_host_threads
 
     values = config.as_dict()
     threads = max(1, (os.cpu_count() or 1) // jobs)

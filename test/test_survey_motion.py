@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.motion import enu_of, fit_rigid_2d, fuse_gnss, latlon_of
+from pothole_detector.geodesy import enu_of, latlon_of
+from pothole_detector.survey.motion import fit_rigid_2d, fuse_gnss
 
 ORIGIN = (47.3769, 8.5417)
 RATE_HZ, SPEED_M_S, LENGTH_M = 10.0, 10.0, 1200.0

@@ -7,11 +7,11 @@ import pytest
 ray = pytest.importorskip("ray")
 
 from conftest import REPO  # noqa: E402
-from test_survey import assert_same_potholes  # noqa: E402
+from test_survey_drive import assert_same_potholes  # noqa: E402
 
 from pothole_detector.params import Config  # noqa: E402
-from pothole_detector.fleet import ray_chunks  # noqa: E402
-from pothole_detector.survey import survey  # noqa: E402
+from pothole_detector.survey.fleet import ray_chunks  # noqa: E402
+from pothole_detector.survey.drive import survey  # noqa: E402
 
 
 def test_ray_chunks_give_the_sequential_survey(survey_drive_bags):

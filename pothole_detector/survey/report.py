@@ -15,8 +15,8 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from .params import PARAMETER_BY_NAME
-from .survey import SEVERITIES, DriveSurvey, SurveyPothole
+from ..params import PARAMETER_BY_NAME
+from .drive import SEVERITIES, DriveSurvey, SurveyPothole
 
 SEVERITY_COLOURS = {"low": "#f2c230", "moderate": "#f07d19", "high": "#d7261e"}
 # the base map: Leaflet from its CDN, loaded only where the page is online; offline the

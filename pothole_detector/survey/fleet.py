@@ -6,11 +6,11 @@ from __future__ import annotations
 
 from typing import Any, Callable, Sequence
 
-from .recordings.bags import LogSpan
-from .errors import InputError
-from .params import Config
-from .stages.matching import set_host_threads
-from .survey import ChunkResult, ChunkRunner, DriveTopics, Plan, observe_chunk
+from ..recordings.bags import LogSpan
+from ..errors import InputError
+from ..params import Config
+from ..stages.matching import set_host_threads
+from .drive import ChunkResult, ChunkRunner, DriveTopics, Plan, observe_chunk
 
 
 def ray_chunks(address: str | None = None) -> ChunkRunner:

@@ -15,11 +15,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .calibration import StereoCalibration
-from .stages.road_model import RoadModel
-
-EARTH_RADIUS_M = 6_378_137.0
-
+from ..calibration import StereoCalibration
+from ..geodesy import enu_of, latlon_of
+from ..stages.road_model import RoadModel
 
 @dataclass(frozen=True)
 class RoadFrame:
@@ -226,24 +224,6 @@ def planar_pose(position: Any, orientation: Any) -> Pose2:
     return Pose2(float(position.x), float(position.y), yaw)
 
 
-def enu_of(lat_deg: np.ndarray, lon_deg: np.ndarray, lat0_deg: float,
-           lon0_deg: float) -> np.ndarray:
-    """(N, 2) east, north (m) of latitudes/longitudes about a reference (local tangent
-    plane; metres-accurate over a few kilometres)."""
-    lat0 = math.radians(lat0_deg)
-    east = np.radians(np.asarray(lon_deg) - lon0_deg) * EARTH_RADIUS_M * math.cos(lat0)
-    north = np.radians(np.asarray(lat_deg) - lat0_deg) * EARTH_RADIUS_M
-    return np.stack([east, north], axis=-1)
-
-
-def latlon_of(enu: np.ndarray, lat0_deg: float, lon0_deg: float) -> np.ndarray:
-    """(N, 2) latitude, longitude (deg) of east, north offsets (m): inverse of :func:`enu_of`."""
-    enu = np.asarray(enu, dtype=np.float64).reshape(-1, 2)
-    lat = lat0_deg + np.degrees(enu[:, 1] / EARTH_RADIUS_M)
-    lon = lon0_deg + np.degrees(enu[:, 0] / (EARTH_RADIUS_M * math.cos(math.radians(lat0_deg))))
-    return np.stack([lat, lon], axis=-1)
-
-
 # the least stretch of the drive (m) the fixes must cover to place it
 MIN_SPAN_M = 0.5
 # a fix takes part in a frame's alignment where its Gaussian weight of distance is above this
@@ -265,27 +245,45 @@ class GnssFusion:
     residuals_m: np.ndarray
     kept: np.ndarray
 
-    def map_at(self, frame: int, point: np.ndarray) -> np.ndarray:
-        """A (2,) odometry position (m) in east, north (m) by the mapping of route frame
+    def map_at(self, frame: int, points: np.ndarray) -> np.ndarray:
+        """(N, 2) odometry positions (m) in east, north (m) by the mapping of route frame
         ``frame`` (its alignment, or in a gap the blend of those about it)."""
         low, high, weight = self.blends[frame]
-        mapped = self.alignments[low].apply(point[None, :])[0]
+        mapped = self.alignments[low].apply(points)
         if weight == 0.0:
             return mapped
-        return (1 - weight) * mapped + weight * self.alignments[high].apply(point[None, :])[0]
+        return (1 - weight) * mapped + weight * self.alignments[high].apply(points)
 
     @cached_property
     def _route_tree(self) -> cKDTree:
         """A k-d tree of the route's positions, for the frame nearest to a point."""
         return cKDTree(self.route_xy)
 
+    @cached_property
+    def _route_enu_tree(self) -> cKDTree:
+        """A k-d tree of the route's positions in east, north."""
+        return cKDTree(np.array([self.map_at(i, p)[0] for i, p in enumerate(self.route_xy)]))
+
     def to_enu(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) odometry positions (m) in east, north (m): each by the mapping of the route
         frame nearest to it."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         _, nearest = self._route_tree.query(xy)
-        return np.array([self.map_at(int(i), point)
+        return np.array([self.map_at(int(i), point)[0]
                          for i, point in zip(nearest, xy)]).reshape(-1, 2)
+
+    def from_enu(self, enu: np.ndarray) -> np.ndarray:
+        """(N, 2) east, north positions (m) in the odometry's frame (m): each by the inverse
+        of the alignment of the route frame nearest to it (in a gap, of the nearer fitted
+        frame about it)."""
+        enu = np.asarray(enu, dtype=np.float64).reshape(-1, 2)
+        _, nearest = self._route_enu_tree.query(enu)
+        placed = []
+        for i, point in zip(nearest, enu):
+            low, high, weight = self.blends[int(i)]
+            placed.append(self.alignments[high if weight > 0.5 else low].inverse()
+                          .apply(point)[0])
+        return np.array(placed).reshape(-1, 2)
 
     def to_latlon(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) odometry positions (m) as (lat, lon) degrees."""
@@ -346,7 +344,7 @@ def fuse_gnss(route_stamps_ns: np.ndarray, route_xy: np.ndarray, gnss_stamps_ns:
             return None
         fusion = GnssFusion(route_xy, alignments, _gap_blends(alignments, travelled), origin,
                             np.zeros(0), np.zeros(0))
-        residual = np.array([np.linalg.norm(fusion.map_at(int(i), o) - e)
+        residual = np.array([np.linalg.norm(fusion.map_at(int(i), o)[0] - e)
                              for i, o, e in zip(nearest, odometry, enu)])
         limit = outlier_sigmas * sigma
         robust = np.where(residual <= limit, 1.0, limit / np.maximum(residual, 1e-12))

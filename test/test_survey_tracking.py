@@ -1,15 +1,15 @@
-"""Pothole tracking on the road plane (tracking.py), shared by the survey and the node."""
+"""Pothole tracking on the road plane (survey/tracking.py), shared by the survey and the node."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from pothole_detector.motion import Pose2, RoadFrame
+from pothole_detector.survey.motion import Pose2, RoadFrame
 from pothole_detector.stages.measure import Pothole
 from pothole_detector.calibration import StereoCalibration
-from pothole_detector.tracking import (MAX_ID, PotholeTracker, Sighting, Track, combined,
-                                       footprint_extents, merge_overlapping, pieces, relabel,
-                                       sightings_of)
+from pothole_detector.survey.tracking import (MAX_ID, PotholeTracker, Sighting, Track, combined,
+                                              footprint_extents, merge_overlapping, pieces,
+                                              sightings_of)
 
 
 def _sighting(forward: float, left: float, area: float = 0.03, depth: float = 0.05,
@@ -68,13 +68,6 @@ def test_sightings_are_on_the_road_frame_and_a_nan_centroid_matches_nothing():
     tracker = PotholeTracker(0.25, 30)
     assert tracker.update(seen, Pose2()) == [1, 2]
     assert tracker.update(seen, Pose2()) == [1, 3]
-
-
-def test_relabel_renames_labels():
-    labels = np.array([[0, 1, 1], [2, 2, 0]], np.int32)
-    renamed = relabel(labels, [type("P", (), {"label": 1}), type("P", (), {"label": 2})], [7, 3])
-    np.testing.assert_array_equal(renamed, [[0, 7, 7], [3, 3, 0]])
-    assert renamed.dtype == labels.dtype
 
 
 def test_pieces_of_one_depression_whose_discs_touch_are_one_pothole():

@@ -12,7 +12,7 @@ from typing import Any, Callable, Sequence
 import cv2
 import numpy as np
 
-from .calibration import StereoCalibration
+from ..calibration import StereoCalibration
 from .motion import Pose2, RoadFrame
 
 # the largest id the node publishes: the label image (pothole_labels) is mono16
@@ -372,13 +372,3 @@ def merge_overlapping(tracks: Sequence[Track]) -> list[Track]:
             joined.outlines.append(hull([o for _, _, o in parts]))
         merged.append(joined)
     return sorted(merged, key=lambda t: (t.sightings[0].stamp_ns, t.id))
-
-
-def relabel(labels: np.ndarray, potholes: Sequence[Any], ids: Sequence[int]) -> np.ndarray:
-    """``labels`` (int HxW, 0 = road, k = the pothole of label k) with each of ``potholes``
-    renamed to its entry of ``ids``."""
-    table = np.zeros(max((p.label for p in potholes), default=0) + 1, dtype=np.int64)
-    for pothole, given in zip(potholes, ids):
-        table[pothole.label] = given
-    inside = (labels > 0) & (labels < table.size)
-    return np.where(inside, table[np.where(inside, labels, 0)], 0).astype(labels.dtype)

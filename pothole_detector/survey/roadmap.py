@@ -1,0 +1,398 @@
+"""The fused road elevation map: each frame's road samples (the height below the frame's fitted
+road, with its standard deviation from the disparity noise) placed by the ego-motion into a 2.5D
+grid of square cells on the road, in tiles that exist only where the road was seen. Per cell,
+the inverse-variance weighted mean of the views and its standard deviation; potholes are the
+connected depressions of the map below a local road level, measured from all views that saw
+them. The survey keeps every tile; the live node keeps a rolling window around the vehicle."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from ..calibration import StereoCalibration
+from ..params import Config
+from ..stages.road_model import RoadModel
+from .motion import RoadFrame
+
+# cells per side of a tile
+TILE_CELLS = 128
+# the least disparity noise (px) a frame's samples are given: a road fit of a smooth rendered
+# road can report less than the matcher's quantisation allows
+MIN_NOISE_PX = 0.05
+# a cell counts as seen by a frame whose splat gave it at least this share of a sample
+VIEW_SHARE = 0.25
+# rounds of the local road level that leave out the cells below the last one
+LEVEL_ROUNDS = 3
+
+
+@dataclass(frozen=True, eq=False)
+class RoadPatch:
+    """One frame's road samples on its road plane, binned to cells of the map's size: their
+    centres ``xy`` float32 (K, 2) (forward, left; m in the frame's road frame), the height
+    below the frame's fitted road there ``depth`` float32 (K,) (m, positive into the ground)
+    and its standard deviation ``sigma`` float32 (K,) (m)."""
+
+    xy: np.ndarray
+    depth: np.ndarray
+    sigma: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "RoadPatch":
+        return cls(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
+                   np.zeros(0, np.float32))
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, RoadPatch) and all(
+            np.array_equal(a, b) for a, b in ((self.xy, other.xy), (self.depth, other.depth),
+                                              (self.sigma, other.sigma)))
+
+
+def around_potholes(shape: tuple[int, int], boxes: list[tuple[int, int, int, int]]
+                    ) -> np.ndarray:
+    """The bool mask (``shape`` H, W) of the pixels near potholes: each box (x0, y0, x1, y1
+    px, inclusive) grown on every side by its own width and height, so that the road around a
+    pothole comes with it."""
+    mask = np.zeros(shape, bool)
+    for x0, y0, x1, y1 in boxes:
+        grow_x, grow_y = x1 - x0 + 1, y1 - y0 + 1
+        mask[max(0, y0 - grow_y):y1 + grow_y + 1, max(0, x0 - grow_x):x1 + grow_x + 1] = True
+    return mask
+
+
+def road_patch(disparity: np.ndarray, observed: np.ndarray, road: RoadModel, plane: RoadFrame,
+               calibration: StereoCalibration, cell_m: float) -> RoadPatch:
+    """The road samples of one frame: every pixel of the HxW bool ``observed`` mask with a
+    disparity (HxW float32 px, NaN invalid) becomes a 3D point whose place on the road
+    (forward, left in ``plane``) and height below ``road`` (along the road's normal) are binned
+    into cells of ``cell_m`` m. A pixel's standard deviation is that of its disparity, the
+    road fit's robust sigma (at least MIN_NOISE_PX), carried to a height: Z^2 / (f B) times
+    the cosine of the ray's incidence on the road; a cell keeps its pixels' mean height
+    (inverse-variance weighted) and their median sigma (neighbouring pixels share the
+    matcher's errors, so a cell of many pixels is no surer than one). Pixels are sampled with
+    the largest stride that keeps the farthest ones closer than half a cell apart."""
+    valid = observed & np.isfinite(disparity) & (disparity > 0)
+    if not valid.any():
+        return RoadPatch.empty()
+    f, fb = calibration.f, calibration.fb
+    nearest = float(np.nanmin(np.where(valid, disparity, np.nan)))
+    stride = int(np.clip(math.floor(0.5 * cell_m * nearest * f / fb), 1, 8))
+    rows, cols = np.nonzero(valid[::stride, ::stride])
+    rows, cols = rows * stride, cols * stride
+    d = disparity[rows, cols].astype(np.float64)
+    u, v = cols.astype(np.float64), rows.astype(np.float64)
+    points = np.stack(calibration.back_project(u, v, d), axis=-1)
+    normal = -plane.axes[2]
+    incidence = ((u - calibration.cx) / f * normal[0] + (v - calibration.cy) / f * normal[1]
+                 + normal[2])
+    road_d = np.asarray(road.at(np, u, v), dtype=np.float64)
+    keep = (road_d > 0) & (incidence > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = (fb / d - fb / road_d) * incidence
+    z = fb / d
+    sigma = z * z * incidence / fb * max(road.sigma_px, MIN_NOISE_PX)
+    on_road = plane.from_camera(points[keep])[:, :2]
+    depth, sigma = depth[keep], sigma[keep]
+    cells = np.floor(on_road / cell_m).astype(np.int64)
+    keys, inverse = np.unique(cells, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    weight = 1.0 / (sigma * sigma)
+    mean = np.bincount(inverse, weight * depth) / np.bincount(inverse, weight)
+    order = np.lexsort((sigma, inverse))
+    starts = np.searchsorted(inverse[order], np.arange(len(keys)))
+    counts = np.bincount(inverse, minlength=len(keys))
+    median_sigma = sigma[order][starts + counts // 2]
+    return RoadPatch(((keys + 0.5) * cell_m).astype(np.float32), mean.astype(np.float32),
+                     median_sigma.astype(np.float32))
+
+
+@dataclass
+class Tile:
+    """One tile of the map: per cell (TILE_CELLS x TILE_CELLS, rows along the map's y, columns
+    along its x) the summed weights (1/m^2), the weighted sum of heights (m/m^2) and the views
+    that saw it."""
+
+    weight: np.ndarray
+    weighted: np.ndarray
+    views: np.ndarray
+
+    @classmethod
+    def new(cls) -> "Tile":
+        shape = (TILE_CELLS, TILE_CELLS)
+        return cls(np.zeros(shape, np.float32), np.zeros(shape, np.float32),
+                   np.zeros(shape, np.uint16))
+
+
+@dataclass(frozen=True)
+class MapPothole:
+    """A depression of the map: its centroid ``xy`` (m, map frame), its outline on the road
+    (float64 (N, 2), m, map frame), its largest and mean depth below the local road level (m),
+    the standard deviation of the largest (m), its area (m^2) and volume (m^3), the cells it
+    covers and the most views any of them had."""
+
+    xy: tuple[float, float]
+    outline: np.ndarray
+    max_depth_m: float
+    mean_depth_m: float
+    max_depth_sigma_m: float
+    area_m2: float
+    volume_m3: float
+    cells: int
+    views: int
+
+
+@dataclass(frozen=True)
+class MapView:
+    """A block of the map: its lower corner ``origin`` (m, map frame, the corner of cell
+    [0, 0]), its cell size (m) and per cell (rows along y, columns along x; float32) the fused
+    height below the road (m; NaN where unseen), its standard deviation (m; NaN where unseen),
+    the depth below the local road level (m; NaN where unseen), the views (uint16) and the
+    pothole each cell belongs to (int32, 0 = none, else 1-based in ``potholes``)."""
+
+    origin: tuple[float, float]
+    cell_m: float
+    height: np.ndarray
+    sigma: np.ndarray
+    depth: np.ndarray
+    views: np.ndarray
+    label: np.ndarray
+    potholes: list[MapPothole]
+
+
+def road_map(config: Config) -> "RoadMap":
+    """An empty map as ``config`` sets it: cells of map_cell_m, the local level over
+    local_road_radius_m, depressions deeper than threshold_noise_sigmas fused sigmas and
+    delta_pd_m, potholes of min_pothole_area_m2 and min_pothole_depth_m."""
+    return RoadMap(config.map_cell_m, config.local_road_radius_m,
+                   config.threshold_noise_sigmas, config.delta_pd_m,
+                   config.min_pothole_area_m2, config.min_pothole_depth_m)
+
+
+class RoadMap:
+    """The fused road elevation map, cells of ``cell_m`` m in tiles of TILE_CELLS. Potholes are
+    depressions deeper than ``noise_sigmas`` times the fused standard deviation and than
+    ``min_cell_depth_m`` below the local road level (the weighted mean of the cells within
+    ``level_radius_m`` that are not significantly deep), of at least ``min_area_m2`` and
+    ``min_depth_m`` deep on average."""
+
+    def __init__(self, cell_m: float, level_radius_m: float, noise_sigmas: float,
+                 min_cell_depth_m: float, min_area_m2: float, min_depth_m: float) -> None:
+        self.cell_m = cell_m
+        self.level_radius_m = level_radius_m
+        self.noise_sigmas = noise_sigmas
+        self.min_cell_depth_m = min_cell_depth_m
+        self.min_area_m2 = min_area_m2
+        self.min_depth_m = min_depth_m
+        self.tiles: dict[tuple[int, int], Tile] = {}
+
+    @property
+    def tile_m(self) -> float:
+        return TILE_CELLS * self.cell_m
+
+    def add(self, xy: np.ndarray, depth: np.ndarray, sigma: np.ndarray) -> None:
+        """Fuse one frame's samples: ``xy`` (K, 2) places in the map frame (m), ``depth`` and
+        ``sigma`` (K,) m. Each sample is splatted onto its four nearest cell centres with
+        bilinear shares of its weight 1/sigma^2."""
+        good = np.isfinite(depth) & np.isfinite(sigma) & (sigma > 0) & np.isfinite(xy).all(1)
+        if not good.any():
+            return
+        grid = np.asarray(xy, np.float64)[good] / self.cell_m - 0.5
+        base = np.floor(grid).astype(np.int64)
+        frac = grid - base
+        weight = 1.0 / np.square(sigma[good].astype(np.float64))
+        value = depth[good].astype(np.float64)
+        corners = [(0, 0, (1 - frac[:, 0]) * (1 - frac[:, 1])),
+                   (1, 0, frac[:, 0] * (1 - frac[:, 1])),
+                   (0, 1, (1 - frac[:, 0]) * frac[:, 1]), (1, 1, frac[:, 0] * frac[:, 1])]
+        cx = np.concatenate([base[:, 0] + dx for dx, _, _ in corners])
+        cy = np.concatenate([base[:, 1] + dy for _, dy, _ in corners])
+        share = np.concatenate([s for _, _, s in corners])
+        w = share * np.tile(weight, 4)
+        wz = w * np.tile(value, 4)
+        tile_x, tile_y = np.floor_divide(cx, TILE_CELLS), np.floor_divide(cy, TILE_CELLS)
+        local = (cy - tile_y * TILE_CELLS) * TILE_CELLS + (cx - tile_x * TILE_CELLS)
+        tiles, which = np.unique(np.stack([tile_x, tile_y], 1), axis=0, return_inverse=True)
+        which = which.ravel()
+        size = TILE_CELLS * TILE_CELLS
+        for index, (tx, ty) in enumerate(tiles):
+            mine = which == index
+            tile = self.tiles.get((int(tx), int(ty)))
+            if tile is None:
+                tile = self.tiles[(int(tx), int(ty))] = Tile.new()
+            cells = local[mine]
+            tile.weight.ravel()[:] += np.bincount(cells, w[mine], size)
+            tile.weighted.ravel()[:] += np.bincount(cells, wz[mine], size)
+            seen = np.bincount(cells, share[mine], size) >= VIEW_SHARE
+            tile.views.ravel()[seen] = np.minimum(tile.views.ravel()[seen].astype(np.int64) + 1,
+                                                  np.iinfo(np.uint16).max)
+
+    def views_at(self, xy: np.ndarray) -> np.ndarray:
+        """The views (int (N,)) of the cells at ``xy`` (N, 2) m in the map frame."""
+        cells = np.floor(np.asarray(xy, np.float64).reshape(-1, 2) / self.cell_m).astype(int)
+        views = np.zeros(len(cells), np.int64)
+        for index, (cx, cy) in enumerate(cells):
+            tile = self.tiles.get((int(cx // TILE_CELLS), int(cy // TILE_CELLS)))
+            if tile is not None:
+                views[index] = tile.views[cy % TILE_CELLS, cx % TILE_CELLS]
+        return views
+
+    def forget_beyond(self, xy: tuple[float, float], radius_m: float) -> int:
+        """Drop the tiles whose centre lies farther than ``radius_m`` from ``xy`` (m, map
+        frame): the rolling window of a live map. Returns how many were dropped."""
+        far = [key for key in self.tiles
+               if math.hypot((key[0] + 0.5) * self.tile_m - xy[0],
+                             (key[1] + 0.5) * self.tile_m - xy[1]) > radius_m]
+        for key in far:
+            del self.tiles[key]
+        return len(far)
+
+    def view(self, lower: tuple[int, int], upper: tuple[int, int],
+             potholes_whole: bool = True) -> MapView:
+        """The block of tiles ``lower`` to ``upper`` (tile indices, inclusive) with its
+        potholes (those whose centroid lies in the block; with ``potholes_whole``, the block
+        is read with a margin of a tile on each side so that they lie whole in it)."""
+        margin = 1 if potholes_whole else 0
+        span = (lower[0] - margin, lower[1] - margin, upper[0] + margin, upper[1] + margin)
+        weight, weighted, views = self._mosaic(*span)
+        inner = (slice(margin * TILE_CELLS, weight.shape[0] - margin * TILE_CELLS),
+                 slice(margin * TILE_CELLS, weight.shape[1] - margin * TILE_CELLS))
+        seen = weight > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            height = np.where(seen, weighted / weight, np.nan)
+            sigma = np.where(seen, 1.0 / np.sqrt(weight), np.nan)
+        depth = height - self._level(height, sigma, weight)
+        label, potholes = self._segment(depth, sigma, views,
+                                        (span[0] * self.tile_m, span[1] * self.tile_m), inner)
+        origin = (lower[0] * self.tile_m, lower[1] * self.tile_m)
+        return MapView(origin, self.cell_m, height[inner].astype(np.float32),
+                       sigma[inner].astype(np.float32), depth[inner].astype(np.float32),
+                       views[inner], label[inner], potholes)
+
+    def around(self, xy: tuple[float, float], radius_m: float) -> MapView:
+        """The tiles within ``radius_m`` of ``xy`` (m, map frame), with their potholes."""
+        lower = (math.floor((xy[0] - radius_m) / self.tile_m),
+                 math.floor((xy[1] - radius_m) / self.tile_m))
+        upper = (math.floor((xy[0] + radius_m) / self.tile_m),
+                 math.floor((xy[1] + radius_m) / self.tile_m))
+        return self.view(lower, upper)
+
+    def tile_views(self) -> Iterator[tuple[tuple[int, int], MapView]]:
+        """Each tile of the map (in row order) with its potholes: every pothole of the map
+        once, memory of nine tiles at a time."""
+        for key in sorted(self.tiles, key=lambda k: (k[1], k[0])):
+            yield key, self.view(key, key)
+
+    def potholes(self) -> list[MapPothole]:
+        """Every pothole of the map."""
+        return [p for _, view in self.tile_views() for p in view.potholes]
+
+    def _mosaic(self, x0: int, y0: int, x1: int, y1: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        shape = ((y1 - y0 + 1) * TILE_CELLS, (x1 - x0 + 1) * TILE_CELLS)
+        weight, weighted = np.zeros(shape), np.zeros(shape)
+        views = np.zeros(shape, np.uint16)
+        for (tx, ty), tile in self.tiles.items():
+            if x0 <= tx <= x1 and y0 <= ty <= y1:
+                rows = slice((ty - y0) * TILE_CELLS, (ty - y0 + 1) * TILE_CELLS)
+                cols = slice((tx - x0) * TILE_CELLS, (tx - x0 + 1) * TILE_CELLS)
+                weight[rows, cols], weighted[rows, cols] = tile.weight, tile.weighted
+                views[rows, cols] = tile.views
+        return weight, weighted, views
+
+    def _level(self, height: np.ndarray, sigma: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """The local road level (m) of each cell: a plane fitted, weighted, to the heights of
+        the road's cells within level_radius_m (a square window), taken at the cell (a plane,
+        so that a slope or camber of the road and the edge of the seen road do not bias it).
+        The road's cells are first all seen cells, then LEVEL_ROUNDS times those not
+        significantly below the last level. NaN where the window has no road cell."""
+        seen = weight > 0
+        road = seen
+        for _ in range(LEVEL_ROUNDS):
+            level = self._plane(height, weight, road)
+            road = seen & ~(height - level > self.noise_sigmas * sigma)
+        return level
+
+    def _plane(self, height: np.ndarray, weight: np.ndarray, road: np.ndarray) -> np.ndarray:
+        """The weighted plane of the ``road`` cells' heights in each cell's window, at the
+        cell; their weighted mean where they lie on a line."""
+        side = 2 * max(1, round(self.level_radius_m / self.cell_m)) + 1
+        w = np.where(road, weight, 0.0)
+        z = np.where(road, height, 0.0)
+        rows, cols = np.indices(height.shape, dtype=np.float64)
+        rows -= height.shape[0] / 2
+        cols -= height.shape[1] / 2
+
+        def box(values: np.ndarray) -> np.ndarray:
+            return cv2.boxFilter(values, cv2.CV_64F, (side, side), normalize=False,
+                                 borderType=cv2.BORDER_CONSTANT)
+
+        s, sx, sy = box(w), box(w * cols), box(w * rows)
+        sxx, sxy, syy = box(w * cols * cols), box(w * cols * rows), box(w * rows * rows)
+        sz, sxz, syz = box(w * z), box(w * cols * z), box(w * rows * z)
+        # moments about each cell itself: the plane's value there is its constant term
+        sx_c, sy_c = sx - cols * s, sy - rows * s
+        sxx_c = sxx - 2 * cols * sx + cols * cols * s
+        syy_c = syy - 2 * rows * sy + rows * rows * s
+        sxy_c = sxy - cols * sy - rows * sx + cols * rows * s
+        sxz_c, syz_c = sxz - cols * sz, syz - rows * sz
+        normal = np.stack([np.stack([s, sx_c, sy_c], -1), np.stack([sx_c, sxx_c, sxy_c], -1),
+                           np.stack([sy_c, sxy_c, syy_c], -1)], -2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = np.where(s > 0, sz / s, np.nan)
+            # the determinant of the cells' covariance (cells^4) times s^2: a plane needs
+            # cells that spread over at least about a cell each way
+            spread = ((sxx_c - sx_c * sx_c / s) * (syy_c - sy_c * sy_c / s)
+                      - (sxy_c - sx_c * sy_c / s) ** 2)
+            planar = (s > 0) & (spread > 0.25 * s * s)
+            level = mean.copy()
+            if planar.any():
+                right = np.stack([sz, sxz_c, syz_c], -1)[planar]
+                level[planar] = np.linalg.solve(normal[planar], right[..., None])[:, 0, 0]
+        return level
+
+    def _segment(self, depth: np.ndarray, sigma: np.ndarray, views: np.ndarray,
+                 origin: tuple[float, float], inner: tuple[slice, slice]
+                 ) -> tuple[np.ndarray, list[MapPothole]]:
+        deep = np.isfinite(depth) & (depth > self.noise_sigmas * sigma) \
+            & (depth > self.min_cell_depth_m)
+        count, labels, stats, centroids = cv2.connectedComponentsWithStats(
+            deep.astype(np.uint8), connectivity=8)
+        cell_area = self.cell_m * self.cell_m
+        kept = np.zeros(count, np.int32)
+        potholes: list[MapPothole] = []
+        if count > 1:
+            flat = labels.ravel()
+            values = np.where(deep, depth, 0.0).ravel()
+            sums = np.bincount(flat, values, count)
+            deepest = np.full(count, -np.inf)
+            np.maximum.at(deepest, flat, values)
+            for index in range(1, count):
+                cx, cy = centroids[index]
+                cells = int(stats[index, cv2.CC_STAT_AREA])
+                inside = (inner[0].start <= cy < inner[0].stop
+                          and inner[1].start <= cx < inner[1].stop)
+                if (not inside or cells * cell_area < self.min_area_m2
+                        or sums[index] / cells < self.min_depth_m):
+                    continue
+                mine = labels == index
+                at = np.unravel_index(np.argmax(np.where(mine, depth, -np.inf)), depth.shape)
+                potholes.append(MapPothole(
+                    (origin[0] + (cx + 0.5) * self.cell_m, origin[1] + (cy + 0.5) * self.cell_m),
+                    self._outline(mine, origin), float(deepest[index]),
+                    float(sums[index] / cells), float(sigma[at]), cells * cell_area,
+                    float(sums[index] * cell_area), cells, int(views[mine].max())))
+                kept[index] = len(potholes)
+        return kept[labels], potholes
+
+    def _outline(self, mask: np.ndarray, origin: tuple[float, float]) -> np.ndarray:
+        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                       cv2.CHAIN_APPROX_SIMPLE)
+        largest = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
+        return np.asarray(origin) + (largest + 0.5) * self.cell_m
