@@ -1,7 +1,8 @@
 """Survey accuracy on our generator's drive (48 frames, six potholes 1.5-8.5 cm deep, known
 poses): per motion source, potholes reported against the truth, duplicates, false entries,
-position errors, severity classes and the visual odometry's drift. Prints a Markdown table
-for docs/accuracy.md.
+position errors, the largest depth's error from the fused road map and from the best single
+view, severity classes and the visual odometry's drift. Prints a Markdown table for
+docs/accuracy.md.
 
     python benchmarks/survey_accuracy.py [--width 480]
 """
@@ -52,7 +53,7 @@ def main() -> None:
                 forward, left = shape.y_m - start, -shape.x_m
                 truths.append((np.array((-left, forward) if kind == "gnss" else (forward, left)),
                                shape.depth_m))
-            errors, matched, right_class = [], set(), 0
+            errors, matched, right_class, map_depth, view_depth = [], set(), 0, [], []
             for pothole in drive.potholes:
                 position = np.array([pothole.row["odom_x_m"], pothole.row["odom_y_m"]])
                 if kind == "gnss":
@@ -64,6 +65,8 @@ def main() -> None:
                     matched.add(nearest)
                     errors.append(gaps[nearest])
                     right_class += pothole.row["severity"] == severity(truths[nearest][1], config)
+                    map_depth.append(abs(pothole.row["max_depth_m"] - truths[nearest][1]))
+                    view_depth.append(abs(pothole.best_view_depth_m - truths[nearest][1]))
             false = len(drive.potholes) - len(errors)
             duplicates = len(errors) - len(matched)
             drift = ""
@@ -73,15 +76,17 @@ def main() -> None:
                          f"{100 * abs(across) / travelled:.1f} % across")
             rows.append((label, len(drive.potholes), len(truths), duplicates, false,
                          np.median(errors) if errors else np.nan,
-                         max(errors) if errors else np.nan, right_class, drift))
+                         max(errors) if errors else np.nan, right_class, drift,
+                         1e3 * np.median(map_depth), 1e3 * np.median(view_depth)))
     print(f"survey accuracy, generator drive {args.width}x{args.width * 9 // 16}, 48 frames, "
           f"{travelled:.2f} m, six potholes; {datetime.date.today().isoformat()}")
     print("| motion from | reported / truth | duplicates | false | position error median / "
-          "max (m) | severity right | odometry drift at the end |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    for label, found, total, dup, false, median, worst, right, drift in rows:
+          "max (m) | depth error median, map / best view (mm) | severity right | odometry "
+          "drift at the end |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for label, found, total, dup, false, median, worst, right, drift, by_map, by_view in rows:
         print(f"| {label} | {found} / {total} | {dup} | {false} | {median:.3f} / {worst:.3f} | "
-              f"{right} / {found} | {drift or '-'} |")
+              f"{by_map:.1f} / {by_view:.1f} | {right} / {found} | {drift or '-'} |")
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from .recordings.images import (RAW_LAYOUTS, compressed_format_string, decode_ra
                                 encode_compressed)
 from .stages.measure import Pothole, depth_below_road
 from .stages.road_model import RoadModel
+from .survey.roadmap import MapView
 
 Duration = message("builtin_interfaces/msg/Duration")
 Time = message("builtin_interfaces/msg/Time")
@@ -34,6 +35,9 @@ Marker = message("visualization_msgs/msg/Marker")
 MarkerArray = message("visualization_msgs/msg/MarkerArray")
 PotholeMsg = message("pothole_detector_msgs/msg/Pothole")
 PotholeArray = message("pothole_detector_msgs/msg/PotholeArray")
+OccupancyGrid = message("nav_msgs/msg/OccupancyGrid")
+MapMetaData = message("nav_msgs/msg/MapMetaData")
+Pose = message("geometry_msgs/msg/Pose")
 
 SUBPIXEL_STEP_PX = 1.0 / 16.0
 POINT_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", PointField.FLOAT32),
@@ -283,3 +287,54 @@ def camera_info_message(calibration: StereoCalibration, width: int, height: int,
                       d=[0.0] * 5, k=[f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
                       r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
                       p=[f, 0.0, cx, tx, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+
+
+# the road map's cloud: a point per seen cell at its centre, z the road's height there
+MAP_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", PointField.FLOAT32),
+              ("depth_below_road", PointField.FLOAT32), ("sigma", PointField.FLOAT32),
+              ("views", PointField.UINT32), ("pothole_id", PointField.UINT32))
+MAP_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("depth_below_road", "<f4"),
+                      ("sigma", "<f4"), ("views", "<u4"), ("pothole_id", "<u4")])
+# OccupancyGrid values: unseen, road, pothole
+UNSEEN, ROAD, POTHOLE = -1, 0, 100
+
+
+def map_cloud_message(view: MapView, header: Header) -> PointCloud2:
+    """sensor_msgs/PointCloud2 (unorganized, MAP_DTYPE) of a road map's seen cells: x, y their
+    centres in the map frame, z the road's height there (m, up: the negated height below the
+    frames' roads), the depth below the local road level (m), the fused height's standard
+    deviation (m), the views and the pothole (0 = none, else 1-based in ``view.potholes``)."""
+    rows, cols = np.nonzero(view.views > 0)
+    cloud = np.zeros(len(rows), MAP_DTYPE)
+    cloud["x"] = view.origin[0] + (cols + 0.5) * view.cell_m
+    cloud["y"] = view.origin[1] + (rows + 0.5) * view.cell_m
+    cloud["z"] = -view.height[rows, cols]
+    cloud["depth_below_road"] = view.depth[rows, cols]
+    cloud["sigma"] = view.sigma[rows, cols]
+    cloud["views"] = view.views[rows, cols]
+    cloud["pothole_id"] = view.label[rows, cols]
+    fields = [PointField(name=name, offset=MAP_DTYPE.fields[name][1], datatype=kind, count=1)
+              for name, kind in MAP_FIELDS]
+    return PointCloud2(header=header, height=1, width=len(cloud), fields=fields,
+                       is_bigendian=False, point_step=MAP_DTYPE.itemsize,
+                       row_step=MAP_DTYPE.itemsize * len(cloud),
+                       data=_bytes(cloud.view(np.uint8)), is_dense=False)
+
+
+def occupancy_grid_message(view: MapView, header: Header) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid of a road map for planners: POTHOLE (100) on a pothole's cells,
+    ROAD (0) on the other seen cells, UNSEEN (-1) elsewhere; cell [0, 0] at ``view.origin``,
+    rows along y."""
+    grid = np.where(view.label > 0, POTHOLE, np.where(view.views > 0, ROAD, UNSEEN))
+    height, width = grid.shape
+    origin = Pose()
+    origin.position.x, origin.position.y = float(view.origin[0]), float(view.origin[1])
+    origin.orientation.w = 1.0
+    info = MapMetaData(map_load_time=header.stamp, resolution=float(view.cell_m),
+                       width=width, height=height, origin=origin)
+    cells = np.ascontiguousarray(grid, dtype=np.int8).reshape(-1)
+    data: array.array | np.ndarray = cells.copy()
+    if msgtypes.ROS:
+        data = array.array("b")
+        data.frombytes(cells.tobytes())
+    return OccupancyGrid(header=header, info=info, data=data)

@@ -15,7 +15,7 @@ from typing import Any, Sequence
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.clock import Clock, ClockType
@@ -35,6 +35,7 @@ from visualization_msgs.msg import MarkerArray
 from pothole_detector_msgs.msg import PotholeArray
 
 from . import msgtypes
+from .conversions import map_cloud_message, occupancy_grid_message
 from .backend import Backend, get_backend
 from .calibration import StereoCalibration, StereoCamera
 from .errors import ConfigError, InputError, PotholeError
@@ -46,6 +47,7 @@ from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
 from .stages import census_sgm, rectify
 from .sync import StereoSynchronizer
 from .survey.motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
+from .survey.roadmap import LiveMap
 from .survey.tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
@@ -56,6 +58,11 @@ WARM_UP_WAITING_SETS = 32
 # what the diagnostics say while the worker warms up
 WARMING_UP = "starting: compiling the CPU kernels (the first start after installation)"
 ODOMETRY_HISTORY = 400
+# the road map's outputs (published while somebody subscribes, at map_publish_rate_hz)
+MAP_OUTPUTS = ("map_cloud", "map_potholes")
+MAP_PARAMETERS = frozenset({"map_cell_m", "map_radius_m", "map_publish_rate_hz",
+                            "local_road_radius_m", "threshold_noise_sigmas", "delta_pd_m",
+                            "min_pothole_area_m2", "min_pothole_depth_m", "use_odometry"})
 SYNC_PARAMETERS = frozenset({"approximate_sync", "approximate_sync_tolerance_seconds",
                              "queue_size"})
 INFO_HISTORY = 32
@@ -241,6 +248,8 @@ class PotholeDetectorNode(Node):
         self._reset_requested = False
         self._ids = self._tracker(self._config)
         self._odometry: deque[tuple[int, Pose2]] = deque(maxlen=ODOMETRY_HISTORY)
+        self._odometry_frame = "odom"
+        self._map: LiveMap | None = None
         self._pipeline: Pipeline | None = None
         self._pipeline_key: tuple[Any, ...] | None = None
         self._backend: Backend | None = None
@@ -282,6 +291,8 @@ class PotholeDetectorNode(Node):
                 self._synchronizer = StereoSynchronizer.from_config(config)
             self._ids.match_distance_m = config.track_match_distance_m
             self._ids.forget_frames = config.track_forget_frames
+            if changed & MAP_PARAMETERS:
+                self._map = None
         if changed & QOS_PARAMETERS:
             self._make_io(config)
         if "diagnostics_period_seconds" in changed:
@@ -354,6 +365,8 @@ class PotholeDetectorNode(Node):
             "potholes": publish(PotholeArray, "potholes"),
             "pothole_markers": publish(MarkerArray, "pothole_markers"),
             "overlay": publish(Image, "overlay"),
+            "map_cloud": publish(PointCloud2, "map_cloud"),
+            "map_potholes": publish(OccupancyGrid, "map_potholes"),
             "diagnostics": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
         }
 
@@ -377,6 +390,7 @@ class PotholeDetectorNode(Node):
         pose = planar_pose(msg.pose.pose.position, msg.pose.pose.orientation)
         with self._lock:
             self._odometry.append((msgtypes.stamp_ns(msg.header), pose))
+            self._odometry_frame = msg.header.frame_id or self._odometry_frame
 
     def _on_info(self, side: str, msg: CameraInfo) -> None:
         with self._lock:
@@ -558,6 +572,7 @@ class PotholeDetectorNode(Node):
         if reset:
             pipeline.reset()
             self._ids.reset()
+            self._map = None
         converted = time.thread_time()
         result = pipeline.run(left, right)
         ran = time.thread_time()
@@ -565,13 +580,17 @@ class PotholeDetectorNode(Node):
         publishers = self._outputs
         wanted = [name for name in ON_REQUEST if publishers[name].get_subscription_count() > 0]
         height, width = pipeline.output_shape(left.shape)
-        ids = self._pothole_ids(job.stamp_ns, result, calibration, width, height)
+        plane = self._road_frame(result, calibration, width, height)
+        pose = self._pose_at(job.stamp_ns)
+        ids = self._ids.update(sightings_of(job.stamp_ns, result, plane, width, height),
+                               pose or Pose2())
         view = left
         if {"overlay", "points2"} & set(wanted):  # pictures in colour, as the camera took them
             view = pipeline.view(decode(job.left, image_type, sizes[0]))
         for name, message in output_messages(result, view, calibration, header, wanted,
                                              ids).messages.items():
             publishers[name].publish(message)
+        self._publish_map(result, plane, calibration, pipeline.view(left), pose, header, config)
         published = time.thread_time()
         finished = time.monotonic()
         self._stats.done((finished - job.received) * 1e3, (finished - began) * 1e3,
@@ -584,26 +603,57 @@ class PotholeDetectorNode(Node):
         return PotholeTracker(config.track_match_distance_m, config.track_forget_frames,
                               max_id=MAX_ID, keep_history=False)
 
-    def _pothole_ids(self, stamp_ns: int, result: Any, calibration: StereoCalibration,
-                     width: int, height: int) -> list[int]:
-        """Each pothole's id: tracked on the road plane of this frame, carried by the
-        odometry's pose at the frame's stamp (use_odometry; else the identity pose), a fresh
-        one where the road gives no road frame."""
+    @staticmethod
+    def _road_frame(result: Any, calibration: StereoCalibration, width: int,
+                    height: int) -> RoadFrame:
+        """The frame's road frame; NaN where the road gives none (no pothole then matches a
+        track, and the map skips the frame)."""
         try:
-            plane = road_frame(result.road, calibration, width, height)
+            return road_frame(result.road, calibration, width, height)
         except ValueError:
-            plane = RoadFrame(np.full(3, np.nan), np.full((3, 3), np.nan))
-        pose = Pose2()
-        if self._config.use_odometry:
-            with self._lock:
-                history = list(self._odometry)
-            found = interpolate_poses(np.array([t for t, _ in history], dtype=np.int64),
-                                      [p for _, p in history], stamp_ns) if history else None
-            if found is None:
-                self._problem("odometry", "no odometry on odom within 0.5 s of the stereo "
-                                          "stamp; tracking potholes without the motion")
-            pose = found or pose
-        return self._ids.update(sightings_of(stamp_ns, result, plane, width, height), pose)
+            return RoadFrame(np.full(3, np.nan), np.full((3, 3), np.nan))
+
+    def _pose_at(self, stamp_ns: int) -> Pose2 | None:
+        """The odometry's pose at the frame's stamp (use_odometry), else None."""
+        if not self._config.use_odometry:
+            return None
+        with self._lock:
+            history = list(self._odometry)
+        found = interpolate_poses(np.array([t for t, _ in history], dtype=np.int64),
+                                  [p for _, p in history], stamp_ns) if history else None
+        if found is None:
+            self._problem("odometry", "no odometry on odom within 0.5 s of the stereo "
+                                      "stamp; tracking potholes without the motion")
+        return found
+
+    def _publish_map(self, result: Any, plane: RoadFrame, calibration: StereoCalibration,
+                     gray: np.ndarray, pose: Pose2 | None, header: Header,
+                     config: Config) -> None:
+        """Fuse the frame into the live road map while somebody subscribes to it, and publish
+        the map around the camera when a view is due: in the odometry's frame (use_odometry),
+        else in the first frame's road frame (``<camera frame>_road_map``), placed by visual
+        odometry."""
+        publishers = [self._outputs[name] for name in MAP_OUTPUTS]
+        listening = [p.get_subscription_count() > 0 for p in publishers]
+        if config.map_cell_m <= 0 or config.map_publish_rate_hz <= 0 or not any(listening) \
+                or not np.isfinite(plane.axes).all():
+            return
+        if self._map is None:
+            self._map = LiveMap(config)
+        if config.use_odometry and pose is None:
+            return
+        self._map.add(result.host("disparity"), result.host("observed"), result.road, plane,
+                      calibration, gray, pose)
+        view = self._map.due(time.monotonic())
+        if view is None:
+            return
+        frame_id = self._odometry_frame if config.use_odometry \
+            else f"{header.frame_id}_road_map"
+        stamped = Header(stamp=header.stamp, frame_id=frame_id)
+        for publisher, wanted, make in zip(publishers, listening,
+                                           (map_cloud_message, occupancy_grid_message)):
+            if wanted:
+                publisher.publish(make(view, stamped))
 
     # --- reporting --------------------------------------------------------------------------
 

@@ -17,6 +17,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
@@ -34,6 +35,8 @@ SAMPLE_DRIVE = REPO / "bags" / "sample_drive"
 OUTPUTS = {"disparity": DisparityImage, "disparity_transformed": Image, "pothole_labels": Image,
            "pothole_points": PointCloud2, "points2": PointCloud2, "potholes": PotholeArray,
            "pothole_markers": MarkerArray, "overlay": Image}
+# the road map's outputs, published only while subscribed and at most map_publish_rate_hz
+MAP_OUTPUTS = {"map_cloud": PointCloud2, "map_potholes": OccupancyGrid}
 
 
 def isolate_ros_graph() -> None:
@@ -124,7 +127,7 @@ class Probe:
         qos, camera = profile(reliability), profile(input_reliability)
         self.received: dict[str, list[Any]] = defaultdict(list)
         self._subs = [
-            self.node.create_subscription(OUTPUTS[name], f"{namespace}/{name}",
+            self.node.create_subscription({**OUTPUTS, **MAP_OUTPUTS}[name], f"{namespace}/{name}",
                                           lambda m, n=name: self.received[n].append(m), qos)
             for name in outputs
         ]

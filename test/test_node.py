@@ -535,6 +535,43 @@ def test_pothole_ids_follow_the_odometry(node_factory, probe, odometry):
     assert all(same) if odometry else not all(same), truth_of
 
 
+def test_the_road_map_is_published_around_the_camera_for_rviz_and_planners(node_factory, probe):
+    """With odometry and somebody subscribed, the node fuses the sample drive into its road map
+    and publishes it around the camera: a cloud of the seen cells and an occupancy grid whose
+    pothole cells are the cloud's pothole points, centimetres below the road, in the odometry's
+    frame."""
+    from nav_msgs.msg import Odometry
+
+    from pothole_detector.bagtools import odometry_message
+
+    node_factory(backend="cpu", use_odometry=True, map_publish_rate_hz=30.0)
+    p = probe(outputs=("potholes", "map_cloud", "map_potholes"))
+    odom = p.node.create_publisher(Odometry, "/stereo/odom", 10)
+    p.wait_connected()
+    drive = sample_frames(8)
+    for count, frame in enumerate(drive, start=1):
+        stamp = stamp_ns(frame["left"].header)
+        odom.publish(odometry_message(stamp, 0.05 * (count - 1), 0.0, 0.0))
+        p.spin(0.2)
+        p.publish(frame, stamp)
+        assert p.spin(30, lambda: len(p.received["potholes"]) == count)
+    assert p.spin(10, lambda: len(p.received["map_potholes"]) == len(drive))
+    grid, cloud = p.received["map_potholes"][-1], p.received["map_cloud"][-1]
+    assert grid.header.frame_id == cloud.header.frame_id == "odom"
+    assert grid.info.resolution == pytest.approx(0.02)
+    cells = np.array(grid.data, dtype=np.int8).reshape(grid.info.height, grid.info.width)
+    assert set(np.unique(cells)) == {-1, 0, 100} and (cells == 100).sum() > 20
+    points = np.frombuffer(bytes(cloud.data), dtype=conversions.MAP_DTYPE)
+    assert [f.name for f in cloud.fields] == list(conversions.MAP_DTYPE.names)
+    assert len(points) == (cells >= 0).sum()
+    deep = points[points["pothole_id"] > 0]
+    assert len(deep) == (cells == 100).sum() and np.median(deep["depth_below_road"]) > 0.01
+    assert abs(np.median(points[points["pothole_id"] == 0]["depth_below_road"])) < 0.002
+    column = ((deep["x"] - grid.info.origin.position.x) / 0.02).astype(int)
+    row = ((deep["y"] - grid.info.origin.position.y) / 0.02).astype(int)
+    assert np.all(cells[row, column] == 100)
+
+
 def test_the_shipped_parameters_take_every_frame_of_a_640x480_vehicle_drive(node_factory,
                                                                             probe):
     """A vehicle rig (1 m up, pitched 15 deg, 0.12 m baseline) at 640x480, half a metre a frame,

@@ -17,7 +17,7 @@ import numpy as np
 from ..calibration import StereoCalibration
 from ..params import Config
 from ..stages.road_model import RoadModel
-from .motion import RoadFrame
+from .motion import Pose2, RoadFrame, StereoOdometry
 
 # cells per side of a tile
 TILE_CELLS = 128
@@ -69,23 +69,31 @@ def around_potholes(shape: tuple[int, int], boxes: list[tuple[int, int, int, int
 
 def road_patch(disparity: np.ndarray, observed: np.ndarray, road: RoadModel, plane: RoadFrame,
                calibration: StereoCalibration, cell_m: float) -> RoadPatch:
-    """The road samples of one frame: every pixel of the HxW bool ``observed`` mask with a
-    disparity (HxW float32 px, NaN invalid) becomes a 3D point whose place on the road
-    (forward, left in ``plane``) and height below ``road`` (along the road's normal) are binned
-    into cells of ``cell_m`` m. A pixel's standard deviation is that of its disparity, the
-    road fit's robust sigma (at least MIN_NOISE_PX), carried to a height: Z^2 / (f B) times
-    the cosine of the ray's incidence on the road; a cell keeps its pixels' mean height
-    (inverse-variance weighted) and their median sigma (neighbouring pixels share the
-    matcher's errors, so a cell of many pixels is no surer than one). Pixels are sampled with
-    the largest stride that keeps the farthest ones closer than half a cell apart."""
-    valid = observed & np.isfinite(disparity) & (disparity > 0)
-    if not valid.any():
-        return RoadPatch.empty()
+    """The road samples of one frame: pixels of the HxW bool ``observed`` mask with a
+    disparity (HxW float32 px, NaN invalid) become 3D points whose place on the road (forward,
+    left in ``plane``) and height below ``road`` (along the road's normal) are binned into
+    cells of ``cell_m`` m. A pixel's standard deviation is that of its disparity, the road
+    fit's robust sigma (at least MIN_NOISE_PX), carried to a height: Z^2 / (f B) times the
+    cosine of the ray's incidence on the road; a cell keeps its pixels' mean height
+    (inverse-variance weighted) and their mean sigma (neighbouring pixels share the matcher's
+    errors, so a cell of many pixels is no surer than one). Rows and columns are sampled with
+    the largest strides that keep the samples under half a cell apart on the road, along and
+    across (from the road's disparity in each row)."""
+    height, width = disparity.shape
     f, fb = calibration.f, calibration.fb
-    nearest = float(np.nanmin(np.where(valid, disparity, np.nan)))
-    stride = int(np.clip(math.floor(0.5 * cell_m * nearest * f / fb), 1, 8))
-    rows, cols = np.nonzero(valid[::stride, ::stride])
-    rows, cols = rows * stride, cols * stride
+    rows_v = np.arange(height, dtype=np.float64)
+    row_road = np.asarray(road.at(np, np.full(height, calibration.cx), rows_v), np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        across = 0.5 * cell_m * row_road / calibration.baseline
+        along = 0.5 * cell_m / np.abs(np.gradient(fb / np.where(row_road > 0, row_road, np.nan)))
+    column_stride = np.clip(np.nan_to_num(np.floor(across), nan=1.0), 1, 64).astype(np.int64)
+    row_stride = np.clip(np.nan_to_num(np.floor(along), nan=1.0), 1, 64).astype(np.int64)
+    sampled = (rows_v.astype(np.int64) % row_stride == 0)[:, None] \
+        & (np.arange(width)[None, :] % column_stride[:, None] == 0)
+    valid = sampled & observed & np.isfinite(disparity) & (disparity > 0)
+    rows, cols = np.nonzero(valid)
+    if not len(rows):
+        return RoadPatch.empty()
     d = disparity[rows, cols].astype(np.float64)
     u, v = cols.astype(np.float64), rows.astype(np.float64)
     points = np.stack(calibration.back_project(u, v, d), axis=-1)
@@ -100,17 +108,20 @@ def road_patch(disparity: np.ndarray, observed: np.ndarray, road: RoadModel, pla
     sigma = z * z * incidence / fb * max(road.sigma_px, MIN_NOISE_PX)
     on_road = plane.from_camera(points[keep])[:, :2]
     depth, sigma = depth[keep], sigma[keep]
+    if not len(depth):
+        return RoadPatch.empty()
     cells = np.floor(on_road / cell_m).astype(np.int64)
-    keys, inverse = np.unique(cells, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    low = cells.min(axis=0)
+    span = cells.max(axis=0) - low + 1
+    flat = (cells[:, 0] - low[0]) * span[1] + (cells[:, 1] - low[1])
     weight = 1.0 / (sigma * sigma)
-    mean = np.bincount(inverse, weight * depth) / np.bincount(inverse, weight)
-    order = np.lexsort((sigma, inverse))
-    starts = np.searchsorted(inverse[order], np.arange(len(keys)))
-    counts = np.bincount(inverse, minlength=len(keys))
-    median_sigma = sigma[order][starts + counts // 2]
-    return RoadPatch(((keys + 0.5) * cell_m).astype(np.float32), mean.astype(np.float32),
-                     median_sigma.astype(np.float32))
+    total = np.bincount(flat, weight)
+    used = np.nonzero(total)[0]
+    mean = np.bincount(flat, weight * depth)[used] / total[used]
+    mean_sigma = np.bincount(flat, sigma)[used] / np.bincount(flat)[used]
+    centres = np.stack([used // span[1] + low[0], used % span[1] + low[1]], axis=1)
+    return RoadPatch(((centres + 0.5) * cell_m).astype(np.float32), mean.astype(np.float32),
+                     mean_sigma.astype(np.float32))
 
 
 @dataclass
@@ -396,3 +407,41 @@ class RoadMap:
                                        cv2.CHAIN_APPROX_SIMPLE)
         largest = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
         return np.asarray(origin) + (largest + 0.5) * self.cell_m
+
+
+class LiveMap:
+    """The road map around a moving camera, for the live node: each frame's road samples
+    placed by the given pose (odometry) or, without one, by our stereo visual odometry chained
+    from the first frame; the road farther than ``map_radius_m`` forgotten; a view of the map
+    around the camera due at most ``map_publish_rate_hz`` times a second."""
+
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.roadmap = road_map(config)
+        self.odometry = StereoOdometry()
+        self.pose = Pose2()
+        self.last_view_s = -math.inf
+
+    def add(self, disparity: np.ndarray, observed: np.ndarray, road: RoadModel,
+            plane: RoadFrame, calibration: StereoCalibration, gray: np.ndarray,
+            pose: Pose2 | None = None) -> Pose2:
+        """Fuse one frame (its HxW disparity, observed mask and grey left image, its road and
+        road frame) at ``pose`` (its road frame in the map frame), or at the visual odometry's
+        pose where None; returns the pose used."""
+        if pose is None:
+            step = self.odometry.step(gray, disparity, plane, calibration)
+            pose = self.pose.compose(step) if step is not None else self.pose
+        self.pose = pose
+        patch = road_patch(disparity, observed, road, plane, calibration, self.config.map_cell_m)
+        self.roadmap.add(pose.apply(patch.xy), patch.depth, patch.sigma)
+        self.roadmap.forget_beyond((pose.x, pose.y),
+                                   self.config.map_radius_m + self.roadmap.tile_m)
+        return pose
+
+    def due(self, now_s: float) -> MapView | None:
+        """The map within map_radius_m of the camera when a view is due at ``now_s`` (s, a
+        monotonic clock), else None."""
+        if now_s - self.last_view_s < 1.0 / self.config.map_publish_rate_hz:
+            return None
+        self.last_view_s = now_s
+        return self.roadmap.around((self.pose.x, self.pose.y), self.config.map_radius_m)
