@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import array
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -17,7 +17,6 @@ from .recordings.images import (RAW_LAYOUTS, compressed_format_string, decode_ra
                                 encode_compressed)
 from .stages.measure import Pothole, depth_below_road
 from .stages.road_model import RoadModel
-from .survey.roadmap import MapView
 
 Duration = message("builtin_interfaces/msg/Duration")
 Time = message("builtin_interfaces/msg/Time")
@@ -299,8 +298,9 @@ MAP_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("depth_below_ro
 UNSEEN, ROAD, POTHOLE = -1, 0, 100
 
 
-def map_cloud_message(view: MapView, header: Header) -> PointCloud2:
-    """sensor_msgs/PointCloud2 (unorganized, MAP_DTYPE) of a road map's seen cells: x, y their
+def map_cloud_message(view: Any, header: Header) -> PointCloud2:
+    """sensor_msgs/PointCloud2 (unorganized, MAP_DTYPE) of a road map's seen cells (``view``: a
+    survey.roadmap.MapView): x, y their
     centres in the map frame, z the road's height there (m, up: the negated height below the
     frames' roads), the depth below the local road level (m), the fused height's standard
     deviation (m), the views and the pothole (0 = none, else 1-based in ``view.potholes``)."""
@@ -321,10 +321,10 @@ def map_cloud_message(view: MapView, header: Header) -> PointCloud2:
                        data=_bytes(cloud.view(np.uint8)), is_dense=False)
 
 
-def occupancy_grid_message(view: MapView, header: Header) -> OccupancyGrid:
-    """nav_msgs/OccupancyGrid of a road map for planners: POTHOLE (100) on a pothole's cells,
-    ROAD (0) on the other seen cells, UNSEEN (-1) elsewhere; cell [0, 0] at ``view.origin``,
-    rows along y."""
+def occupancy_grid_message(view: Any, header: Header) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid of a road map (a survey.roadmap.MapView) for planners: POTHOLE
+    (100) on a pothole's cells, ROAD (0) on the other seen cells, UNSEEN (-1) elsewhere; cell
+    [0, 0] at ``view.origin``, rows along y."""
     grid = np.where(view.label > 0, POTHOLE, np.where(view.views > 0, ROAD, UNSEEN))
     height, width = grid.shape
     origin = Pose()
