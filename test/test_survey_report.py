@@ -61,6 +61,11 @@ def test_a_gnss_drive_has_a_base_map_with_its_outlines(report):
         assert len(outline) >= 3
         assert outline[:, 0].min() < pothole["lat"] < outline[:, 0].max()
         assert outline[:, 1].min() < pothole["lon"] < outline[:, 1].max()
+    # the page's own rules for its drawings and pictures leave Leaflet's panes alone (an
+    # opaque background on every svg hid the tiles under the route's overlay)
+    style = re.search(r"<style>(.*?)</style>", path.read_text(), re.S).group(1)
+    rules = re.findall(r"(?:^|})\s*([^{}]+)\{", style)
+    assert not {r.strip() for r in rules} & {"svg", "img", "div", "path"}, rules
 
 
 def test_a_best_view_picture_is_the_pothole_with_its_box(survey_drive_bags):

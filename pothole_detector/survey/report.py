@@ -63,10 +63,10 @@ h1{margin:0 0 4px}h2{margin-top:28px}.muted{color:#666}
 padding:10px 14px}.card b{font-size:1.6em;display:block}
 table{border-collapse:collapse;width:100%;font-size:.9em}th,td{border-bottom:1px solid #e4e4e4;
 padding:4px 8px;text-align:right}th{cursor:pointer;background:#f6f6f6;position:sticky;top:0}
-td.l,th.l{text-align:left}img{border-radius:4px;display:block}
+td.l,th.l{text-align:left}figure img{border-radius:4px;display:block}
 .sev{display:inline-block;padding:1px 8px;border-radius:10px;color:#fff}
 .gallery{display:flex;flex-wrap:wrap;gap:12px}.gallery figure{margin:0;font-size:.85em}
-svg{background:#fafafa;border:1px solid #e4e4e4;border-radius:6px}
+svg.drawing{background:#fafafa;border:1px solid #e4e4e4;border-radius:6px}
 """
 _SORT = """
 document.querySelectorAll('th').forEach((th,i)=>th.addEventListener('click',()=>{
@@ -124,8 +124,8 @@ def _route_svg(drive: DriveSurvey, width: int = 560, height: int = 360) -> str:
         q = (p - (low + high) / 2) / span * (min(width, height) - 2 * margin)
         return np.stack([width / 2 + q[:, 0], height / 2 - q[:, 1]], axis=-1)
 
-    parts = [f'<svg width="{width}" height="{height}" viewBox="0 0 {width} {height}" '
-             f'role="img" aria-label="route">']
+    parts = [f'<svg class="drawing" width="{width}" height="{height}" '
+             f'viewBox="0 0 {width} {height}" role="img" aria-label="route">']
     if len(route):
         path = " ".join(f"{x:.1f},{y:.1f}" for x, y in to_svg(route))
         parts.append(f'<polyline points="{path}" fill="none" stroke="#3d6fb6" '
@@ -186,7 +186,8 @@ def _histogram_svg(values: Sequence[float], label: str, unit_scale: float, unit:
     counts, edges = np.histogram(scaled, bins=bins)
     top = max(int(counts.max()), 1)
     bar = (width - 40) / bins
-    parts = [f'<svg width="{width}" height="{height}" role="img" aria-label="{label}">']
+    parts = [f'<svg class="drawing" width="{width}" height="{height}" role="img" '
+             f'aria-label="{label}">']
     for i, count in enumerate(counts):
         h = (height - 50) * count / top
         parts.append(f'<rect x="{30 + i * bar:.1f}" y="{height - 30 - h:.1f}" '
