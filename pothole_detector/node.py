@@ -642,8 +642,7 @@ class PotholeDetectorNode(Node):
             self._map = LiveMap(config)
         if config.use_odometry and pose is None:
             return
-        self._map.add(result.host("disparity"), result.host("observed"), result.road, plane,
-                      calibration, gray, pose)
+        self._map.add(result, plane, calibration, gray, pose)
         view = self._map.due(time.monotonic())
         if view is None:
             return

@@ -14,7 +14,7 @@ from typing import Any, Callable, Iterable, Iterator, Protocol
 
 import numpy as np
 
-from .backend import CPU, Backend, StageClock, to_host
+from .backend import CPU, Backend, StageClock, gather, to_host
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
@@ -74,6 +74,16 @@ class PipelineResult:
         if name == "observed":
             return to_host(self.observed)[to_host(self.superpixels)]
         return to_host(getattr(self, name))
+
+    def at(self, name: str, pixels: np.ndarray) -> np.ndarray:
+        """Array ``name`` (one of ARRAY_FIELDS) at pixels ``pixels`` (int (K,), flat indices
+        row * width + column) as a NumPy (K,) array: gathered on the backend, only those
+        values copied to the host."""
+        if name not in ARRAY_FIELDS:
+            raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
+        if name == "observed":
+            return gather(self.observed, pixels, through=self.superpixels)
+        return gather(getattr(self, name), pixels)
 
 
 @dataclass

@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
+from pothole_detector.backend import gpu_available
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.survey.motion import road_frame
-from pothole_detector.survey.roadmap import (TILE_CELLS, RoadMap, around_potholes, road_map,
-                                             road_patch)
+from pothole_detector.survey.roadmap import (TILE_CELLS, RoadMap, near_potholes,
+                                             result_patch, road_map, road_patch, sample_pixels)
 
 
 def flat_map(**changes) -> RoadMap:
@@ -97,31 +98,75 @@ def test_the_rolling_window_keeps_memory_flat_over_a_long_drive():
     assert max(counts) <= 8 and max(counts[len(counts) // 2:]) == max(counts[:len(counts) // 2])
 
 
-def test_around_potholes_grows_each_box_by_its_size():
-    mask = around_potholes((20, 30), [(10, 8, 11, 9)])
-    rows, cols = np.nonzero(mask)
-    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (6, 11, 8, 13)
+def test_near_potholes_grows_each_box_by_its_size():
+    rows, cols = np.nonzero(np.ones((20, 30), bool))
+    near = near_potholes(rows * 30 + cols, 30, [(10, 8, 11, 9)])
+    assert (rows[near].min(), rows[near].max(), cols[near].min(), cols[near].max()) == \
+        (6, 11, 8, 13)
+
+
+def test_samples_lie_under_half_a_cell_apart_on_the_road(demo_sample):
+    """sample_pixels keeps fewer pixels for larger cells, and along the image's middle row
+    the kept columns lie at most half a cell apart on the road."""
+    config = Config({"backend": "cpu"})
+    result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    shape = demo_sample.disparity.shape
+    fine = sample_pixels(shape, result.road, demo_sample.calibration, 0.02)
+    coarse = sample_pixels(shape, result.road, demo_sample.calibration, 0.1)
+    assert len(np.unique(fine)) == len(fine) and len(coarse) < len(fine) / 4
+    rows, cols = np.divmod(coarse, shape[1])
+    row = rows[np.argmin(np.abs(rows - shape[0] * 0.75))]
+    columns = np.sort(cols[rows == row])
+    spacing = np.diff(columns) * demo_sample.calibration.fb / np.nanmedian(
+        demo_sample.disparity[row]) / demo_sample.calibration.f
+    assert spacing.max() <= 0.05 + 1e-9
 
 
 def test_a_frame_of_the_demo_road_gives_its_potholes_depths(demo_sample):
     """road_patch of the rendered disparity with the pipeline's road: the road's cells lie at
-    the road, and each pothole's deepest cell at about its depth."""
+    the road, and each pothole's deepest cell at about its depth; result_patch reads the
+    pipeline's own disparity at the sampled pixels, as the host arrays give it."""
     config = Config({"backend": "cpu"})
     result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
     height, width = demo_sample.disparity.shape
     plane = road_frame(result.road, demo_sample.calibration, width, height)
-    seen = np.isfinite(demo_sample.disparity)
-    road = road_patch(demo_sample.disparity, seen & (demo_sample.labels == 0), result.road,
-                      plane, demo_sample.calibration, 0.02)
-    assert len(road) > 1000 and abs(np.median(road.depth)) < 0.002
-    assert np.all(road.sigma > 0) and np.median(road.sigma) < 0.002
+    pixels = sample_pixels((height, width), result.road, demo_sample.calibration, 0.02)
+    rows, cols = np.divmod(pixels, width)
+    truth = demo_sample.disparity[rows, cols]
+    seen = np.isfinite(truth) & (truth > 0)
+
+    def patch(mask):
+        return road_patch(rows[mask], cols[mask], truth[mask], result.road, plane,
+                          demo_sample.calibration, 0.02)
+
+    road = patch(seen & (demo_sample.labels[rows, cols] == 0))
+    assert len(road) > 500 and abs(np.median(road.depth.astype(float))) < 0.002
+    assert np.all(road.sigma > 0) and np.median(road.sigma.astype(float)) < 0.002
     for index, shape in enumerate(demo_sample.potholes, 1):
-        inside = road_patch(demo_sample.disparity, seen & (demo_sample.labels == index),
-                            result.road, plane, demo_sample.calibration, 0.02)
-        assert inside.depth.max() == pytest.approx(shape.depth_m, rel=0.15, abs=0.003)
+        inside = patch(seen & (demo_sample.labels[rows, cols] == index))
+        assert float(inside.depth.max()) == pytest.approx(shape.depth_m, rel=0.15, abs=0.003)
+    np.testing.assert_array_equal(result.at("observed", pixels),
+                                  result.host("observed").ravel()[pixels])
+    measured = result.host("disparity").ravel()[pixels]
+    keep = result.host("observed").ravel()[pixels] & (measured > 0)
+    assert result_patch(result, pixels, plane, demo_sample.calibration, 0.02) == road_patch(
+        rows[keep], cols[keep], measured[keep], result.road, plane, demo_sample.calibration,
+        0.02)
 
 
 def test_the_map_follows_the_parameters():
     roadmap = road_map(Config({"map_cell_m": 0.03, "min_pothole_depth_m": 0.01}))
     assert roadmap.cell_m == 0.03 and roadmap.min_depth_m == 0.01
     assert roadmap.tile_m == pytest.approx(0.03 * TILE_CELLS)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+def test_the_gpu_result_gives_the_sampled_pixels_its_host_arrays_give(demo_sample):
+    result = Pipeline(Config({"backend": "gpu"}), demo_sample.calibration).run(
+        demo_sample.left, demo_sample.right)
+    pixels = sample_pixels(demo_sample.disparity.shape, result.road, demo_sample.calibration,
+                           0.02)
+    for name in ("observed", "disparity", "labels"):
+        np.testing.assert_array_equal(result.at(name, pixels),
+                                      result.host(name).ravel()[pixels])

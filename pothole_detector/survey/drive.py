@@ -21,16 +21,18 @@ import numpy as np
 from .. import bagtools
 from ..bagtools import FailureTally
 from ..backend import get_backend
+from ..calibration import StereoCalibration
 from ..msgtypes import stamp_ns
 from ..errors import InputError, PotholeError
 from ..geodesy import enu_of, latlon_of
-from .motion import (GnssFusion, Pose2, StereoOdometry, fuse_gnss, interpolate_poses,
-                     planar_pose, road_frame)
+from .motion import (GnssFusion, Pose2, RoadFrame, StereoOdometry, fuse_gnss,
+                     interpolate_poses, planar_pose, road_frame)
 from ..recordings import bags, readahead
 from ..recordings.topics import StereoTopics, find_stereo_topics
 from ..stages.matching import to_gray8
 from ..params import Config
-from .roadmap import MapPothole, RoadMap, RoadPatch, around_potholes, road_map, road_patch
+from .roadmap import (MapPothole, RoadMap, RoadPatch, near_potholes, result_patch, road_map,
+                      sample_pixels)
 from .tracking import PotholeTracker, Sighting, Track, merge_overlapping, sightings_of
 
 ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
@@ -177,13 +179,7 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
             if kept:
                 patch = overview = None
                 if config.map_cell_m > 0:
-                    disparity, observed = outcome.host("disparity"), outcome.host("observed")
-                    near = observed & around_potholes(
-                        observed.shape, [p.bbox_px for p in outcome.potholes])
-                    patch = road_patch(disparity, near, outcome.road, plane, frame.calibration,
-                                       config.map_cell_m)
-                    overview = road_patch(disparity, observed, outcome.road, plane,
-                                          frame.calibration, config.map_overview_cell_m)
+                    patch, overview = frame_patches(outcome, plane, frame.calibration, config)
                 observations.append(FrameObservation(
                     frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height,
                                               frame.calibration),
@@ -193,6 +189,18 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     finally:
         reader.close()
     return observations, motion_samples(motion_messages, topics)
+
+
+def frame_patches(result: Any, plane: RoadFrame, calibration: StereoCalibration,
+                  config: Config) -> tuple[RoadPatch, RoadPatch]:
+    """A frame's road samples for the survey's maps: at map_cell_m around its potholes, at
+    map_overview_cell_m over all its observed road (roadmap.result_patch)."""
+    shape = result.disparity.shape
+    fine = sample_pixels(shape, result.road, calibration, config.map_cell_m)
+    fine = fine[near_potholes(fine, shape[1], [p.bbox_px for p in result.potholes])]
+    coarse = sample_pixels(shape, result.road, calibration, config.map_overview_cell_m)
+    return (result_patch(result, fine, plane, calibration, config.map_cell_m),
+            result_patch(result, coarse, plane, calibration, config.map_overview_cell_m))
 
 
 def _until_damaged(results: Iterable[tuple[bags.BagFrame, Any]],

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Any, Iterator
 
 import cv2
 import numpy as np
@@ -32,70 +32,101 @@ LEVEL_ROUNDS = 3
 
 @dataclass(frozen=True, eq=False)
 class RoadPatch:
-    """One frame's road samples on its road plane, binned to cells of the map's size: their
-    centres ``xy`` float32 (K, 2) (forward, left; m in the frame's road frame), the height
-    below the frame's fitted road there ``depth`` float32 (K,) (m, positive into the ground)
-    and its standard deviation ``sigma`` float32 (K,) (m)."""
+    """One frame's road samples on its road plane, binned to cells of ``cell_m`` m, compact
+    (8 bytes a cell: the survey keeps every frame's until the drive's poses are known): their
+    cell indices ``cells`` int16 (K, 2) (forward, left in the frame's road frame), the height
+    below the frame's fitted road there ``depth`` float16 (K,) (m, positive into the ground)
+    and its standard deviation ``sigma`` float16 (K,) (m)."""
 
-    xy: np.ndarray
+    cells: np.ndarray
+    cell_m: float
     depth: np.ndarray
     sigma: np.ndarray
 
     @classmethod
-    def empty(cls) -> "RoadPatch":
-        return cls(np.zeros((0, 2), np.float32), np.zeros(0, np.float32),
-                   np.zeros(0, np.float32))
+    def empty(cls, cell_m: float) -> "RoadPatch":
+        return cls(np.zeros((0, 2), np.int16), cell_m, np.zeros(0, np.float16),
+                   np.zeros(0, np.float16))
+
+    @property
+    def xy(self) -> np.ndarray:
+        """The cells' centres (K, 2), float64 m (forward, left)."""
+        return (self.cells.astype(np.float64) + 0.5) * self.cell_m
 
     def __len__(self) -> int:
         return len(self.depth)
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, RoadPatch) and all(
-            np.array_equal(a, b) for a, b in ((self.xy, other.xy), (self.depth, other.depth),
+        return isinstance(other, RoadPatch) and self.cell_m == other.cell_m and all(
+            np.array_equal(a, b) for a, b in ((self.cells, other.cells),
+                                              (self.depth, other.depth),
                                               (self.sigma, other.sigma)))
 
 
-def around_potholes(shape: tuple[int, int], boxes: list[tuple[int, int, int, int]]
-                    ) -> np.ndarray:
-    """The bool mask (``shape`` H, W) of the pixels near potholes: each box (x0, y0, x1, y1
-    px, inclusive) grown on every side by its own width and height, so that the road around a
-    pothole comes with it."""
-    mask = np.zeros(shape, bool)
-    for x0, y0, x1, y1 in boxes:
-        grow_x, grow_y = x1 - x0 + 1, y1 - y0 + 1
-        mask[max(0, y0 - grow_y):y1 + grow_y + 1, max(0, x0 - grow_x):x1 + grow_x + 1] = True
-    return mask
-
-
-def road_patch(disparity: np.ndarray, observed: np.ndarray, road: RoadModel, plane: RoadFrame,
-               calibration: StereoCalibration, cell_m: float) -> RoadPatch:
-    """The road samples of one frame: pixels of the HxW bool ``observed`` mask with a
-    disparity (HxW float32 px, NaN invalid) become 3D points whose place on the road (forward,
-    left in ``plane``) and height below ``road`` (along the road's normal) are binned into
-    cells of ``cell_m`` m. A pixel's standard deviation is that of its disparity, the road
-    fit's robust sigma (at least MIN_NOISE_PX), carried to a height: Z^2 / (f B) times the
-    cosine of the ray's incidence on the road; a cell keeps its pixels' mean height
-    (inverse-variance weighted) and their mean sigma (neighbouring pixels share the matcher's
-    errors, so a cell of many pixels is no surer than one). Rows and columns are sampled with
-    the largest strides that keep the samples under half a cell apart on the road, along and
-    across (from the road's disparity in each row)."""
-    height, width = disparity.shape
-    f, fb = calibration.f, calibration.fb
+def sample_pixels(shape: tuple[int, int], road: RoadModel, calibration: StereoCalibration,
+                  cell_m: float) -> np.ndarray:
+    """The pixels (flat indices row * width + column, int64) of an image of ``shape`` (H, W)
+    whose road samples fill cells of ``cell_m`` m: rows and columns at the largest strides
+    that keep them under half a cell apart on the road, along and across (from the road's
+    disparity in each row)."""
+    height, width = shape
     rows_v = np.arange(height, dtype=np.float64)
     row_road = np.asarray(road.at(np, np.full(height, calibration.cx), rows_v), np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         across = 0.5 * cell_m * row_road / calibration.baseline
-        along = 0.5 * cell_m / np.abs(np.gradient(fb / np.where(row_road > 0, row_road, np.nan)))
+        along = 0.5 * cell_m / np.abs(np.gradient(calibration.fb
+                                                  / np.where(row_road > 0, row_road, np.nan)))
     column_stride = np.clip(np.nan_to_num(np.floor(across), nan=1.0), 1, 64).astype(np.int64)
     row_stride = np.clip(np.nan_to_num(np.floor(along), nan=1.0), 1, 64).astype(np.int64)
-    sampled = (rows_v.astype(np.int64) % row_stride == 0)[:, None] \
-        & (np.arange(width)[None, :] % column_stride[:, None] == 0)
-    valid = sampled & observed & np.isfinite(disparity) & (disparity > 0)
-    rows, cols = np.nonzero(valid)
+    kept_rows = np.nonzero(np.arange(height) % row_stride == 0)[0]
+    parts = [np.zeros(0, np.int64)]
+    for stride in np.unique(column_stride[kept_rows]):
+        these = kept_rows[column_stride[kept_rows] == stride]
+        columns = np.arange(0, width, stride)
+        parts.append((these[:, None] * width + columns[None, :]).ravel())
+    return np.concatenate(parts)
+
+
+def near_potholes(pixels: np.ndarray, width: int,
+                  boxes: list[tuple[int, int, int, int]]) -> np.ndarray:
+    """Which of ``pixels`` (flat indices in an image ``width`` wide) lie near potholes: in a
+    box (x0, y0, x1, y1 px, inclusive) grown on every side by its own width and height, so
+    that the road around a pothole comes with it. Bool (K,)."""
+    rows, cols = np.divmod(pixels, width)
+    near = np.zeros(len(pixels), bool)
+    for x0, y0, x1, y1 in boxes:
+        grow_x, grow_y = x1 - x0 + 1, y1 - y0 + 1
+        near |= ((cols >= x0 - grow_x) & (cols <= x1 + grow_x) & (rows >= y0 - grow_y)
+                 & (rows <= y1 + grow_y))
+    return near
+
+
+def result_patch(result: Any, pixels: np.ndarray, plane: RoadFrame,
+                 calibration: StereoCalibration, cell_m: float) -> RoadPatch:
+    """The road patch (:func:`road_patch`) of a PipelineResult at ``pixels`` (flat indices),
+    those of its observed road with a disparity: only they are read back from the backend."""
+    width = result.disparity.shape[1]
+    disparity = result.at("disparity", pixels)
+    keep = result.at("observed", pixels) & (disparity > 0)
+    rows, cols = np.divmod(pixels[keep], width)
+    return road_patch(rows, cols, disparity[keep], result.road, plane, calibration, cell_m)
+
+
+def road_patch(rows: np.ndarray, cols: np.ndarray, disparity: np.ndarray, road: RoadModel,
+               plane: RoadFrame, calibration: StereoCalibration, cell_m: float) -> RoadPatch:
+    """The road samples of pixels at ``rows``, ``cols`` with disparities ``disparity`` (px,
+    > 0): each becomes a 3D point whose place on the road (forward, left in ``plane``) and
+    height below ``road`` (along the road's normal) are binned into cells of ``cell_m`` m. A
+    pixel's standard deviation is that of its disparity, the road fit's robust sigma (at
+    least MIN_NOISE_PX), carried to a height: Z^2 / (f B) times the cosine of the ray's
+    incidence on the road; a cell keeps its pixels' mean height (inverse-variance weighted)
+    and their mean sigma (neighbouring pixels share the matcher's errors, so a cell of many
+    pixels is no surer than one)."""
     if not len(rows):
-        return RoadPatch.empty()
-    d = disparity[rows, cols].astype(np.float64)
-    u, v = cols.astype(np.float64), rows.astype(np.float64)
+        return RoadPatch.empty(cell_m)
+    f, fb = calibration.f, calibration.fb
+    d = np.asarray(disparity, dtype=np.float64)
+    u, v = np.asarray(cols, np.float64), np.asarray(rows, np.float64)
     points = np.stack(calibration.back_project(u, v, d), axis=-1)
     normal = -plane.axes[2]
     incidence = ((u - calibration.cx) / f * normal[0] + (v - calibration.cy) / f * normal[1]
@@ -109,7 +140,7 @@ def road_patch(disparity: np.ndarray, observed: np.ndarray, road: RoadModel, pla
     on_road = plane.from_camera(points[keep])[:, :2]
     depth, sigma = depth[keep], sigma[keep]
     if not len(depth):
-        return RoadPatch.empty()
+        return RoadPatch.empty(cell_m)
     cells = np.floor(on_road / cell_m).astype(np.int64)
     low = cells.min(axis=0)
     span = cells.max(axis=0) - low + 1
@@ -119,9 +150,10 @@ def road_patch(disparity: np.ndarray, observed: np.ndarray, road: RoadModel, pla
     used = np.nonzero(total)[0]
     mean = np.bincount(flat, weight * depth)[used] / total[used]
     mean_sigma = np.bincount(flat, sigma)[used] / np.bincount(flat)[used]
-    centres = np.stack([used // span[1] + low[0], used % span[1] + low[1]], axis=1)
-    return RoadPatch(((centres + 0.5) * cell_m).astype(np.float32), mean.astype(np.float32),
-                     mean_sigma.astype(np.float32))
+    cells = np.stack([used // span[1] + low[0], used % span[1] + low[1]], axis=1)
+    inside = np.all(np.abs(cells) < np.iinfo(np.int16).max, axis=1)
+    return RoadPatch(cells[inside].astype(np.int16), cell_m, mean[inside].astype(np.float16),
+                     mean_sigma[inside].astype(np.float16))
 
 
 @dataclass
@@ -229,8 +261,10 @@ class RoadMap:
         wz = w * np.tile(value, 4)
         tile_x, tile_y = np.floor_divide(cx, TILE_CELLS), np.floor_divide(cy, TILE_CELLS)
         local = (cy - tile_y * TILE_CELLS) * TILE_CELLS + (cx - tile_x * TILE_CELLS)
-        tiles, which = np.unique(np.stack([tile_x, tile_y], 1), axis=0, return_inverse=True)
-        which = which.ravel()
+        low_x, low_y = tile_x.min(), tile_y.min()
+        span = tile_y.max() - low_y + 1
+        keys, which = np.unique((tile_x - low_x) * span + (tile_y - low_y), return_inverse=True)
+        tiles = np.stack([keys // span + low_x, keys % span + low_y], axis=1)
         size = TILE_CELLS * TILE_CELLS
         for index, (tx, ty) in enumerate(tiles):
             mine = which == index
@@ -422,17 +456,19 @@ class LiveMap:
         self.pose = Pose2()
         self.last_view_s = -math.inf
 
-    def add(self, disparity: np.ndarray, observed: np.ndarray, road: RoadModel,
-            plane: RoadFrame, calibration: StereoCalibration, gray: np.ndarray,
-            pose: Pose2 | None = None) -> Pose2:
-        """Fuse one frame (its HxW disparity, observed mask and grey left image, its road and
-        road frame) at ``pose`` (its road frame in the map frame), or at the visual odometry's
-        pose where None; returns the pose used."""
+    def add(self, result: Any, plane: RoadFrame, calibration: StereoCalibration,
+            gray: np.ndarray, pose: Pose2 | None = None) -> Pose2:
+        """Fuse one frame (its PipelineResult, road frame and HxW grey left image) at ``pose``
+        (its road frame in the map frame), or at the visual odometry's pose where None; returns
+        the pose used."""
         if pose is None:
-            step = self.odometry.step(gray, disparity, plane, calibration)
+            step = self.odometry.step(gray, result.host("disparity"), plane, calibration)
             pose = self.pose.compose(step) if step is not None else self.pose
         self.pose = pose
-        patch = road_patch(disparity, observed, road, plane, calibration, self.config.map_cell_m)
+        cell_m = self.config.map_cell_m
+        patch = result_patch(result, sample_pixels(result.disparity.shape, result.road,
+                                                   calibration, cell_m),
+                             plane, calibration, cell_m)
         self.roadmap.add(pose.apply(patch.xy), patch.depth, patch.sigma)
         self.roadmap.forget_beyond((pose.x, pose.y),
                                    self.config.map_radius_m + self.roadmap.tile_m)
