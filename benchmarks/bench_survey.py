@@ -5,6 +5,7 @@ a Markdown table for docs/benchmarks.md.
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
         [--backend cpu|gpu] [--ray | --jobs N [N ...]] [--chunk-frames 30]
         [--read-threads N [N ...]] [--read-processes N [N ...]] [--form rectified|raw-jpeg]
+        [--map-cell-m M [M ...]]
 
 The bag cycles a few rendered frames of the survey drive with fresh stamps (rendering every
 frame at these sizes would take longer than the survey), with an odometry topic that follows
@@ -32,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pothole_detector.bagtools import RecordingForm, write_drive_bag  # noqa: E402
 from pothole_detector.survey.fleet import ray_chunks  # noqa: E402
-from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.params import PARAMETER_BY_NAME, Config  # noqa: E402
 from pothole_detector.survey.report import write_report  # noqa: E402
 from pothole_detector.survey.drive import best_view_picture, survey, write_csv  # noqa: E402
 from pothole_detector.synthetic import (raw_camera, render, render_raw,  # noqa: E402
@@ -85,6 +86,9 @@ def main() -> None:
     parser.add_argument("--read-processes", type=int, nargs="+", default=[0],
                         help="worker processes that read and decode the bag ahead instead of "
                              "the threads (0: the threads; several: a row each)")
+    parser.add_argument("--map-cell-m", type=float, nargs="+",
+                        default=[PARAMETER_BY_NAME["map_cell_m"].default],
+                        help="the road map's cell (0: no map; several: a row each)")
     args = parser.parse_args()
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
     if args.backend == "cpu":
@@ -94,9 +98,9 @@ def main() -> None:
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
     print(f"survey throughput, {device}, {args.frames} frames a bag ({args.form}), "
           f"{datetime.date.today().isoformat()}")
-    print("| size | processes | reading ahead (each) | frames | potholes | seconds (decode, "
-          "pipeline, odometry, tracking, outputs) | frames/s |")
-    print("| --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    print("| size | processes | reading ahead (each) | road map cell | frames | potholes | "
+          "seconds (decode, pipeline, odometry, tracking, map, outputs) | frames/s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         for size in args.sizes:
@@ -117,21 +121,25 @@ def main() -> None:
             warm.mkdir()
             bench(make_bag(warm / "drive", samples, forward, 3, form), config, False, 1,
                   warm)  # compiles kernels
-            for jobs in [1] if args.ray else args.jobs:
-                for threads, readers in [(t, 0) for t in args.read_threads if 0 in
-                                         args.read_processes] + [
-                        (1, p) for p in args.read_processes if p > 0]:
-                    out = folder / f"out_{size}_{jobs}_{threads}_{readers}"
-                    out.mkdir()
-                    seconds, frames, potholes = bench(
-                        bag, config.replace(read_threads=threads, read_processes=readers),
-                        args.ray, jobs, out)
-                    mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
-                        f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
-                    reading = (f"{readers} processes" if readers else
-                               f"{threads} thread{'s' if threads > 1 else ''}")
-                    print(f"| {size} | {mode} | {reading} | {frames} | {potholes} | "
-                          f"{seconds:.1f} | {frames / seconds:.1f} |", flush=True)
+            runs = [(jobs, threads, readers, cell)
+                    for jobs in ([1] if args.ray else args.jobs)
+                    for threads, readers in [(t, 0) for t in args.read_threads
+                                             if 0 in args.read_processes]
+                    + [(1, p) for p in args.read_processes if p > 0]
+                    for cell in args.map_cell_m]
+            for jobs, threads, readers, cell in runs:
+                out = folder / f"out_{size}_{jobs}_{threads}_{readers}_{cell}"
+                out.mkdir()
+                seconds, frames, potholes = bench(
+                    bag, config.replace(read_threads=threads, read_processes=readers,
+                                        map_cell_m=cell), args.ray, jobs, out)
+                mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
+                    f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
+                reading = (f"{readers} processes" if readers else
+                           f"{threads} thread{'s' if threads > 1 else ''}")
+                print(f"| {size} | {mode} | {reading} | "
+                      f"{f'{cell * 100:g} cm' if cell else 'none'} | {frames} | "
+                      f"{potholes} | {seconds:.1f} | {frames / seconds:.1f} |", flush=True)
 
 
 if __name__ == "__main__":
