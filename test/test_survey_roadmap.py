@@ -82,8 +82,9 @@ def test_noise_and_a_shallow_dip_are_no_pothole():
 
 
 def test_the_rolling_window_keeps_memory_flat_over_a_long_drive():
-    """Ten minutes at 10 m/s (6 km, a patch of road 4 m wide and 6 m long each 0.1 s): the
-    live map keeps only the tiles within its radius."""
+    """The road of ten minutes at 10 m/s (6 km; a patch of road 4 m wide and 6 m long every
+    20 m, each touching the tiles a frame's would): the live map keeps only the tiles within
+    its radius, as many at the end as at the start."""
     roadmap = flat_map(cell_m=0.05)
     steps = np.arange(0, 6.0, 0.05) + 0.025
     x, y = np.meshgrid(steps, np.arange(-2.0, 2.0, 0.05) + 0.025)
