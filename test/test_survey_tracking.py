@@ -8,7 +8,7 @@ from pothole_detector.survey.motion import Pose2, RoadFrame
 from pothole_detector.stages.measure import Pothole
 from pothole_detector.calibration import StereoCalibration
 from pothole_detector.survey.tracking import (MAX_ID, PotholeTracker, Sighting, Track, combined,
-                                              footprint_extents, merge_overlapping, pieces,
+                                              footprints, merge_overlapping, pieces,
                                               sightings_of)
 
 
@@ -121,6 +121,27 @@ def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():
     labels = np.zeros((480, 640), np.int32)
     labels[290:340, 300:340] = 1
     labels[200:230, 10:20] = 2  # above the horizon: never meets the road
-    found = footprint_extents(labels, 3, plane, calibration)
+    labels[180:260, 500:520] = 4  # across the horizon: only its rows below it reach the road
+    found, outlines = footprints(labels, 5, plane, calibration)
     np.testing.assert_allclose(found[0], [500 / 99, 500 / 50, -19 / 50, 20 / 50])
-    assert np.isnan(found[1:]).all()
+    assert np.isnan(found[1:3]).all() and np.isnan(found[4]).all()
+    np.testing.assert_allclose(found[3], [500 / 19, 500 / 1, -199 / 1, -180 / 19])
+    assert len(outlines) == 5 and len(outlines[0]) == 4 and len(outlines[1]) == 0
+    np.testing.assert_allclose(outlines[0].min(axis=0), found[0][[0, 2]])
+
+
+def test_footprint_extents_are_those_of_every_pixel_projected(demo_sample):
+    """The convex hull's corners give the extremes every labelled pixel's ray gives."""
+    from pothole_detector.survey.tracking import on_road
+
+    calibration = demo_sample.calibration
+    plane = RoadFrame(np.array([0.0, 0.6, 0.0]), np.array(
+        [[0.0, -0.5, 0.866], [-1.0, 0.0, 0.0], [0.0, -0.866, -0.5]]))
+    labels = demo_sample.labels.astype(np.int32)
+    count = int(labels.max())
+    found, _ = footprints(labels, count, plane, calibration)
+    for label in range(1, count + 1):
+        rows, cols = np.nonzero(labels == label)
+        reach, _ = on_road(cols.astype(float), rows.astype(float), plane, calibration)
+        np.testing.assert_allclose(found[label - 1], [reach[:, 0].min(), reach[:, 0].max(),
+                                                      reach[:, 1].min(), reach[:, 1].max()])

@@ -11,6 +11,7 @@ from typing import Any, Callable, Sequence
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from ..calibration import StereoCalibration
 from .motion import Pose2, RoadFrame
@@ -70,45 +71,48 @@ def on_road(cols: np.ndarray, rows: np.ndarray, plane: RoadFrame,
     return plane.from_camera(rays[ahead] * reach[ahead, None])[:, :2], ahead
 
 
-def footprint_extents(labels: np.ndarray, count: int, plane: RoadFrame,
-                      calibration: StereoCalibration) -> np.ndarray:
-    """Per pothole label 1..``count`` of the int HxW ``labels``, where its footprint on the
-    road plane of ``plane`` reaches: float64 (count, 4), least and largest forward, least and
-    largest left coordinate (m), each pixel's ray meeting the plane (the opening the pothole
-    makes in the road, free of the disparity noise); NaN for a label without a pixel whose
-    ray meets the plane ahead."""
+def footprints(labels: np.ndarray, count: int, plane: RoadFrame,
+               calibration: StereoCalibration) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per pothole label 1..``count`` of the int HxW ``labels``, its footprint on the road
+    plane of ``plane`` (each pixel's ray meeting the plane: the opening the pothole makes in
+    the road, free of the disparity noise):
+
+    - where it reaches: float64 (count, 4), least and largest forward, least and largest left
+      coordinate (m); NaN for a label without a pixel whose ray meets the plane ahead. The
+      map from the image to the plane is projective, so over the pixels ahead these extremes
+      lie on the corners of their convex hull: only those are projected (all the label's
+      pixels where its region reaches past the horizon);
+    - its outline: the boundary of its largest region (OpenCV's contour, simplified to within
+      OUTLINE_TOLERANCE_PX), float64 (N, 2) (forward, left) points, m; empty where fewer than
+      three meet the plane ahead.
+
+    Each label is read within its bounding box only."""
     extents = np.full((count, 4), np.nan)
-    rows, cols = np.nonzero(labels > 0)
-    if count == 0 or rows.size == 0:
-        return extents
-    road, ahead = on_road(cols, rows, plane, calibration)
-    label = labels[rows, cols][ahead] - 1
-    for column, values, pick in ((0, road[:, 0], np.minimum), (1, road[:, 0], np.maximum),
-                                 (2, road[:, 1], np.minimum), (3, road[:, 1], np.maximum)):
-        found = np.full(count, np.inf if pick is np.minimum else -np.inf)
-        pick.at(found, label, values)
-        extents[:, column] = np.where(np.isfinite(found), found, np.nan)
-    return extents
-
-
-def footprint_outlines(labels: np.ndarray, count: int, plane: RoadFrame,
-                       calibration: StereoCalibration) -> list[np.ndarray]:
-    """Per pothole label 1..``count`` of the int HxW ``labels``, the boundary of its largest
-    region (OpenCV's contour, simplified to within OUTLINE_TOLERANCE_PX) on the road plane
-    of ``plane``: float64 (N, 2) (forward, left) points, m, each boundary pixel's ray meeting
-    the plane; empty where fewer than three meet it ahead."""
-    outlines = []
-    for label in range(1, count + 1):
-        mask = (labels == label).astype(np.uint8)
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        if not contours:
+    outlines: list[np.ndarray] = []
+    boxes = ndimage.find_objects(labels, max_label=count) if count else []
+    for label, box in enumerate(boxes, 1):
+        if box is None:
             outlines.append(np.empty((0, 2)))
             continue
+        mask = (labels[box] == label).astype(np.uint8)
+        offset = (box[1].start, box[0].start)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE,
+                                       offset=offset)
+        corners = cv2.convexHull(np.concatenate(contours)).reshape(-1, 2).astype(np.float64)
+        reach, ahead = on_road(corners[:, 0], corners[:, 1], plane, calibration)
+        if ahead.any() and not ahead.all():
+            rows, cols = np.nonzero(mask)
+            reach, _ = on_road((cols + offset[0]).astype(np.float64),
+                               (rows + offset[1]).astype(np.float64), plane, calibration)
+        if len(reach):
+            extents[label - 1] = (reach[:, 0].min(), reach[:, 0].max(), reach[:, 1].min(),
+                                  reach[:, 1].max())
         boundary = cv2.approxPolyDP(max(contours, key=cv2.contourArea), OUTLINE_TOLERANCE_PX,
                                     True).reshape(-1, 2).astype(np.float64)
         points, _ = on_road(boundary[:, 0], boundary[:, 1], plane, calibration)
         outlines.append(points if len(points) >= 3 else np.empty((0, 2)))
-    return outlines
+    outlines += [np.empty((0, 2))] * (count - len(outlines))
+    return extents, outlines
 
 
 def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, height: int,
@@ -116,14 +120,13 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
     """The sightings of a PipelineResult's potholes, in its order, on the road frame
     ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
     position, which matches no track); with the result's ``calibration``, their footprints'
-    extents and outlines (:func:`footprint_extents`, :func:`footprint_outlines`, from the
+    extents and outlines (:func:`footprints`, from the
     labels read back)."""
     near, far = result.observed_range_m
     extents = outlines = None
     if calibration is not None and result.potholes:
         labels = result.host("labels")
-        extents = footprint_extents(labels, len(result.potholes), plane, calibration)
-        outlines = footprint_outlines(labels, len(result.potholes), plane, calibration)
+        extents, outlines = footprints(labels, len(result.potholes), plane, calibration)
     made = []
     for pothole in result.potholes:
         centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
