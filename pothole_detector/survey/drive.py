@@ -12,11 +12,13 @@ import datetime
 import math
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .. import bagtools
 from ..bagtools import FailureTally
@@ -464,15 +466,23 @@ class MapFrame:
         """(N, 2) map-frame positions as (lat, lon) degrees; None without GNSS."""
         return latlon_of(xy, *self.fusion.origin) if self.fusion is not None else None
 
+    @cached_property
+    def route(self) -> np.ndarray:
+        """The route (N, 2) in the map frame (m)."""
+        return self.fusion.route_enu if self.fusion is not None else np.asarray(self.route_xy)
+
+    @cached_property
+    def _route_tree(self) -> cKDTree | None:
+        return cKDTree(self.route) if len(self.route) >= 2 else None
+
     def heading_at(self, xy: np.ndarray) -> np.ndarray:
         """The unit direction of travel (2,) in the map frame at the route point nearest to
         ``xy`` (m, map frame); the map's x axis without a route."""
-        route = self.of_motion(self.route_xy) if len(self.route_xy) >= 2 else None
-        if route is None:
+        if self._route_tree is None:
             return np.array([1.0, 0.0])
-        nearest = int(np.argmin(np.linalg.norm(route - xy, axis=1)))
-        low, high = max(0, nearest - 2), min(len(route) - 1, nearest + 2)
-        step = route[high] - route[low]
+        nearest = int(self._route_tree.query(xy)[1])
+        low, high = max(0, nearest - 2), min(len(self.route) - 1, nearest + 2)
+        step = self.route[high] - self.route[low]
         length = float(np.linalg.norm(step))
         return step / length if length > 0 else np.array([1.0, 0.0])
 
@@ -517,11 +527,16 @@ def map_entries(tracks: Sequence[Track], roadmap: RoadMap | None, place: MapFram
     positions = place.of_motion(np.array([t.position for t in usable]).reshape(-1, 2))
     on: list[list[Track]] = [[] for _ in found]
     unseen: list[Track] = []
-    for tracked, xy in zip(usable, positions):
-        gaps = [max(0.0, -cv2.pointPolygonTest(p.outline.astype(np.float32).reshape(-1, 1, 2),
-                                               (float(xy[0]), float(xy[1])), True))
-                for p in found]
-        nearest = int(np.argmin(gaps)) if gaps else -1
+    centres = np.array([p.xy for p in found]).reshape(-1, 2)
+    reach = max((float(np.linalg.norm(p.outline - p.xy, axis=1).max()) for p in found),
+                default=0.0) + config.track_match_distance_m
+    near = cKDTree(centres).query_ball_point(positions, reach) if len(found) else \
+        [[] for _ in usable]
+    for tracked, xy, candidates in zip(usable, positions, near):
+        gaps = {i: max(0.0, -cv2.pointPolygonTest(
+            found[i].outline.astype(np.float32).reshape(-1, 1, 2), (float(xy[0]), float(xy[1])),
+            True)) for i in sorted(candidates)}
+        nearest = min(gaps, key=gaps.__getitem__) if gaps else -1
         if nearest >= 0 and gaps[nearest] <= config.track_match_distance_m:
             on[nearest].append(tracked)
         elif roadmap.views_at(xy[None, :])[0] < 2:

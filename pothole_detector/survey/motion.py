@@ -260,9 +260,15 @@ class GnssFusion:
         return cKDTree(self.route_xy)
 
     @cached_property
+    def route_enu(self) -> np.ndarray:
+        """The route's positions (N, 2) in east, north (m), each by its own frame's mapping."""
+        return np.array([self.map_at(i, p)[0] for i, p in enumerate(self.route_xy)]
+                        ).reshape(-1, 2)
+
+    @cached_property
     def _route_enu_tree(self) -> cKDTree:
         """A k-d tree of the route's positions in east, north."""
-        return cKDTree(np.array([self.map_at(i, p)[0] for i, p in enumerate(self.route_xy)]))
+        return cKDTree(self.route_enu)
 
     def to_enu(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) odometry positions (m) in east, north (m): each by the mapping of the route
