@@ -321,12 +321,18 @@ class RoadMap:
                        views[inner], label[inner], potholes)
 
     def around(self, xy: tuple[float, float], radius_m: float) -> MapView:
-        """The tiles within ``radius_m`` of ``xy`` (m, map frame), with their potholes."""
-        lower = (math.floor((xy[0] - radius_m) / self.tile_m),
-                 math.floor((xy[1] - radius_m) / self.tile_m))
-        upper = (math.floor((xy[0] + radius_m) / self.tile_m),
-                 math.floor((xy[1] + radius_m) / self.tile_m))
-        return self.view(lower, upper)
+        """The tiles within ``radius_m`` of ``xy`` (m, map frame), with their potholes: the
+        block that holds those of them the map has (an empty block where it has none)."""
+        near = [key for key in self.tiles
+                if math.hypot((key[0] + 0.5) * self.tile_m - xy[0],
+                              (key[1] + 0.5) * self.tile_m - xy[1])
+                <= radius_m + self.tile_m / math.sqrt(2)]
+        if not near:
+            cell = (math.floor(xy[0] / self.tile_m), math.floor(xy[1] / self.tile_m))
+            return self.view(cell, cell, potholes_whole=False)
+        keys = np.array(near)
+        low, high = keys.min(axis=0), keys.max(axis=0)
+        return self.view((int(low[0]), int(low[1])), (int(high[0]), int(high[1])))
 
     def tile_views(self) -> Iterator[tuple[tuple[int, int], MapView]]:
         """Each tile of the map (in row order) with its potholes: every pothole of the map
@@ -387,8 +393,6 @@ class RoadMap:
         syy_c = syy - 2 * rows * sy + rows * rows * s
         sxy_c = sxy - cols * sy - rows * sx + cols * rows * s
         sxz_c, syz_c = sxz - cols * sz, syz - rows * sz
-        normal = np.stack([np.stack([s, sx_c, sy_c], -1), np.stack([sx_c, sxx_c, sxy_c], -1),
-                           np.stack([sy_c, sxy_c, syy_c], -1)], -2)
         with np.errstate(divide="ignore", invalid="ignore"):
             mean = np.where(s > 0, sz / s, np.nan)
             # the determinant of the cells' covariance (cells^4) times s^2: a plane needs
@@ -396,10 +400,13 @@ class RoadMap:
             spread = ((sxx_c - sx_c * sx_c / s) * (syy_c - sy_c * sy_c / s)
                       - (sxy_c - sx_c * sy_c / s) ** 2)
             planar = (s > 0) & (spread > 0.25 * s * s)
-            level = mean.copy()
-            if planar.any():
-                right = np.stack([sz, sxz_c, syz_c], -1)[planar]
-                level[planar] = np.linalg.solve(normal[planar], right[..., None])[:, 0, 0]
+            # the plane's constant term by Cramer's rule on the symmetric normal equations
+            minor = sxx_c * syy_c - sxy_c * sxy_c
+            determinant = (s * minor - sx_c * (sx_c * syy_c - sy_c * sxy_c)
+                           + sy_c * (sx_c * sxy_c - sy_c * sxx_c))
+            constant = (sz * minor - sx_c * (sxz_c * syy_c - sxy_c * syz_c)
+                        + sy_c * (sxz_c * sxy_c - sxx_c * syz_c))
+            level = np.where(planar, constant / determinant, mean)
         return level
 
     def _segment(self, depth: np.ndarray, sigma: np.ndarray, views: np.ndarray,
