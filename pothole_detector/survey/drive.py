@@ -1,10 +1,12 @@
 """The road survey: recorded drives in, one entry per physical pothole out. Each frame's
 potholes are put on the road plane (the frame's road frame), carried into one motion frame
 by the ego-motion (odometry, /tf or GNSS in the bag, else our stereo visual odometry) and
-tracked: a pothole gets one id for as long as it is seen, and its report takes the best view
-(the nearest sighting inside the observed range) with the spread over its sightings. Bags
-split into chunks of frames for parallel work (Ray); the chunks' frames are merged before
-tracking. No ROS: bags are read with rosbags."""
+tracked; each frame's road goes into the fused road map (roadmap.py). An entry is a
+depression of the map with the tracks on it, measured from all the views that saw it (a
+track where the map saw no road keeps its best view: the nearest sighting inside the
+observed range), with the spread over its sightings. Bags split into chunks of frames for
+parallel work (Ray); the chunks' frames are merged before tracking. No ROS: bags are read
+with rosbags."""
 
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ from ..stages.matching import to_gray8
 from ..params import Config
 from .roadmap import (MapPothole, RoadMap, RoadPatch, near_potholes, result_patch, road_map,
                       sample_pixels)
-from .tracking import PotholeTracker, Sighting, Track, merge_overlapping, sightings_of
+from .tracking import PotholeTracker, Sighting, Track, joined, merge_overlapping, sightings_of
 
 ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -431,8 +433,8 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)
     place = MapFrame(fusion, route)
     entries = map_entries(tracked_all, roadmap, place, config)
-    rows = [survey_pothole(first_id + offset, bag, tracks, found, place, config)
-            for offset, (tracks, found) in enumerate(entries)]
+    rows = [survey_pothole(first_id + offset, bag, together, found, place, config)
+            for offset, (_, together, found) in enumerate(entries)]
     start = frames[0].stamp_ns if frames else 0
     failures = [(f.stamp_ns, (f.stamp_ns - start) / 1e9, pose.x if pose else math.nan,
                  pose.y if pose else math.nan, f.failure)
@@ -440,7 +442,7 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     return DriveSurvey(Path(bag), rows, route,
                        fusion.to_latlon(route) if fusion is not None and len(route) else None,
                        motion.source, _observed_length(frames, poses), len(frames),
-                       len(tracked_all) - sum(len(tracks) for tracks, _ in entries), topics,
+                       len(tracked_all) - sum(len(tracks) for tracks, _, _ in entries), topics,
                        failures, gnss_residuals=_residual_summary(fusion), roadmap=overview,
                        map_origin_latlon=tuple(float(v) for v in fusion.origin)
                        if fusion is not None else None)
@@ -514,15 +516,16 @@ def fused_maps(frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None]
 
 
 def map_entries(tracks: Sequence[Track], roadmap: RoadMap | None, place: MapFrame,
-                config: Config) -> list[tuple[list[Track], MapPothole | None]]:
-    """The survey's entries, in the order first seen: each depression of the map with the
+                config: Config) -> list[tuple[list[Track], Track, MapPothole | None]]:
+    """The survey's entries, in the order first seen, each as (its tracks, those tracks
+    joined (tracking.joined), its depression of the map or None): each depression with the
     tracks that lie on it (within track_match_distance_m of its outline), where they were seen
     in min_sightings frames together; and each track of min_sightings on road the map did
     not see twice. A track on road the map saw, with no depression under it, is left out:
     its views together do not show it. Without a map, each track of min_sightings."""
     usable = [t for t in tracks if np.all(np.isfinite(t.position))]
     if roadmap is None:
-        return [([t], None) for t in usable if len(t.sightings) >= config.min_sightings]
+        return [([t], t, None) for t in usable if len(t.sightings) >= config.min_sightings]
     found = roadmap.potholes()
     positions = place.of_motion(np.array([t.position for t in usable]).reshape(-1, 2))
     on: list[list[Track]] = [[] for _ in found]
@@ -541,24 +544,18 @@ def map_entries(tracks: Sequence[Track], roadmap: RoadMap | None, place: MapFram
             on[nearest].append(tracked)
         elif roadmap.views_at(xy[None, :])[0] < 2:
             unseen.append(tracked)
-    entries = [(joined, pothole) for joined, pothole in zip(on, found)
-               if sum(len(t.sightings) for t in joined) >= config.min_sightings]
-    entries += [([t], None) for t in unseen if len(t.sightings) >= config.min_sightings]
-    return sorted(entries, key=lambda e: min(t.sightings[0].stamp_ns for t in e[0]))
+    entries = [(group, joined(group), pothole) for group, pothole in zip(on, found) if group]
+    entries = [entry for entry in entries if len(entry[1].sightings) >= config.min_sightings]
+    entries += [([t], t, None) for t in unseen if len(t.sightings) >= config.min_sightings]
+    return sorted(entries, key=lambda entry: entry[1].sightings[0].stamp_ns)
 
 
-def survey_pothole(pothole_id: int, bag: str | Path, tracks: Sequence[Track],
+def survey_pothole(pothole_id: int, bag: str | Path, together: Track,
                    found: MapPothole | None, place: MapFrame, config: Config) -> SurveyPothole:
-    """One entry: times, sightings and the best view from ``tracks`` (together); depth, area,
+    """One entry: times, sightings and the best view from its tracks ``together``; depth, area,
     volume, length, width and outline from the map's depression ``found`` (all the views that
     saw it; its outline runs through its edge cells' centres, so its length and width are one
     cell more than the outline's), or from the best view where the map has none."""
-    pairs = sorted(((s, p, o) for t in tracks
-                    for s, p, o in zip(t.sightings, t.positions,
-                                       t.outlines or [np.empty((0, 2))] * len(t.sightings))),
-                   key=lambda item: item[0].stamp_ns)
-    together = Track(pothole_id, [s for s, _, _ in pairs], [p for _, p, _ in pairs],
-                     outlines=[o for _, _, o in pairs])
     best = together.best()
     depths = [s.max_depth_m for s in together.sightings]
     areas = [s.area_m2 for s in together.sightings]
@@ -578,7 +575,8 @@ def survey_pothole(pothole_id: int, bag: str | Path, tracks: Sequence[Track],
     else:
         odom = together.position
         xy_map = place.of_motion(odom[None, :])[0]
-        outline = together.outlines[together.sightings.index(best)]
+        outline = together.outlines[together.sightings.index(best)] if together.outlines \
+            else np.empty((0, 2))
         outline_map = place.of_motion(outline) if len(outline) else np.empty((0, 2))
         measures = (best.max_depth_m, best.mean_depth_m, best.area_m2, best.volume_m3,
                     best.length_m, best.width_m)

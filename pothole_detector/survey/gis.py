@@ -146,8 +146,7 @@ def _write_geotiff(roadmap: RoadMap, origin: tuple[float, float], path: Path) ->
 
 
 def _write_tiles(roadmap: RoadMap, stem: Path) -> list[Path]:
-    keys = sorted(roadmap.tiles)
-    views = [roadmap.view(key, key) for key in keys]
+    keys, views = zip(*roadmap.tile_views())
     npz = stem.with_suffix(".npz")
     np.savez_compressed(npz, tiles=np.array(keys, dtype=np.int64).reshape(-1, 2),
                         depth=np.array([v.depth for v in views], np.float32),

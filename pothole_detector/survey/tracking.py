@@ -352,26 +352,27 @@ def merge_overlapping(tracks: Sequence[Track]) -> list[Track]:
         return finite[i] and finite[j] and float(
             np.linalg.norm(positions[i] - positions[j])) < radii[i] + radii[j]
 
-    merged = []
-    for indices in _groups(len(tracks), overlap):
-        group = [tracks[i] for i in indices]
-        if len(group) == 1:
-            merged.append(group[0])
-            continue
-        by_stamp: dict[int, list[tuple[Sighting, np.ndarray, np.ndarray]]] = {}
-        for member in group:
-            outlines = member.outlines or [np.empty((0, 2))] * len(member.sightings)
-            for sighting, position, outline in zip(member.sightings, member.positions,
-                                                   outlines):
-                by_stamp.setdefault(sighting.stamp_ns, []).append((sighting, position,
-                                                                   outline))
-        joined = Track(min(t.id for t in group), last_frame=max(t.last_frame for t in group))
-        for stamp in sorted(by_stamp):
-            parts = by_stamp[stamp]
-            weights = np.array([max(s.area_m2, 0.0) for s, _, _ in parts]) + 1e-12
-            joined.sightings.append(combined([s for s, _, _ in parts]))
-            joined.positions.append(np.average([p for _, p, _ in parts], axis=0,
-                                               weights=weights))
-            joined.outlines.append(hull([o for _, _, o in parts]))
-        merged.append(joined)
+    merged = [joined([tracks[i] for i in indices]) for indices in _groups(len(tracks), overlap)]
     return sorted(merged, key=lambda t: (t.sightings[0].stamp_ns, t.id))
+
+
+def joined(group: Sequence[Track]) -> Track:
+    """The tracks of ``group`` as one: the least id, the latest last frame, every sighting,
+    those of one frame combined (:func:`combined`, positions weighted by area, outlines by
+    their hull), in time order; a group of one is its track."""
+    if len(group) == 1:
+        return group[0]
+    by_stamp: dict[int, list[tuple[Sighting, np.ndarray, np.ndarray]]] = {}
+    for member in group:
+        outlines = member.outlines or [np.empty((0, 2))] * len(member.sightings)
+        for sighting, position, outline in zip(member.sightings, member.positions, outlines):
+            by_stamp.setdefault(sighting.stamp_ns, []).append((sighting, position, outline))
+    together = Track(min(t.id for t in group), last_frame=max(t.last_frame for t in group))
+    for stamp in sorted(by_stamp):
+        parts = by_stamp[stamp]
+        weights = np.array([max(s.area_m2, 0.0) for s, _, _ in parts]) + 1e-12
+        together.sightings.append(combined([s for s, _, _ in parts]))
+        together.positions.append(np.average([p for _, p, _ in parts], axis=0,
+                                             weights=weights))
+        together.outlines.append(hull([o for _, _, o in parts]))
+    return together
