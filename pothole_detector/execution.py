@@ -1,4 +1,4 @@
-"""How frames are executed: the pipeline's stages (pipeline.py) run on either backend through
+"""How frames are executed: the method's stages (method.py) run on either backend through
 one path. On the CPU every step completes when it is called; on the GPU:
 
 - each pair is converted straight into page-locked upload buffers and sent up in one transfer
@@ -26,7 +26,7 @@ import numpy as np
 from .backend import Backend, CapturedGraph, GraphMemory, Readback, StageClock, UploadBuffer, \
     to_host
 from .errors import PotholeError
-from .pipeline import FrameArrays, Pipeline, PipelineResult
+from .method import FrameArrays, Method, PipelineResult
 from .stages import components, matching, measure, perspective, road_model, superpixels
 from .stages import threshold as thresholding
 
@@ -54,9 +54,9 @@ class FrameReport:
     """One backend buffer that a frame's stages write their small results into: float64 road
     fit report (ROAD) and kernel parameters, threshold search result, valid pixel count, the
     observed range (near, far, m); int32
-    counts (components found, kept, overflow, kept after the area filter); the measure sums and
-    extremes of ``capacity`` labels. Read back in two parts: the header (what the checks need)
-    and the whole buffer."""
+    component counts (found, kept, overflow) and the count kept after the area filter; the
+    measure sums and extremes of ``capacity`` labels. Read back in two parts: the header (what
+    the checks need) and the whole buffer."""
 
     ROAD = (0, road_model.ROAD_REPORT)
     _PARAMS = (ROAD[1], ROAD[1] + road_model.ROAD_PARAMS)
@@ -78,7 +78,10 @@ class FrameReport:
         self.threshold = header[slice(*self._THRESHOLD)]
         self.valid_count = header[self._VALID:self._VALID + 1]
         self.observed_range = header[slice(*self._OBSERVED)]
-        self.counts = self.buffer[self._counts_at:self._sums_at].view(xp.int32)
+        counts = self.buffer[self._counts_at:self._sums_at].view(xp.int32)
+        self.components = counts[0:3]
+        self.components_kept = counts[1:2]
+        self.kept_after_area = counts[3:4]
         self.sums = self.buffer[self._sums_at:self._extremes_at].view(xp.float64).reshape(
             capacity + 1, measure.MEASURE_SUMS)
         self.extremes = self.buffer[self._extremes_at:].view(xp.int32).reshape(
@@ -141,7 +144,7 @@ class _Frame:
 
 
 class _Checkpoint:
-    """pipeline.Checkpoint of one frame: after the road fit queue ``after_fit(frame)`` (the
+    """method.Checkpoint of one frame: after the road fit queue ``after_fit(frame)`` (the
     header's readback, or the cut between two graphs); the stages then take the checked model
     (CPU) or the device parameters (GPU, checked when the header is read back)."""
 
@@ -214,14 +217,15 @@ class FrameGraphs:
 
 
 class FrameExecutor:
-    """Runs a Pipeline's stages frame by frame (:meth:`run`) or over a stream of pairs
+    """Runs a Method's stages frame by frame (:meth:`run`) or over a stream of pairs
     (:meth:`run_stream`) on its backend."""
 
-    def __init__(self, pipeline: Pipeline) -> None:
-        # the pipeline owns its executor: a weak reference lets a dropped pipeline, and the
-        # device memory of its buffers and graphs, go at once rather than at the next collection
-        self.pipeline = weakref.proxy(pipeline)
-        self.backend: Backend = pipeline.backend
+    def __init__(self, method: Method) -> None:
+        # the method's owner (pipeline.Pipeline) owns the executor too: a weak reference lets a
+        # dropped pipeline, and the device memory of its buffers and graphs, go at once rather
+        # than at the next collection
+        self.method = weakref.proxy(method)
+        self.backend: Backend = method.backend
         self.graphs = FrameGraphs()
         self._uploads: dict[tuple[int, int], list[UploadBuffer]] = {}
         self._graph_memory: GraphMemory | None = None  # shared by the graphs (one stream)
@@ -239,7 +243,7 @@ class FrameExecutor:
             raise staged
         frame = self._queue(staged, started)
         self._read_road(frame)
-        self.pipeline.band(self.pipeline.output_shape(staged.shape(0)))
+        self.method.band(self.method.output_shape(staged.shape(0)))
         self._read_report(frame)
         return self._finish(frame)
 
@@ -271,8 +275,8 @@ class FrameExecutor:
             queued = following
 
     def checked_road(self, header: np.ndarray, frame: _Frame) -> road_model.RoadModel:
-        """Pipeline.checked_road on a host copy of a frame report's header."""
-        return self.pipeline.checked_road(FrameReport.road_of(header),
+        """Method.checked_road on a host copy of a frame report's header."""
+        return self.method.checked_road(FrameReport.road_of(header),
                                           FrameReport.valid_count_of(header), frame.pixels)
 
     def _stage(self, pair: tuple[np.ndarray, np.ndarray],
@@ -287,7 +291,7 @@ class FrameExecutor:
         height, width = pair[0].shape[:2]
         buffers = self._uploads.get((height, width))
         if buffers is None:
-            rows = self.pipeline.output_shape((height, width))[0]
+            rows = self.method.output_shape((height, width))[0]
             layout = [((height, width), np.uint8), ((height, width), np.uint8),
                       ((3, rows), np.int32), ((road_model.PRIOR_PARAMS,), np.float64)]
             buffers = [UploadBuffer(self.backend, layout) for _ in range(2)]
@@ -305,19 +309,19 @@ class FrameExecutor:
     def _rectified(self, staged: UploadBuffer, pair: tuple[Any, Any, Any, Any],
                    clock: StageClock) -> tuple[Any, Any, Any, Any]:
         """The uploaded (left, right, shifts, prior) with the images rectified on the device
-        (Pipeline.rectified) into arrays kept with upload buffer ``staged`` (its images are
-        overwritten only by its next upload), where the pipeline rectifies."""
-        if self.pipeline.rectification is None:
+        (Method.rectified) into arrays kept with upload buffer ``staged`` (its images are
+        overwritten only by its next upload), where the method rectifies."""
+        if self.method.rectification is None:
             return pair
         xp = self.backend.xp
-        shape = self.pipeline.output_shape(staged.shape(0))
+        shape = self.method.output_shape(staged.shape(0))
         targets = self._rectified_images.get(id(staged))
         if targets is None or targets[0].shape != shape:
             targets = (xp.empty(shape, dtype=xp.uint8), xp.empty(shape, dtype=xp.uint8))
             if self.backend.is_gpu:
                 self._rectified_images[id(staged)] = targets
         with clock.stage("rectify"):
-            left, right = self.pipeline.rectified(pair[0], pair[1], targets)
+            left, right = self.method.rectified(pair[0], pair[1], targets)
         return left, right, pair[2], pair[3]
 
     def _queue_staged(self, staged: UploadBuffer | PotholeError) -> _Frame | PotholeError:
@@ -332,24 +336,24 @@ class FrameExecutor:
     def _queue(self, staged: UploadBuffer, started: float) -> _Frame:
         """Prepare the pair in upload buffer ``staged`` (seed, GPT) and queue its stages (on
         the CPU: run them), replayed as CUDA graphs where they can be."""
-        pipeline, config, backend = self.pipeline, self.pipeline.config, self.backend
-        height, width = pipeline.output_shape(staged.shape(0))
+        method, config, backend = self.method, self.method.config, self.backend
+        height, width = method.output_shape(staged.shape(0))
         clock = StageClock(backend)
-        seeded = pipeline.road is None or not config.gpt_enabled
-        seeding = config.gpt_enabled and pipeline.road is None
+        seeded = method.road is None or not config.gpt_enabled
+        seeding = config.gpt_enabled and method.road is None
         staged.send_ahead(2)
-        pair, shifts, levels = pipeline.prepare(
+        pair, shifts, levels = method.prepare(
             lambda table, prior: self._rectified(staged, _send(staged, table, prior), clock),
             (height, width), clock)
-        key = (height, width, levels, pipeline.region_size(width))
+        key = (height, width, levels, method.region_size(width))
         graphed = backend.is_gpu and config.cuda_graph and not seeding \
             and config.matcher == "census"
-        graph = self.graphs.get(key, pipeline.matcher.generation, self._capture) \
+        graph = self.graphs.get(key, method.matcher.generation, self._capture) \
             if graphed else None
         if graph is None:
             frame = self._frame(pair, levels, clock, self._send_header, seeding)
             if graphed:
-                self.graphs.ran(key, pipeline.matcher.generation)
+                self.graphs.ran(key, method.matcher.generation)
         else:
             frame = self._replay(graph, pair, clock)
         frame.shifts, frame.levels, frame.seeded, frame.started, frame.clock = \
@@ -363,15 +367,15 @@ class FrameExecutor:
 
     def _frame(self, pair: tuple[Any, Any, Any, Any], levels: int, clock: StageClock,
                after_fit: Callable[[_Frame], None], seeded: bool = False) -> _Frame:
-        """The pipeline's stages from SGM on, into a new report (``seeded``: the seed pass ran
+        """The method's stages from SGM on, into a new report (``seeded``: the seed pass ran
         on the pair)."""
-        config = self.pipeline.config
+        config = self.method.config
         n_sp = superpixels.grid_count(pair[0].shape,
-                                      self.pipeline.region_size(pair[0].shape[1]),
+                                      self.method.region_size(pair[0].shape[1]),
                                       config.slic_downsample)
         frame = _Frame(FrameReport(self.backend.xp, components.device_capacity(n_sp)),
                        pixels=int(pair[0].size))
-        frame.arrays = self.pipeline.stages(*pair, levels, frame.report, clock,
+        frame.arrays = self.method.stages(*pair, levels, frame.report, clock,
                                             _Checkpoint(self, frame, after_fit), seeded)
         return frame
 
@@ -468,7 +472,7 @@ class FrameExecutor:
             xp = self.backend.xp
             exact = FrameReport(xp, max(frame.host.components_found, 1))
             arrays = replace(frame.arrays, valid=xp.isfinite(frame.arrays.disparity))
-            frame.arrays = replace(frame.arrays, labels=self.pipeline.label_and_measure(
+            frame.arrays = replace(frame.arrays, labels=self.method.label_and_measure(
                 arrays, frame.road, exact, StageClock(self.backend, timed=False)))
             remeasured = exact.parse(to_host(exact.buffer))
             frame.host = replace(frame.host, components_kept=remeasured.components_kept,
@@ -478,7 +482,7 @@ class FrameExecutor:
 
     def _finish(self, frame: _Frame) -> PipelineResult:
         """The result of a frame whose road and report have been read back and checked."""
-        config = self.pipeline.config
+        config = self.method.config
         host, arrays, clock = frame.host, frame.arrays, frame.clock
         assert host is not None and arrays is not None and clock is not None
         assert frame.road is not None and frame.shifts is not None

@@ -10,7 +10,7 @@ import numpy as np
 
 from .calibration import StereoCalibration
 from .imageio import overlay
-from .pipeline import PipelineResult
+from .method import PipelineResult
 
 if TYPE_CHECKING:
     from std_msgs.msg import Header

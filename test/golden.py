@@ -20,7 +20,8 @@ from pothole_detector.backend import to_host  # noqa: E402
 from pothole_detector.calibration import load_stereo_camera_info  # noqa: E402
 from pothole_detector.imageio import read_image  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
-from pothole_detector.pipeline import Pipeline, PipelineResult  # noqa: E402
+from pothole_detector.method import PipelineResult  # noqa: E402
+from pothole_detector.pipeline import Pipeline  # noqa: E402
 from pothole_detector.synthetic import demo_scene, drive_scenes, render  # noqa: E402
 
 
