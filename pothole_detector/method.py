@@ -93,10 +93,13 @@ class FrameArrays:
     """What :meth:`Method.stages` leaves on the backend: D1, D2, the valid mask, the
     superpixels (of grid step ``region_px``), the candidate mask on the SLIC grid, the pothole
     labels, the bool per-superpixel mask of where the road is observed and the float64
-    per-superpixel threshold drops (px); ``local``: with the local road reference, float64 per
+    per-superpixel threshold drops (px) of the road fit's noise (the refinement's; with the
+    local road reference, the selection's come from the road's noise around each superpixel,
+    local_road.offsets); ``local``: with the local road reference, float64 per
     superpixel, how far (px) the road around it lies below the road model
     (stages/local_road.py); ``inconsistent``: bool per superpixel, where the two views
-    disagree on its brightness (stages/photometric.py)."""
+    disagree on its brightness (stages/photometric.py); ``bumps``: bool per superpixel, where
+    the road stands significantly above the local road (local_road.bumps)."""
 
     disparity: Any
     transformed: Any
@@ -109,6 +112,7 @@ class FrameArrays:
     region_px: int = 0
     local: Any = None
     inconsistent: Any = None
+    bumps: Any = None
 
 
 class FrameReport(Protocol):
@@ -314,14 +318,23 @@ class Method:
                 config.delta_pd_px if pixels else 0.0, config.threshold_noise_sigmas,
                 config.max_threshold_m, report.observed_range)
             drop = config.delta_pd_px if pixels else drops
-            local = None
+            local = bumps = None
             if config.road_reference == "local":
                 usable = observed & (found.valid_fraction > config.superpixel_min_valid_fraction)
-                local = local_road.offsets(
+                local, noise = local_road.offsets(
                     backend, found.means, usable, drops, transformed.shape, region_px,
                     config.slic_downsample, report.road_params, self.calibration,
-                    config.delta_dt_px, config.local_road_radius_m)
-                drop = drops + local
+                    config.delta_dt_px, config.local_road_radius_m, report.road)
+                if not pixels:
+                    _, drop = thresholding.observation(
+                        backend, transformed.shape, region_px, config.slic_downsample,
+                        report.road_params, report.road, self.calibration, config.delta_pd_m,
+                        0.0, config.threshold_noise_sigmas, config.max_threshold_m,
+                        noise_px=noise)
+                drop = drop + local
+                if config.bump_noise_sigmas > 0:
+                    bumps = local_road.bumps(backend, found.means, local, noise, observed,
+                                             config.delta_dt_px, config.bump_noise_sigmas)
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 thresholding.reference_for(config.threshold_reference, config.threshold_mode),
@@ -337,7 +350,7 @@ class Method:
                 flagged = photometric.inconsistent(backend, disagreement, observed & ~selected,
                                                    config.photometric_factor)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops, region_px, local, flagged)
+                            drops, region_px, local, flagged, bumps)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -351,7 +364,7 @@ class Method:
             labels = components.pothole_components(
                 backend, frame.candidate, frame.valid, found.labels, found.count,
                 config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
-                report.capacity, report.components, frame.inconsistent)
+                report.capacity, report.components, frame.inconsistent, frame.bumps)
         with clock.stage("refine"):
             filled, smoothed = refine.smooth(backend, frame.disparity)
             if frame.local is not None:

@@ -164,7 +164,9 @@ PARAMETERS: tuple[Param, ...] = (
           "disparity drop of a point that deep.", 0, 1),
     Param("threshold_noise_sigmas", float, 3.0,
           "Metres mode: where the matcher cannot resolve delta_pd_m, the threshold is the "
-          "depth whose disparity drop is this many robust sigmas of the road fit.", 0, 20),
+          "depth whose disparity drop is this many sigmas of the road's disparity noise (with "
+          "the local road reference, the spread of the road's superpixels about it around "
+          "each superpixel; else the road fit's robust sigma).", 0, 20),
     Param("max_threshold_m", float, 0.03,
           "Metres mode: the road counts as observed (potholes are looked for) only where the "
           "threshold depth is at most this (m); the observed range in the outputs says where.",
@@ -182,6 +184,11 @@ PARAMETERS: tuple[Param, ...] = (
           "views on the brightness of what was matched by more than this many times the "
           "road's mean disagreement in the frame (glossy or saturated markings, wet patches); "
           "0 turns the test off.", 0, 100),
+    Param("bump_noise_sigmas", float, 4.0,
+          "A component is no pothole where it touches a superpixel that stands above the road "
+          "around it by more than this many of the road's local noise sigmas: a matcher that "
+          "moved an edge (a lane marking's) reads one side as a dip and the other as a bump; "
+          "0 turns the test off.", 0, 20),
     Param("superpixel_min_valid_fraction", float, 0.0,
           "A superpixel needs more than this fraction of valid disparities to be selectable "
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),

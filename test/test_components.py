@@ -89,3 +89,23 @@ def test_a_component_mostly_of_inconsistent_superpixels_is_dropped():
     labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
                                      0.1, 2, inconsistent=flagged)
     assert count == 1 and labels[30, 70] == 1 and labels[30, 20] == 0
+
+
+def test_a_component_beside_a_bump_is_dropped():
+    """A matcher that moved an edge reads a dip beside a bump: the component touching a bump
+    superpixel goes, one two superpixels away from it stays, and so does the reduced-grid
+    labelling's result."""
+    height, width = 60, 100
+    superpixels, n = grid_superpixels(height, width, 10)
+    candidate = np.zeros((height, width), bool)
+    candidate[20:40, 10:30] = True        # superpixels 21, 22, 31, 32; 23 lies beside it
+    candidate[20:40, 60:80] = True        # superpixels 26, 27, 36, 37; 29 does not
+    bumps = np.zeros(n, bool)
+    bumps[[23, 29]] = True
+    labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
+                                     0.1, 2, bumps=bumps)
+    assert count == 1 and labels[30, 70] == 1 and labels[30, 20] == 0
+    small = candidate[::2, ::2]
+    reduced = components_found(CPU, small, np.ones_like(candidate), superpixels, n, 0.1, 2,
+                               factor=2, bumps=bumps)
+    np.testing.assert_array_equal(reduced[0], labels)

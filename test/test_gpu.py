@@ -547,13 +547,15 @@ def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min
     sp = (np.arange(height)[:, None] // 10 * 16 + np.arange(width)[None, :] // 10)
     sp = sp.astype(np.int32)
     n = int(sp.max()) + 1
-    for flagged in (None, rng.random(n) < 0.3):
+    for flagged, bumps in ((None, None), (rng.random(n) < 0.3, None),
+                           (None, rng.random(n) < 0.02)):
         cpu = components.components_found(CPU, candidate, valid, sp, n, corner_fraction,
-                                            min_superpixels, inconsistent=flagged)
+                                            min_superpixels, inconsistent=flagged, bumps=bumps)
         dev = components.components_found(
             gpu, gpu.upload(small), gpu.upload(valid), gpu.upload(sp), n, corner_fraction,
             min_superpixels, factor=factor,
-            inconsistent=None if flagged is None else gpu.upload(flagged))
+            inconsistent=None if flagged is None else gpu.upload(flagged),
+            bumps=None if bumps is None else gpu.upload(bumps))
         assert dev[1] == cpu[1] > 0
         np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
 
@@ -1019,6 +1021,18 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
         assert (to_host(got) != want).sum() <= max(1, want.size // 200)
         np.testing.assert_allclose(to_host(got_range), want_range, rtol=1e-6)
         np.testing.assert_allclose(to_host(got_drops)[want], want_drops[want], rtol=1e-9)
+    noise = np.random.default_rng(2).uniform(0.05, 0.4, want.size)
+    want_range = np.empty(2)
+    want, want_drops = threshold.observation(CPU, sample.left.shape, 32, 2, params, report,
+                                             sample.calibration, 0.004, 0.0, 3.0, 0.03,
+                                             want_range, noise)
+    got_range = gpu.xp.empty(2, dtype=gpu.xp.float64)
+    got, got_drops = threshold.observation(
+        gpu, sample.left.shape, 32, 2, gpu.upload(params), gpu.upload(report),
+        sample.calibration, 0.004, 0.0, 3.0, 0.03, got_range, gpu.upload(noise))
+    assert (to_host(got) != want).sum() <= max(1, want.size // 200)
+    np.testing.assert_allclose(to_host(got_range), want_range, rtol=1e-6)
+    np.testing.assert_allclose(to_host(got_drops)[want], want_drops[want], rtol=1e-9)
 
 
 def test_refinement_on_the_gpu_matches_the_reference(gpu):
@@ -1126,14 +1140,22 @@ def test_local_road_matches_the_cpu(gpu):
     usable = rng.random(count) < 0.9
     drops = np.full(count, 0.6)
     args = (reference.SHAPE, reference.REGION, reference.DOWNSAMPLE)
-    cpu = local_road.offsets(CPU, means, usable, drops, *args, params, calibration,
-                             reference.DELTA, 1.5)
-    device = local_road.offsets(gpu, gpu.upload(means), gpu.upload(usable), gpu.upload(drops),
-                                *args, gpu.upload(params), calibration, reference.DELTA, 1.5)
+    fit = reference.fit_report()
+    cpu, cpu_noise = local_road.offsets(CPU, means, usable, drops, *args, params, calibration,
+                                        reference.DELTA, 1.5, fit)
+    device, device_noise = local_road.offsets(
+        gpu, gpu.upload(means), gpu.upload(usable), gpu.upload(drops), *args,
+        gpu.upload(params), calibration, reference.DELTA, 1.5, gpu.upload(fit))
     np.testing.assert_allclose(to_host(device), cpu, atol=1e-9)
+    np.testing.assert_allclose(to_host(device_noise), cpu_noise, atol=1e-9)
     np.testing.assert_allclose(
         to_host(local_road.pixel_offsets(gpu, device, *args)),
         local_road.pixel_offsets(CPU, cpu, *args), atol=1e-6)
+    observed = rng.random(count) < 0.8
+    np.testing.assert_array_equal(
+        to_host(local_road.bumps(gpu, gpu.upload(means), device, device_noise,
+                                 gpu.upload(observed), reference.DELTA, 1.0)),
+        local_road.bumps(CPU, means, cpu, cpu_noise, observed, reference.DELTA, 1.0))
 
 
 

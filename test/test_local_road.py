@@ -30,12 +30,27 @@ def grid(count):
     return -(-height // step), -(-width // step)
 
 
-def run(means, usable=None, drops=0.5, radius_m=1.5):
+FIT_SIGMA = 0.37
+
+
+def fit_report():
+    """A road fit report (road_model.FIT_LAYOUT) whose planar robust sigma is FIT_SIGMA."""
+    report = np.zeros(road_model.FIT_LAYOUT["ROAD_REPORT"])
+    report[road_model.FIT_LAYOUT["FIT_PLANAR_SIGMA"]] = FIT_SIGMA
+    return report
+
+
+def run_with_noise(means, usable=None, drops=0.5, radius_m=1.5):
     calibration, params = flat_road()
     count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
     usable = np.ones(count, bool) if usable is None else usable
     return local_road.offsets(CPU, means.astype(np.float32), usable, np.full(count, drops),
-                              SHAPE, REGION, DOWNSAMPLE, params, calibration, DELTA, radius_m)
+                              SHAPE, REGION, DOWNSAMPLE, params, calibration, DELTA, radius_m,
+                              fit_report())
+
+
+def run(means, usable=None, drops=0.5, radius_m=1.5):
+    return run_with_noise(means, usable, drops, radius_m)[0]
 
 
 def test_a_road_that_tilts_away_from_the_model_is_followed_and_a_pothole_left_out():
@@ -68,6 +83,35 @@ def test_the_window_reaches_the_radius_on_the_road():
     assert np.allclose(small[:, 2], 0.3) and np.allclose(small[:, -2], 0.0)
     large = run(DELTA - residual.ravel(), radius_m=50.0, drops=1.0).reshape(rows, cols)
     assert np.ptp(large[:, 2]) < 1e-9 and 0.2 < large[0, 2] < 0.4 and large[0, 2] > large[0, -2]
+
+
+def test_the_noise_is_the_spread_of_the_road_about_its_local_surface():
+    """Superpixel means scattered by 0.1 px about a cambered road, with a pothole: the noise is
+    0.1 px wherever the window holds road (the camber and the pothole left out of it); with no
+    road around, the road fit's sigma."""
+    count = superpixels.grid_count(SHAPE, REGION, DOWNSAMPLE)
+    rows, cols = grid(count)
+    i, j = np.mgrid[0:rows, 0:cols]
+    scatter = np.random.default_rng(3).normal(0.0, 0.1, (rows, cols))
+    residual = 0.08 * (j - cols / 2) + scatter
+    residual[5:8, 3:6] += 2.0
+    _, noise = run_with_noise(DELTA - residual.ravel())
+    assert noise.shape == (count,)
+    assert np.all(np.abs(noise - 0.1) < 0.03)
+    _, none = run_with_noise(DELTA - residual.ravel(), usable=np.zeros(count, bool))
+    np.testing.assert_array_equal(none, FIT_SIGMA)
+
+
+def test_bumps_stand_above_the_local_road_by_more_than_their_noise():
+    means = np.array([DELTA, DELTA + 0.5, DELTA + 0.5, DELTA - 0.5, DELTA + 0.5, np.nan],
+                     dtype=np.float32)
+    reference = np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0])
+    noise = np.full(6, 0.1)
+    observed = np.array([True, True, True, True, False, True])
+    found = local_road.bumps(CPU, means, reference, noise, observed, DELTA, 4.0)
+    # 0.5 px above the road is 5 sigmas; where the local road itself lies 0.3 px higher,
+    # 0.2 px above it is 2; a dip is no bump; unobserved and NaN means neither
+    np.testing.assert_array_equal(found, [False, True, False, False, False, False])
 
 
 def test_pixel_offsets_interpolate_between_cell_centres():

@@ -95,3 +95,36 @@ def test_the_observed_range_is_the_distance_ahead_along_the_road():
     np.testing.assert_allclose(found, [ahead[seen].min(), ahead[seen].max()], rtol=1e-9)
     across = (u - calibration.cx) / f * height_m / ray_down
     assert np.hypot(ahead, across)[seen].max() > 1.05 * found[1]
+
+
+def test_the_threshold_follows_the_noise_of_each_superpixel():
+    """With a noise per superpixel, each one's threshold depth is the one its own noise
+    resolves: the same drops as the fit's sigma where the noise equals it, deeper thresholds
+    and a shorter observed range where it is larger."""
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.stages import road_model, superpixels
+    from pothole_detector.stages.threshold import observation
+
+    calibration = StereoCalibration.from_focal_baseline(800.0, 0.3, 1280, 720)
+    height_m, pitch = 1.2, np.radians(12.0)
+    f, cy, fb = calibration.f, calibration.cy, calibration.fb
+    road = road_model.RoadModel(np.float64(fb / height_m * (np.sin(pitch)
+                                                            - np.cos(pitch) * cy / f)),
+                                np.float64(fb / f / height_m * np.cos(pitch)), 0.0)
+    report = np.zeros(road_model.ROAD_REPORT)
+    report[road_model.FIT_LAYOUT["FIT_PLANAR_SIGMA"]] = 0.2
+    shape, region, downsample = (720, 1280), 32, 2
+    args = (CPU, shape, region, downsample, road.kernel_params(), report, calibration, 0.004,
+            0.0, 3.0, 0.03)
+    count = superpixels.grid_count(shape, region, downsample)
+    fit_range, same_range, noisy_range = np.empty(2), np.empty(2), np.empty(2)
+    observed, drops = observation(*args, fit_range)
+    same, same_drops = observation(*args, same_range, np.full(count, 0.2))
+    noisy, noisy_drops = observation(*args, noisy_range, np.full(count, 0.4))
+    np.testing.assert_array_equal(same, observed)
+    np.testing.assert_allclose(same_drops, drops)
+    np.testing.assert_array_equal(same_range, fit_range)
+    assert noisy.sum() < observed.sum() and not (noisy & ~observed).any()
+    assert noisy_range[1] < fit_range[1]
+    resolved = noisy & (noisy_drops > drops * 1.01)
+    assert resolved.any()

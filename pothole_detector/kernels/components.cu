@@ -40,10 +40,13 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
 // (words_per_component words) marks superpixel s, and held[c] counts the distinct ones (the
 // thread whose atomicOr sets the bit adds 1; a plain read first spares the atomic once the
 // bit is set), inconsistent[c] those of them flagged in `flagged` (one byte per superpixel).
-// Components past `capacity` (the tables' size) set touched[0], the overflow flag; the caller
-// then runs again with a larger capacity.
+// touched[c] = 1 too where a pixel of c is an 8-neighbour of a pixel off every component whose
+// superpixel is flagged in `bumps` (one byte per superpixel). Components past `capacity` (the
+// tables' size) set touched[0], the overflow flag; the caller then runs again with a larger
+// capacity.
 extern "C" __global__ void component_marks(const int* small, const int* superpixels,
-                                           const bool* flagged, const int* first,
+                                           const bool* flagged, const bool* bumps,
+                                           const int* first,
                                            const int* last, int height, int width, int factor,
                                            int small_height, int small_width, int side,
                                            int words_per_component, int capacity, int* touched,
@@ -59,6 +62,15 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
     }
     if (row < side && (col < first[row] + side || col > last[row] - side))
         touched[component] = 1;
+    for (int dv = -1; dv <= 1; ++dv) {
+        for (int du = -1; du <= 1; ++du) {
+            const int v = row + dv, u = col + du;
+            if ((dv == 0 && du == 0) || v < 0 || v >= height || u < 0 || u >= width) continue;
+            if (component_at(small, v, u, factor, small_height, small_width) == 0
+                && bumps[superpixels[(long long)v * width + u]])
+                touched[component] = 1;
+        }
+    }
     const int superpixel = superpixels[index];
     const unsigned bit = 1u << (superpixel & 31);
     unsigned* word = present + (long long)component * words_per_component + (superpixel >> 5);

@@ -1,10 +1,29 @@
 // The local road reference (stages/local_road.py) in one block: the window of each cell of the
 // SLIC grid from the geometry, then ROUNDS robust rounds of a weighted plane fitted over each
-// cell's window through summed-area tables of the nine weighted moments. Defines:
-// ROUNDS, MIN_PLANE_SUPPORT (stages/local_road.py) and the road model's (road_disparity.cuh).
+// cell's window through summed-area tables of the nine weighted moments, then the noise of the
+// road's cells about the surface over each window. Defines: ROUNDS, MIN_PLANE_SUPPORT
+// (stages/local_road.py), the fit report's layout and the road model's (road_disparity.cuh).
 #include "road_disparity.cuh"
 
 #define MOMENTS 9
+
+// Summed-area tables in place: each of `moments` tables (rows + 1) x (cols + 1), its first row
+// and column 0 and cell (i + 1, j + 1) holding the value of cell (i, j), becomes its running sum
+// along rows, then along columns. The whole block takes part; ends synchronized.
+__device__ void summed_areas(double* table, int moments, int rows, int cols) {
+    const int stride = (rows + 1) * (cols + 1);
+    for (int e = threadIdx.x; e < moments * rows; e += blockDim.x) {
+        double* line = table + (e / rows) * stride + (e % rows + 1) * (cols + 1);
+        for (int j = 2; j <= cols; ++j) line[j] += line[j - 1];
+    }
+    __syncthreads();
+    for (int e = threadIdx.x; e < moments * cols; e += blockDim.x) {
+        double* column = table + (e / cols) * stride + e % cols + 1;
+        for (int i = 2; i <= rows; ++i)
+            column[i * (cols + 1)] += column[(i - 1) * (cols + 1)];
+    }
+    __syncthreads();
+}
 
 // table[m] is (rows + 1) x (cols + 1), its first row and column 0: the summed-area table of
 // moment m; the sum of the cells top <= i < bottom, left <= j < right.
@@ -17,9 +36,10 @@ __device__ __forceinline__ double window_sum(const double* table, int cols, int 
 
 extern "C" __global__ void local_road_fit(
         const float* means, const bool* usable_in, const double* drops, const double* road,
-        int rows, int cols, int step, int width, int height, int downsample, double f,
-        double cx, double cy, double baseline, double road_level, double radius_m,
-        int* half, double* residual, unsigned char* usable, double* table, double* reference) {
+        const double* fit, int rows, int cols, int step, int width, int height, int downsample,
+        double f, double cx, double cy, double baseline, double road_level, double radius_m,
+        int* half, double* residual, unsigned char* usable, double* table, double* reference,
+        double* noise) {
     const int cells = rows * cols;
     const int stride = (rows + 1) * (cols + 1);
     for (int k = threadIdx.x; k < cells; k += blockDim.x) {
@@ -60,16 +80,7 @@ extern "C" __global__ void local_road_fit(
             for (int m = 0; m < MOMENTS; ++m) table[m * stride + at] = moment[m];
         }
         __syncthreads();
-        for (int e = threadIdx.x; e < MOMENTS * rows; e += blockDim.x) {
-            double* line = table + (e / rows) * stride + (e % rows + 1) * (cols + 1);
-            for (int j = 2; j <= cols; ++j) line[j] += line[j - 1];
-        }
-        __syncthreads();
-        for (int e = threadIdx.x; e < MOMENTS * cols; e += blockDim.x) {
-            double* column = table + (e / cols) * stride + e % cols + 1;
-            for (int i = 2; i <= rows; ++i) column[i * (cols + 1)] += column[(i - 1) * (cols + 1)];
-        }
-        __syncthreads();
+        summed_areas(table, MOMENTS, rows, cols);
         for (int k = threadIdx.x; k < cells; k += blockDim.x) {
             const int i = k / cols, j = k % cols;
             const int along = half[cells + k];
@@ -99,5 +110,27 @@ extern "C" __global__ void local_road_fit(
         __syncthreads();
         for (int k = threadIdx.x; k < cells; k += blockDim.x) reference[k] = residual[cells + k];
         __syncthreads();
+    }
+    const double sigma = road[ROAD_CURVED] != 0.0 ? fit[FIT_QUADRATIC_SIGMA]
+                                                  : fit[FIT_PLANAR_SIGMA];
+    for (int k = threadIdx.x; k < cells; k += blockDim.x) {
+        const int at = (k / cols + 1) * (cols + 1) + k % cols + 1;
+        const double off = residual[k] - reference[k];
+        const double w = usable[k] && fabs(off) <= drops[k] ? 1.0 : 0.0;
+        table[at] = w;
+        table[stride + at] = w * off * off;
+    }
+    __syncthreads();
+    summed_areas(table, 2, rows, cols);
+    for (int k = threadIdx.x; k < cells; k += blockDim.x) {
+        const int i = k / cols, j = k % cols;
+        const int along = half[cells + k];
+        const int top = max(i - along, 0), bottom = min(i + along + 1, rows);
+        const int left = max(j - half[k], 0), right = min(j + half[k] + 1, cols);
+        const double support = window_sum(table, cols, top, bottom, left, right);
+        const double spread = fmax(window_sum(table + stride, cols, top, bottom, left, right),
+                                   0.0);
+        noise[k] = support >= MIN_PLANE_SUPPORT ? sqrt(spread / fmax(support - 3.0, 1.0))
+                                                : sigma;
     }
 }

@@ -212,10 +212,11 @@ __device__ __forceinline__ double block_reduce(double value, bool minimum, doubl
 // observed there (stages/threshold.observation, the reference): one block, a thread per
 // superpixel in turn. Superpixel k sits at the centre of its grid cell (k / cells_x,
 // k % cells_x) of `step` px on the map reduced by `downsample`. Metric mode: the threshold
-// depth is depth_m or, where more, the depth whose disparity drop is noise_sigmas robust
-// sigmas of the fit, fB (1 / (d - k sigma) - 1 / d) incidence; observed where the ray meets the
-// road plane in front of the camera, the model is the road (road_modelled) and the threshold
-// depth is at most max_depth_m. With drop_px > 0 (the pixel threshold mode) the drop is
+// depth is depth_m or, where more, the depth whose disparity drop is noise_sigmas sigmas of
+// the disparity noise, fB (1 / (d - k sigma) - 1 / d) incidence, sigma the superpixel's
+// cell_noise[k] where has_cell_noise, else the fit's robust sigma; observed where the ray
+// meets the road plane in front of the camera, the model is the road (road_modelled) and the
+// threshold depth is at most max_depth_m. With drop_px > 0 (the pixel threshold mode) the drop is
 // drop_px, observed where d > drop_px >= sigma, the ray meets the plane in front and the model
 // is the road. range: nearest and farthest distance (m) ahead along the road of an observed
 // superpixel, NaN where none is: from the point below the camera along the optical axis's
@@ -225,7 +226,8 @@ extern "C" __global__ void __launch_bounds__(SEARCH_THREADS)
 threshold_observation(const double* road, const double* fit, int count, int cells_x, int step,
                       int width, int height, int downsample, double f, double cx, double cy,
                       double fb, double depth_m, double drop_px, double noise_sigmas,
-                      double max_depth_m, bool* observed, double* drops, double* range) {
+                      double max_depth_m, const double* cell_noise, int has_cell_noise,
+                      bool* observed, double* drops, double* range) {
     __shared__ double partial[SEARCH_THREADS / 32];
     const double curved = road[ROAD_CURVED];
     const double* c = road + ROAD_C0;
@@ -251,7 +253,7 @@ threshold_observation(const double* road, const double* fit, int count, int cell
             seen = near_road && d > drop_px && drop_px >= sigma;
             drops[k] = drop_px;
         } else {
-            const double noise = noise_sigmas * sigma;
+            const double noise = noise_sigmas * (has_cell_noise ? cell_noise[k] : sigma);
             const bool near_road = d > noise && ahead;
             safe = near_road ? d : 2.0 * noise + 1.0;
             const double resolvable = fb * (1.0 / (safe - noise) - 1.0 / safe) * incidence;

@@ -40,13 +40,14 @@ def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                        n_superpixels: int, corner_fraction: float, min_superpixels: int,
                        factor: int = 1, capacity: int | None = None,
-                       counts: Any = None, inconsistent: Any = None) -> Any:
+                       counts: Any = None, inconsistent: Any = None, bumps: Any = None) -> Any:
     """The components stage: label the 8-connected components of the bool ``candidate`` mask;
     drop components that touch a far corner region of the HxW bool ``valid`` area (see
     corner_mask), hold fewer than ``min_superpixels`` superpixels (HxW
-    ``superpixel_labels``), or of whose superpixels more than half are flagged in the bool
-    (n_superpixels,) ``inconsistent`` (where given). Returns int32 HxW labels numbered 1..k, 0
-    elsewhere.
+    ``superpixel_labels``), of whose superpixels more than half are flagged in the bool
+    (n_superpixels,) ``inconsistent`` (where given), or that touch a superpixel flagged in
+    the bool (n_superpixels,) ``bumps`` (where given; a pixel of it is an 8-neighbour of
+    one of that superpixel's pixels). Returns int32 HxW labels numbered 1..k, 0 elsewhere.
 
     ``candidate`` is HxW, or the mask on the SLIC grid reduced by ``factor`` whose
     nearest-neighbour enlargement (superpixels.upsample_labels) is the HxW mask: enlarging by
@@ -67,7 +68,7 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
         counts = xp.empty(3, dtype=xp.int32) if counts is None else counts
         return filter_on_device(backend, small, found, valid, superpixel_labels, n_superpixels,
                                 corner_fraction, min_superpixels, factor, capacity, counts,
-                                inconsistent)
+                                inconsistent, bumps)
     components, count = label_components(backend, candidate)
     components = upsample_labels(backend, components, factor, valid.shape)
     if count == 0:
@@ -84,21 +85,37 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
         keep &= superpixel_count >= min_superpixels
         if inconsistent is not None:
             keep &= 2 * (held & inconsistent[None, :]).sum(axis=1) <= superpixel_count
+        if bumps is not None:
+            keep[beside(xp, components, bumps[superpixel_labels])] = False
+            keep[0] = False
         labels, kept = relabel(xp, components, keep)
     if counts is not None:
         counts[...] = (count, kept, int(capacity is not None and count > capacity))
     return labels
 
 
+def beside(xp: Any, components: Any, marked: Any) -> Any:
+    """The labels (int (m,), with repeats) of the components of the int HxW ``components``
+    (0 off them) of which a pixel is an 8-neighbour of a ``marked`` pixel (bool HxW) off every
+    component."""
+    height, width = components.shape
+    padded = xp.pad(components, 1)
+    outside = marked & (components == 0)
+    found = [padded[1 + dv:1 + dv + height, 1 + du:1 + du + width][outside]
+             for dv in (-1, 0, 1) for du in (-1, 0, 1) if dv or du]
+    return xp.concatenate(found)
+
+
 def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                      n_superpixels: int, corner_fraction: float, min_superpixels: int,
-                     factor: int = 1, inconsistent: Any = None) -> tuple[Any, int]:
+                     factor: int = 1, inconsistent: Any = None, bumps: Any = None
+                     ) -> tuple[Any, int]:
     """:func:`pothole_components` with every component and the kept count read back:
     (int32 HxW labels, k)."""
     counts = backend.xp.zeros(3, dtype=backend.xp.int32)
     labels = pothole_components(backend, candidate, valid, superpixel_labels, n_superpixels,
                                 corner_fraction, min_superpixels, factor, counts=counts,
-                                inconsistent=inconsistent)
+                                inconsistent=inconsistent, bumps=bumps)
     return labels, int(to_host(counts)[1])
 
 
@@ -163,8 +180,8 @@ def _words(n_superpixels: int) -> int:
 def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
                      superpixel_labels: Any, n_superpixels: int, corner_fraction: float,
                      min_superpixels: int, factor: int, capacity: int, counts: Any,
-                     inconsistent: Any = None) -> Any:
-    """The corner, superpixel and consistency filters of pothole_components on labels
+                     inconsistent: Any = None, bumps: Any = None) -> Any:
+    """The corner, bump, superpixel and consistency filters of pothole_components on labels
     ``small`` of the (reduced) candidate mask with the device component ``count``:
     kernels/components.cu reads them at full resolution by index arithmetic (per-row valid
     spans, corner, superpixel and consistency marks, the keep/renumber table in one block, the
@@ -184,15 +201,16 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
     touched, held, flagged_held = (marks[k * (capacity + 1):(k + 1) * (capacity + 1)]
                                    for k in range(3))
     present = marks[3 * (capacity + 1):].view(xp.uint32)
-    flagged = xp.zeros(max(n_superpixels, 1), dtype=xp.bool_) if inconsistent is None \
-        else xp.ascontiguousarray(inconsistent, dtype=xp.bool_)
+    flagged, bumped = (xp.zeros(max(n_superpixels, 1), dtype=xp.bool_) if given is None
+                       else xp.ascontiguousarray(given, dtype=xp.bool_)
+                       for given in (inconsistent, bumps))
     side = int(round(corner_fraction * min(height, width)))
     size = height * width
     grid = ((size + 255) // 256,)
     _kernel(backend, "component_marks")(
         grid, (256,),
-        (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), flagged, first,
-         last, i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
+        (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), flagged, bumped,
+         first, last, i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
          i32(side), i32(words), i32(capacity), touched, held, flagged_held, present))
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     _kernel(backend, "component_keep")(

@@ -6,7 +6,10 @@ therefore compared with a robust local surface fitted to the superpixels around 
 window of ``radius_m`` metres on the road: larger than a pothole, smaller than the road's
 bends. The surface is a weighted plane in grid coordinates fitted to the residuals of the
 superpixel means from the global model; superpixels that lie off it by more than their own
-threshold drop (potholes, bumps, mismatches) are left out, round after round.
+threshold drop (potholes, bumps, mismatches) are left out, round after round. The spread of
+the road's superpixels about that surface in the same window is the disparity noise a
+superpixel's mean is judged against there: it grows with distance and with poor texture, and
+holds what one plane cannot follow.
 """
 
 from __future__ import annotations
@@ -26,14 +29,20 @@ MIN_PLANE_SUPPORT = 6
 # kernels/local_road.cu: one block of this many threads; the moments its tables hold
 _THREADS = 1024
 _MOMENTS = 9
-_DEFINES = {"ROUNDS": ROUNDS, "MIN_PLANE_SUPPORT": MIN_PLANE_SUPPORT, **road_model.ROAD_DEFINES}
+_DEFINES = {"ROUNDS": ROUNDS, "MIN_PLANE_SUPPORT": MIN_PLANE_SUPPORT, **road_model.FIT_LAYOUT,
+            **road_model.ROAD_DEFINES}
 
 
 def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[int, int],
             region_size_px: int, downsample: int, road_params: Any,
-            calibration: StereoCalibration, road_level: float, radius_m: float) -> Any:
+            calibration: StereoCalibration, road_level: float, radius_m: float,
+            road_report: Any) -> tuple[Any, Any]:
     """Per superpixel, how far (px of disparity) the local road lies below the global road
-    model (float64 (count,), on the backend, nothing read back; 0 where no road is near).
+    model (float64 (count,); 0 where no road is near) and the noise of the road's superpixel
+    means about it there (float64 (count,) px: the root mean square of the inliers'
+    distances from the local surface over the window, with three degrees of freedom taken by
+    the plane; the road fit's robust sigma, road_model.fit_sigma of ``road_report``, where the
+    window holds fewer than MIN_PLANE_SUPPORT inliers). On the backend, nothing read back.
 
     ``means``: float32 (count,) mean transformed disparity D2 of each superpixel (grid label
     order, superpixels.grid_count of the HxW ``shape`` with ``region_size_px`` and
@@ -43,7 +52,8 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     model's kernel parameters; ``road_level``: delta_DT (px). The window about superpixel k
     reaches ``radius_m`` along and across the road: B / d m per pixel across at road
     disparity d, B / (d cos i) along it, i the angle between the pixel's ray and the road's
-    normal. On the GPU one single-block kernel (kernels/local_road.cu) holds every round."""
+    normal. On the GPU one single-block kernel (kernels/local_road.cu) holds every round and
+    the noise."""
     xp = backend.xp
     height, width = shape[0] // downsample, shape[1] // downsample
     step = superpixels.grid_step(region_size_px, downsample)
@@ -51,19 +61,22 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     if backend.is_gpu:
         cells = cells_y * cells_x
         reference = xp.empty(cells, dtype=xp.float64)
+        noise = xp.empty(cells, dtype=xp.float64)
         backend.kernel("local_road.cu", "local_road_fit", _DEFINES)(
             (1,), (_THREADS,),
             (xp.ascontiguousarray(means, dtype=xp.float32),
              xp.ascontiguousarray(usable, dtype=xp.bool_),
-             xp.ascontiguousarray(drops, dtype=xp.float64), road_params, np.int32(cells_y),
+             xp.ascontiguousarray(drops, dtype=xp.float64), road_params, road_report,
+             np.int32(cells_y),
              np.int32(cells_x), np.int32(step), np.int32(width), np.int32(height),
              np.int32(downsample), np.float64(calibration.f), np.float64(calibration.cx),
              np.float64(calibration.cy), np.float64(calibration.baseline),
              np.float64(road_level), np.float64(radius_m),
              xp.empty(2 * cells, dtype=xp.int32), xp.empty(2 * cells, dtype=xp.float64),
              xp.empty(cells, dtype=xp.uint8),
-             xp.empty(_MOMENTS * (cells_y + 1) * (cells_x + 1), dtype=xp.float64), reference))
-        return reference
+             xp.empty(_MOMENTS * (cells_y + 1) * (cells_x + 1), dtype=xp.float64), reference,
+             noise))
+        return reference, noise
     u, v = superpixels.cell_centres(xp, shape, region_size_px, downsample)
     road = road_model.params_at(xp, road_params, u, v)
     nx, ny, nz = road_model.params_normal(xp, road_params, calibration)
@@ -85,7 +98,25 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     for _ in range(ROUNDS):
         inlier = usable & (xp.abs(residual - reference) <= band)
         reference = window.plane(inlier.astype(xp.float64), residual)
-    return reference.ravel()
+    inlier = (usable & (xp.abs(residual - reference) <= band)).astype(xp.float64)
+    support = window.total(inlier)
+    spread = xp.maximum(window.total(inlier * (residual - reference) ** 2), 0.0)
+    noise = xp.where(support >= MIN_PLANE_SUPPORT,
+                     xp.sqrt(spread / xp.maximum(support - 3.0, 1.0)),
+                     road_model.fit_sigma(xp, road_report, road_params))
+    return reference.ravel(), noise.ravel()
+
+
+def bumps(backend: Backend, means: Any, reference: Any, noise: Any, observed: Any,
+          road_level: float, noise_sigmas: float) -> Any:
+    """Bool (count,): the observed superpixels whose mean D2 (``means``, float32 (count,))
+    lies above the local road (``reference``, from :func:`offsets`, with its ``noise``) by
+    more than ``noise_sigmas`` times the noise: where a matcher that moved an edge (a lane
+    marking's) reads one side as a dip, the other reads as a bump, which a road does not
+    make next to a pothole. Nothing read back."""
+    xp = backend.xp
+    below = road_level - means.astype(xp.float64) - reference
+    return observed & xp.isfinite(below) & (below < -noise_sigmas * noise)
 
 
 class _Windows:

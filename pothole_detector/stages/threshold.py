@@ -212,7 +212,7 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
                 downsample: int, road_params: Any, road_report: Any,
                 calibration: StereoCalibration, depth_m: float, drop_px: float = 0.0,
                 noise_sigmas: float = 3.0, max_depth_m: float = math.inf,
-                observed_range: Any = None) -> tuple[Any, Any]:
+                observed_range: Any = None, noise_px: Any = None) -> tuple[Any, Any]:
     """Per superpixel, the threshold, as the drop below the road's disparity (px) of a pothole
     just deep enough, and whether the road is observed there; and how far along the road the
     observed superpixels reach. On the backend with nothing read back.
@@ -222,7 +222,9 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
     is d and the ray meets the road plane at cos(incidence). Metric mode (``drop_px`` 0): the
     threshold depth is ``depth_m``, or where more, the depth the matcher resolves there:
     fB (1 / (d - k sigma) - 1 / d) cos(incidence), the depth whose disparity drop is
-    k = ``noise_sigmas`` times the road fit's robust sigma (road_model.fit_sigma); the drop is
+    k = ``noise_sigmas`` times the disparity noise sigma there: ``noise_px`` (float64
+    (count,) px, the road's per superpixel, local_road.offsets) where given, else the road
+    fit's robust sigma (road_model.fit_sigma); the drop is
     that depth's, and the road is observed where the ray meets it in front of the camera, the
     model's curvature stays within road_model.MAX_CURVATURE_SHARE of its plane's disparity (else
     it extrapolates past the road it was fitted on), and the threshold depth is at most
@@ -250,24 +252,26 @@ def observation(backend: Backend, shape: tuple[int, int], region_size_px: int,
             (road_params, road_report, i32(count), i32(-(-width // step)), i32(step),
              i32(width), i32(height), i32(downsample), f64(calibration.f),
              f64(calibration.cx), f64(calibration.cy), f64(calibration.fb), f64(depth_m),
-             f64(drop_px), f64(noise_sigmas), f64(min(max_depth_m, 1e300)), observed, drops,
-             observed_range))
+             f64(drop_px), f64(noise_sigmas), f64(min(max_depth_m, 1e300)),
+             drops if noise_px is None else xp.ascontiguousarray(noise_px, dtype=xp.float64),
+             np.int32(noise_px is not None), observed, drops, observed_range))
         return observed, drops
     with np.errstate(divide="ignore", invalid="ignore"):
         return _observation(xp, superpixels.cell_centres(xp, shape, region_size_px, downsample),
                             road_params, road_report, calibration, depth_m, drop_px,
-                            noise_sigmas, max_depth_m, observed_range)
+                            noise_sigmas, max_depth_m, observed_range, noise_px)
 
 
 def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_report: Any,
                  calibration: StereoCalibration, depth_m: float, drop_px: float,
-                 noise_sigmas: float, max_depth_m: float, observed_range: Any
-                 ) -> tuple[Any, Any]:
+                 noise_sigmas: float, max_depth_m: float, observed_range: Any,
+                 noise_px: Any = None) -> tuple[Any, Any]:
     """observation on the host (NumPy): the reference of kernels/threshold.cu's."""
     u, v = centres
     road = road_model.params_at(xp, road_params, u, v)
     planar = road_model.params_planar(road_params, u, v)
     sigma = road_model.fit_sigma(xp, road_report, road_params)
+    noise = noise_sigmas * (sigma if noise_px is None else noise_px)
     nx, ny, nz = road_model.params_normal(xp, road_params, calibration)
     f, fb = calibration.f, calibration.fb
     incidence = nx * (u - calibration.cx) / f + ny * (v - calibration.cy) / f + nz
@@ -278,7 +282,6 @@ def _observation(xp: Any, centres: tuple[Any, Any], road_params: Any, road_repor
         drops = xp.full(road.shape, drop_px, dtype=xp.float64)
         safe = xp.where(near_road, road, 2.0 * sigma + 1.0)
     else:
-        noise = noise_sigmas * sigma
         near_road = (road > noise) & ahead
         safe = xp.where(near_road, road, 2.0 * noise + 1.0)
         resolvable = fb * (1.0 / (safe - noise) - 1.0 / safe) * incidence
