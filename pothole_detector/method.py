@@ -377,6 +377,8 @@ class Method:
                 config.refine_depth_fraction)
             labels = refine.extend_occluded(backend, labels, filled, smoothed, road,
                                             found.labels, frame.observed)
+            labels = components.join_pieces(backend, labels, refine.radius(frame.region_px) // 2,
+                                            report.components_kept, config.slic_downsample)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, smoothed, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)

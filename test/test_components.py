@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.components import components_found, corner_mask, relabel
+from pothole_detector.stages.components import components_found, corner_mask, join_pieces, relabel
 
 
 def grid_superpixels(height, width, step):
@@ -109,3 +109,23 @@ def test_a_component_beside_a_bump_is_dropped():
     reduced = components_found(CPU, small, np.ones_like(candidate), superpixels, n, 0.1, 2,
                                factor=2, bumps=bumps)
     np.testing.assert_array_equal(reduced[0], labels)
+
+
+def test_pieces_of_one_depression_join_and_others_keep_apart():
+    """Three pieces: two 3 px apart (within twice the reach of 2 px) become one component, one
+    15 px away stays apart; numbered in raster order, the count written; road stays 0. On the
+    grid reduced by 2 the same, and with no reach the two stay apart."""
+    labels = np.zeros((41, 61), np.int32)
+    labels[5:10, 5:15] = 1
+    labels[5:10, 18:25] = 2       # a gap of 3 columns from piece 1
+    labels[20:25, 40:50] = 3
+    labels[40, 60] = 4            # a lone pixel in the odd last row and column
+    for factor in (1, 2):
+        count = np.zeros(1, np.int32)
+        joined = join_pieces(CPU, labels, 2, count, factor)
+        assert count[0] == 3 and joined.dtype == np.int32
+        assert set(np.unique(joined[5:10, 5:25][labels[5:10, 5:25] > 0])) == {1}
+        assert (joined[20:25, 40:50] == 2).all() and joined[40, 60] == 3
+        assert (joined[labels == 0] == 0).all()
+        apart = join_pieces(CPU, labels, 0, count, factor)
+        assert count[0] == 4 and len(np.unique(apart)) == 5

@@ -560,6 +560,18 @@ def test_component_filters_kernels_match_the_reference(gpu, corner_fraction, min
         np.testing.assert_array_equal(to_host(dev[0]), cpu[0])
 
 
+def test_joining_pieces_on_the_gpu_matches_the_cpu(gpu):
+    rng = np.random.default_rng(21)
+    labels, count = components.label_components(CPU, rng.random((121, 201)) < 0.02)
+    labels = labels.astype(np.int32)
+    for reach, factor in ((0, 1), (1, 1), (3, 1), (3, 2), (5, 2)):
+        want_count, got_count = np.zeros(1, np.int32), gpu.xp.zeros(1, dtype=gpu.xp.int32)
+        want = components.join_pieces(CPU, labels, reach, want_count, factor)
+        got = components.join_pieces(gpu, gpu.upload(labels), reach, got_count, factor)
+        np.testing.assert_array_equal(to_host(got), want)
+        assert int(to_host(got_count)[0]) == int(want_count[0]) <= count
+
+
 def test_component_filters_with_thousands_of_components(gpu):
     """More components than one block of the renumbering kernel: its chunks must carry."""
     height, width = 150, 240

@@ -117,3 +117,38 @@ def test_a_shallow_pothole_stands_out_of_the_noise_of_the_superpixel_means():
         result = Pipeline(Config({"road_reference": reference}), calibration, CPU).run(*pair)
         found[reference] = {t for _, t in match_potholes(result.host("labels"), truth)}
     assert shallow in found["local"] and shallow not in found["global"]
+
+
+def test_the_pieces_of_a_shallow_wide_pothole_are_one_pothole(monkeypatch):
+    """Validation vehicle scene 7010: a 2.8 cm pothole 0.56 m across, 2.2 m ahead, shows as
+    three pieces, its shallowest parts under the threshold; joined, it is one pothole that
+    matches it, and no piece counts as a false one."""
+    import cv2
+    import yaml
+
+    from pothole_detector.calibration import StereoCalibration
+    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.imageio import read_image
+    from pothole_detector.pipeline import Pipeline
+    from pothole_detector.stages import components
+
+    scene = shared_data("validation", "vehicle_1280x720", "seed_7010")
+    info = yaml.safe_load((scene / "camera_info.yaml").read_text())
+    calibration = StereoCalibration.from_projections(info["left"]["P"], info["right"]["P"])
+    truth = cv2.imread(str(scene / "labels_gt.png"), cv2.IMREAD_UNCHANGED).astype(int)
+    pair = read_image(scene / "left.png"), read_image(scene / "right.png")
+    wide = 2
+
+    def on_it(labels):
+        return [k for k in range(1, labels.max() + 1)
+                if (labels == k).any() and (truth[labels == k] == wide).mean() > 0.5]
+
+    labels = Pipeline(Config(), calibration, CPU).run(*pair).host("labels")
+    assert len(on_it(labels)) == 1 and (on_it(labels)[0], wide) in match_potholes(labels, truth)
+
+    def apart(backend, labels, reach_px, count, factor):
+        count[...] = labels.max()
+        return labels
+
+    monkeypatch.setattr(components, "join_pieces", apart)
+    assert len(on_it(Pipeline(Config(), calibration, CPU).run(*pair).host("labels"))) == 3

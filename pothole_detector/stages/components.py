@@ -119,6 +119,33 @@ def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_la
     return labels, int(to_host(counts)[1])
 
 
+def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
+                factor: int = 1) -> Any:
+    """One depression, one component: the components of the int32 HxW ``labels`` (0 off them)
+    that come within about 2 ``reach_px`` px of each other are joined, and all are numbered
+    1..m; m goes into the backend int32 (1,) ``count``. A shallow, wide pothole often shows as
+    pieces, its shallowest parts under the threshold; gaps narrower than the segmentation
+    resolves (half a superpixel, with ``reach_px`` a quarter of one) do not part a depression.
+    Worked out on the grid reduced by ``factor`` (the SLIC grid's; a cell is on where any of
+    its pixels is labelled): its cells within ceil(``reach_px`` / ``factor``) cells of a labelled
+    one, in rows and in columns, are labelled as 8-connected components in raster order of
+    their first cell, and each labelled pixel takes its cell's. Returns the int32 HxW labels;
+    nothing read back."""
+    xp = backend.xp
+    on = labels > 0
+    height, width = on.shape
+    padded = xp.pad(on, ((0, -height % factor), (0, -width % factor)))
+    cells = padded.reshape(padded.shape[0] // factor, factor, padded.shape[1] // factor,
+                           factor).any(axis=(1, 3)).astype(xp.uint8)
+    size = 2 * -(-reach_px // factor) + 1
+    near = backend.ndimage.maximum_filter1d(
+        backend.ndimage.maximum_filter1d(cells, size, axis=0), size, axis=1) > 0
+    joined, found = (label_on_device if backend.is_gpu else label_components)(backend, near)
+    count[...] = found
+    return xp.where(on, upsample_labels(backend, joined.astype(xp.int32), factor, on.shape),
+                    0).astype(xp.int32)
+
+
 def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:
     """Keep the labels where the bool (k+1,) ``keep`` is true, renumbered 1..m in order."""
     new_ids = xp.cumsum(keep).astype(xp.int32) * keep
