@@ -277,7 +277,7 @@ class FrameExecutor:
     def checked_road(self, header: np.ndarray, frame: _Frame) -> road_model.RoadModel:
         """Method.checked_road on a host copy of a frame report's header."""
         return self.method.checked_road(FrameReport.road_of(header),
-                                          FrameReport.valid_count_of(header), frame.pixels)
+                                        FrameReport.valid_count_of(header), frame.pixels)
 
     def _stage(self, pair: tuple[np.ndarray, np.ndarray],
                send_ahead: bool = True) -> UploadBuffer | PotholeError:
@@ -376,7 +376,7 @@ class FrameExecutor:
         frame = _Frame(FrameReport(self.backend.xp, components.device_capacity(n_sp)),
                        pixels=int(pair[0].size))
         frame.arrays = self.method.stages(*pair, levels, frame.report, clock,
-                                            _Checkpoint(self, frame, after_fit), seeded)
+                                          _Checkpoint(self, frame, after_fit), seeded)
         return frame
 
     def _send_header(self, frame: _Frame) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, Protocol
 
 import numpy as np
@@ -121,8 +122,8 @@ class FrameReport(Protocol):
     (road_model.FIT_LAYOUT) and ``road_params`` its kernel parameters, ``threshold`` the
     threshold search result (3,), ``valid_count`` (1,), ``observed_range`` (near, far m),
     ``components`` int32 (found, kept, overflow) and ``components_kept`` its kept count (1,),
-    ``kept_after_area`` int32 (1,), ``sums`` and
-    ``extremes`` the measure's of up to ``capacity`` labels."""
+    ``kept_after_area`` int32 (1,), ``sums`` and ``extremes`` the measure's of up to
+    ``capacity`` labels."""
 
     capacity: int
     road: Any
@@ -312,11 +313,12 @@ class Method:
         with clock.stage("threshold"):
             join_threshold()
             pixels = config.threshold_mode == "pixels"
-            observed, drops = thresholding.observation(
-                backend, transformed.shape, region_px, config.slic_downsample,
-                report.road_params, report.road, self.calibration, config.delta_pd_m,
-                config.delta_pd_px if pixels else 0.0, config.threshold_noise_sigmas,
-                config.max_threshold_m, report.observed_range)
+            observe = partial(
+                thresholding.observation, backend, transformed.shape, region_px,
+                config.slic_downsample, report.road_params, report.road, self.calibration,
+                config.delta_pd_m, config.delta_pd_px if pixels else 0.0,
+                config.threshold_noise_sigmas, config.max_threshold_m)
+            observed, drops = observe(report.observed_range)
             drop = config.delta_pd_px if pixels else drops
             local = bumps = None
             if config.road_reference == "local":
@@ -326,11 +328,7 @@ class Method:
                     config.slic_downsample, report.road_params, self.calibration,
                     config.delta_dt_px, config.local_road_radius_m, report.road)
                 if not pixels:
-                    _, drop = thresholding.observation(
-                        backend, transformed.shape, region_px, config.slic_downsample,
-                        report.road_params, report.road, self.calibration, config.delta_pd_m,
-                        0.0, config.threshold_noise_sigmas, config.max_threshold_m,
-                        noise_px=noise)
+                    _, drop = observe(noise_px=noise)
                 drop = drop + local
                 if config.bump_noise_sigmas > 0:
                     bumps = local_road.bumps(backend, found.means, local, noise, observed,

@@ -88,30 +88,37 @@ def _ransac_road_plane(u, v, d):
     return float(np.degrees(np.arctan2(-b, c))), d[inliers]
 
 
-def test_a_shallow_pothole_stands_out_of_the_noise_of_the_superpixel_means():
-    """Validation vehicle scene 7002: a 4.6 cm pothole 3.7 m ahead lies 0.7 px below the road,
-    under three of one pixel's noise sigmas (0.27 px) but far over three of the noise of the
-    road's superpixel means about the local road; it is found with the local noise and missed
-    with the road fit's (road_reference: global)."""
+def _vehicle_scene(seed: int):
+    """A validation vehicle scene (skipped without ../shared/data): its calibration, its truth
+    labels (int HxW), the pair and the potholes of its meta.json by id."""
     import json
 
     import cv2
     import yaml
 
     from pothole_detector.calibration import StereoCalibration
-    from pothole_detector.evaluation import match_potholes
     from pothole_detector.imageio import read_image
-    from pothole_detector.pipeline import Pipeline
 
-    scene = shared_data("validation", "vehicle_1280x720", "seed_7002")
+    scene = shared_data("validation", "vehicle_1280x720", f"seed_{seed}")
     info = yaml.safe_load((scene / "camera_info.yaml").read_text())
     calibration = StereoCalibration.from_projections(info["left"]["P"], info["right"]["P"])
     truth = cv2.imread(str(scene / "labels_gt.png"), cv2.IMREAD_UNCHANGED).astype(int)
-    depth = {p["id"]: p["max_depth_m"] for p in json.loads((scene / "meta.json").read_text())
-             ["potholes"]}
     pair = read_image(scene / "left.png"), read_image(scene / "right.png")
+    potholes = {p["id"]: p for p in json.loads((scene / "meta.json").read_text())["potholes"]}
+    return calibration, truth, pair, potholes
+
+
+def test_a_shallow_pothole_stands_out_of_the_noise_of_the_superpixel_means():
+    """Validation vehicle scene 7002: a 4.6 cm pothole 3.7 m ahead lies 0.7 px below the road,
+    under three of one pixel's noise sigmas (0.27 px) but far over three of the noise of the
+    road's superpixel means about the local road; it is found with the local noise and missed
+    with the road fit's (road_reference: global)."""
+    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.pipeline import Pipeline
+
+    calibration, truth, pair, potholes = _vehicle_scene(7002)
     shallow = 2
-    assert 0.04 < depth[shallow] < 0.05
+    assert 0.04 < potholes[shallow]["max_depth_m"] < 0.05
     found = {}
     for reference in ("local", "global"):
         result = Pipeline(Config({"road_reference": reference}), calibration, CPU).run(*pair)
@@ -123,20 +130,11 @@ def test_the_pieces_of_a_shallow_wide_pothole_are_one_pothole(monkeypatch):
     """Validation vehicle scene 7010: a 2.8 cm pothole 0.56 m across, 2.2 m ahead, shows as
     three pieces, its shallowest parts under the threshold; joined, it is one pothole that
     matches it, and no piece counts as a false one."""
-    import cv2
-    import yaml
-
-    from pothole_detector.calibration import StereoCalibration
     from pothole_detector.evaluation import match_potholes
-    from pothole_detector.imageio import read_image
     from pothole_detector.pipeline import Pipeline
     from pothole_detector.stages import components
 
-    scene = shared_data("validation", "vehicle_1280x720", "seed_7010")
-    info = yaml.safe_load((scene / "camera_info.yaml").read_text())
-    calibration = StereoCalibration.from_projections(info["left"]["P"], info["right"]["P"])
-    truth = cv2.imread(str(scene / "labels_gt.png"), cv2.IMREAD_UNCHANGED).astype(int)
-    pair = read_image(scene / "left.png"), read_image(scene / "right.png")
+    calibration, truth, pair, _ = _vehicle_scene(7010)
     wide = 2
 
     def on_it(labels):
