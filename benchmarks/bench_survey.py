@@ -3,7 +3,8 @@ tracking, survey.csv and report.html) on a drive bag of our generator, per image
 a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
-        [--backend cpu|gpu] [--ray | --jobs N [N ...]] [--chunk-frames 30]
+        [--backend cpu|gpu] [--jobs N [N ...]] [--ray] [--ray-gpus N [N ...]]
+        [--chunk-frames 30]
         [--read-threads N [N ...]] [--read-processes N [N ...]] [--form rectified|raw-jpeg]
         [--map-cell-m M [M ...]]
 
@@ -13,7 +14,13 @@ the cycle, as survey vehicles record it: the survey takes its motion from it (no
 odometry) and tracks the same six potholes throughout. ``--form raw-jpeg`` records the drive as
 a camera driver often does: raw images of a distorted, slightly rotated camera (plumb_bob, with
 its camera_info), JPEG-compressed (image_transport's compressed topics), so the survey
-decodes and rectifies every frame."""
+decodes and rectifies every frame.
+
+``--ray`` adds, after the ``--jobs`` rows, a row per ``--ray-gpus`` count (default: every
+GPU the machine has): the chunks as tasks on a local Ray cluster that offers that many GPUs,
+one task a GPU at a time (survey/fleet.py). The cluster starts before the clock does, as a
+fleet's is up before a survey; its worker processes start, load the compiled kernels and fit
+a road per chunk within the time measured."""
 
 from __future__ import annotations
 
@@ -39,6 +46,11 @@ from pothole_detector.survey.drive import best_view_picture, survey, write_csv  
 from pothole_detector.synthetic import (raw_camera, render, render_raw,  # noqa: E402
                                         survey_drive)
 
+try:
+    import ray
+except ImportError:
+    ray = None
+
 DISTINCT_FRAMES = 4
 
 
@@ -57,14 +69,25 @@ def raw_sample(scene: object, camera: object) -> object:
     return replace(render(scene), left=left, right=right)
 
 
-def bench(bag: Path, config: Config, use_ray: bool, jobs: int, out: Path
+def bench(bag: Path, config: Config, ray_gpus: int | None, jobs: int, out: Path
           ) -> tuple[float, int, int]:
-    start = time.perf_counter()
-    surveys = survey([bag], config, jobs=jobs, chunks=ray_chunks() if use_ray else None)
-    write_csv(surveys, out / "survey.csv")
-    write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
-        d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px, config))
-    return time.perf_counter() - start, surveys[0].frames, len(surveys[0].potholes)
+    """Survey ``bag`` into ``out``: in ``jobs`` processes, or, where ``ray_gpus`` is not
+    None, as tasks on a local Ray cluster of that many GPUs (-1: the machine's), started
+    before the clock. Returns (seconds, frames, potholes)."""
+    if ray_gpus is not None:
+        ray.init(num_gpus=None if ray_gpus < 0 else ray_gpus, include_dashboard=False,
+                 log_to_driver=False, configure_logging=False)
+    try:
+        start = time.perf_counter()
+        surveys = survey([bag], config, jobs=jobs,
+                         chunks=ray_chunks() if ray_gpus is not None else None)
+        write_csv(surveys, out / "survey.csv")
+        write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
+            d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px, config))
+        return time.perf_counter() - start, surveys[0].frames, len(surveys[0].potholes)
+    finally:
+        if ray_gpus is not None:
+            ray.shutdown()
 
 
 def main() -> None:
@@ -73,7 +96,10 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["1280x720", "2079x1040"])
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--backend", default="cpu", choices=("cpu", "gpu", "auto"))
-    parser.add_argument("--ray", action="store_true", help="chunks as tasks on a local Ray")
+    parser.add_argument("--ray", action="store_true",
+                        help="also rows of chunks as tasks on a local Ray cluster")
+    parser.add_argument("--ray-gpus", type=int, nargs="+", default=[-1],
+                        help="GPUs the local Ray cluster offers (a row each; -1: all)")
     parser.add_argument("--jobs", type=int, nargs="+", default=[1],
                         help="chunks in this many worker processes here (several: a row each)")
     parser.add_argument("--chunk-frames", type=int, default=600)
@@ -90,6 +116,8 @@ def main() -> None:
                         default=[PARAMETER_BY_NAME["map_cell_m"].default],
                         help="the road map's cell (0: no map; several: a row each)")
     args = parser.parse_args()
+    if args.ray and ray is None:
+        parser.error("--ray needs Ray: pip install '.[fleet]'")
     config = Config({"backend": args.backend, "chunk_frames": args.chunk_frames})
     if args.backend == "cpu":
         device = f"CPU backend ({platform.machine()}, {os.cpu_count()} cores)"
@@ -119,21 +147,26 @@ def main() -> None:
             bag = make_bag(folder / f"drive_{size}", samples, forward, args.frames, form)
             warm = folder / f"warm_{size}"
             warm.mkdir()
-            bench(make_bag(warm / "drive", samples, forward, 3, form), config, False, 1,
+            bench(make_bag(warm / "drive", samples, forward, 3, form), config, None, 1,
                   warm)  # compiles kernels
             runs = [(jobs, threads, readers, cell)
-                    for jobs in ([1] if args.ray else args.jobs)
+                    for jobs in args.jobs + ([-1] if args.ray else [])
                     for threads, readers in [(t, 0) for t in args.read_threads
                                              if 0 in args.read_processes]
                     + [(1, p) for p in args.read_processes if p > 0]
                     for cell in args.map_cell_m]
-            for jobs, threads, readers, cell in runs:
-                out = folder / f"out_{size}_{jobs}_{threads}_{readers}_{cell}"
+            runs = [(jobs, gpus, threads, readers, cell)
+                    for jobs, threads, readers, cell in runs
+                    for gpus in (args.ray_gpus if jobs < 0 else [None])]
+            for jobs, gpus, threads, readers, cell in runs:
+                out = folder / f"out_{size}_{jobs}_{gpus}_{threads}_{readers}_{cell}"
                 out.mkdir()
                 seconds, frames, potholes = bench(
                     bag, config.replace(read_threads=threads, read_processes=readers,
-                                        map_cell_m=cell), args.ray, jobs, out)
-                mode = f"Ray, chunks of {args.chunk_frames}" if args.ray else (
+                                        map_cell_m=cell), gpus, max(jobs, 1), out)
+                on = ("all GPUs" if gpus is not None and gpus < 0 else
+                      "CPU cores" if gpus == 0 else f"{gpus} GPU{'s' if gpus != 1 else ''}")
+                mode = f"Ray on {on}, chunks of {args.chunk_frames}" if jobs < 0 else (
                     f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
                 reading = (f"{readers} processes" if readers else
                            f"{threads} thread{'s' if threads > 1 else ''}")
