@@ -23,7 +23,7 @@ from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
 from .stages import components, local_road, matching, measure, perspective, photometric
 from .stages import refine, road_model, seed
-from .stages import superpixels
+from .stages import superpixels, texture
 from .stages.rectify import Rectification, invalidate_unseen, remap
 from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
@@ -328,7 +328,9 @@ class Method:
                     config.slic_downsample, report.road_params, self.calibration,
                     config.delta_dt_px, config.local_road_radius_m, report.road)
                 if not pixels:
-                    _, drop = observe(noise_px=noise)
+                    _, drop = observe(noise_px=noise * texture.deficit(
+                        backend, left, valid, found.labels, found.count, observed)
+                        if config.texture_noise else noise)
                 drop = drop + local
                 if config.bump_noise_sigmas > 0:
                     bumps = local_road.bumps(backend, found.means, local, noise, observed,

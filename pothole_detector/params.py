@@ -189,6 +189,13 @@ PARAMETERS: tuple[Param, ...] = (
           "around it by more than this many of the road's local noise sigmas: a matcher that "
           "moved an edge (a lane marking's) reads one side as a dip and the other as a bump; "
           "0 turns the test off.", 0, 20),
+    Param("texture_noise", bool, True,
+          "With the local road reference, each superpixel's disparity noise is the road's "
+          "around it times how much less texture it has than the road's typical superpixel "
+          "(the ratio of their RMS horizontal image gradients, at least 1): a match is as "
+          "precise as the image is textured along the rows, and the inside of a lane marking "
+          "or a smooth, overexposed patch has little texture; false takes the road's noise "
+          "as it is."),
     Param("superpixel_min_valid_fraction", float, 0.0,
           "A superpixel needs more than this fraction of valid disparities to be selectable "
           "(occluded pothole walls are often invalid: keep it low).", 0, 1),

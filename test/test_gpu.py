@@ -1171,6 +1171,28 @@ def test_local_road_matches_the_cpu(gpu):
 
 
 
+def test_texture_deficit_matches_the_cpu(gpu):
+    from pothole_detector.stages import texture
+    rng = np.random.default_rng(17)
+    height, width, step = 60, 96, 12
+    contrast = np.repeat(np.repeat(rng.uniform(0, 60, (height // step, width // step)), step,
+                                   axis=0), step, axis=1)
+    image = np.clip(128 + contrast * rng.standard_normal((height, width)), 0, 255)
+    image[:step, :step + 1] = 255  # superpixel 0 without any gradient
+    image = image.astype(np.uint8)
+    labels = (np.arange(height)[:, None] // step * (width // step)
+              + np.arange(width)[None, :] // step).astype(np.int32)
+    count = int(labels.max()) + 1
+    valid = rng.random((height, width)) < 0.9
+    valid[step:2 * step, :step] = False
+    observed = rng.random(count) < 0.8
+    cpu = texture.deficit(CPU, image, valid, labels, count, observed)
+    device = texture.deficit(gpu, gpu.upload(image), gpu.upload(valid), gpu.upload(labels),
+                             count, gpu.upload(observed))
+    np.testing.assert_allclose(to_host(device), cpu, rtol=1e-6)
+    assert cpu[0] > 1000 and cpu[width // step] == 1.0 and (cpu > 1).any()
+
+
 def test_photometric_disagreement_matches_the_cpu(gpu):
     from pothole_detector.stages import photometric
     rng = np.random.default_rng(13)

@@ -150,3 +150,23 @@ def test_the_pieces_of_a_shallow_wide_pothole_are_one_pothole(monkeypatch):
 
     monkeypatch.setattr(components, "join_pieces", apart)
     assert len(on_it(Pipeline(Config(), calibration, CPU).run(*pair).host("labels"))) == 3
+
+
+def test_smooth_patches_are_too_poorly_textured_to_read_as_potholes():
+    """Validation vehicle scene 7014: two patches of little texture read 1-4 cm below the
+    road, one inside a wide white line (whose inside the matcher fills in from its edges),
+    one beside the groove of a smooth round cover. With the road's noise alone they are
+    false potholes; the noise scaled by how little texture they have puts them in it, and
+    every pothole reported is a true one."""
+    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.pipeline import Pipeline
+
+    calibration, truth, pair, _ = _vehicle_scene(7014)
+    false = {}
+    for scaled in (True, False):
+        result = Pipeline(Config({"texture_noise": scaled}), calibration, CPU).run(*pair)
+        labels = result.host("labels")
+        true = {d for d, _ in match_potholes(labels, truth)}
+        false[scaled] = [p for p in result.potholes if p.label not in true]
+    assert not false[True] and len(false[False]) == 2
+    assert all(0.01 < p.mean_depth_m < 0.04 for p in false[False])
