@@ -35,7 +35,7 @@ setup(
         "gpu": ["cupy-cuda12x>=13"],  # or cupy-cuda13x on CUDA 13
         # NVRTC alone (no GPU needed) lets the tests compile every CUDA kernel
         "test": ["pytest>=7", "nvidia-cuda-nvrtc>=13,<14"],
-        # surveys of many bags as Ray tasks (pothole-detector survey --ray)
+        # surveys of many bags on Ray (pothole-detector survey --ray)
         "fleet": ["ray>=2.9"],
         # the survey's GeoPackage, KML and map GeoTIFF (pothole_detector/survey/gis.py)
         "gis": ["pyogrio>=0.7", "shapely>=2", "rasterio>=1.3"],

@@ -101,8 +101,8 @@ def _parser() -> argparse.ArgumentParser:
     survey_cmd.add_argument("bags", nargs="+", metavar="BAG", help="ROS 2 bags of drives")
     survey_cmd.add_argument("--out", required=True, help="output folder")
     survey_cmd.add_argument("--ray", nargs="?", const="", metavar="ADDRESS",
-                            help="run chunks of the bags as Ray tasks, on the cluster at "
-                                 "ADDRESS or a local one")
+                            help="run chunks of the bags on Ray (a worker per GPU, else per "
+                                 "core), on the cluster at ADDRESS or a local one")
     survey_cmd.add_argument("--jobs", type=int, default=1, metavar="N",
                             help="run chunks of the bags (chunk_frames frames each) in N "
                                  "worker processes here (default 1: in this process)")

@@ -726,7 +726,7 @@ def survey(bags: Iterable[str | Path], config: Config,
            progress: Callable[[int, int], None] | None = None, jobs: int = 1,
            chunks: ChunkRunner | None = None, **names: Any) -> list[DriveSurvey]:
     """Survey every bag (one id sequence over all of them). With ``chunks``, that runs every
-    chunk of every bag (fleet.ray_chunks: a Ray task each); with ``jobs`` > 1, a task of one
+    chunk of every bag (fleet.ray_chunks: on Ray's workers); with ``jobs`` > 1, a task of one
     of ``jobs`` worker processes here (:func:`observe_in_processes`); else one after the
     other here."""
     plans: list[Plan] = []
