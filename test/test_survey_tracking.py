@@ -8,7 +8,7 @@ from pothole_detector.survey.motion import Pose2, RoadFrame
 from pothole_detector.stages.measure import Pothole
 from pothole_detector.calibration import StereoCalibration
 from pothole_detector.survey.tracking import (MAX_ID, PotholeTracker, Sighting, Track, combined,
-                                              footprints, merge_overlapping, pieces,
+                                              footprints, merge_overlapping, pieces, radius_of,
                                               sightings_of)
 
 
@@ -110,6 +110,20 @@ def test_tracks_that_overlap_on_the_road_are_one_entry():
     assert abs(joined.sightings[1].area_m2 - 0.06) < 1e-12
     assert joined.sightings[1].max_depth_m == 0.04
     assert abs(joined.position[1] - 0.06) < 1e-9
+
+
+def test_a_track_s_radius_is_that_of_its_median_area_however_its_sightings_came():
+    rng = np.random.default_rng(3)
+    areas = rng.uniform(0.01, 0.5, 41)
+    track = Track(1)
+    for count, area in enumerate(areas, 1):
+        track.sightings.append(_sighting(2.0, 0.0, float(area)))
+        if count % 3 and count not in (1, 2):
+            continue
+        assert track.radius_m == radius_of(float(np.median(areas[:count])))
+    assert track.radius_m == radius_of(float(np.median(areas)))
+    track.sightings.append(_sighting(2.0, 0.0, float("nan")))
+    assert np.isnan(track.radius_m) and np.isnan(Track(2).radius_m)
 
 
 def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():

@@ -5,6 +5,7 @@ same tracker."""
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
@@ -236,6 +237,8 @@ class Track:
     positions: list[np.ndarray] = field(default_factory=list)
     last_frame: int = 0
     outlines: list[np.ndarray] = field(default_factory=list)
+    _areas: list[float] = field(default_factory=list, repr=False, compare=False)
+    _unknown_areas: int = field(default=0, repr=False, compare=False)
 
     @property
     def position(self) -> np.ndarray:
@@ -244,8 +247,20 @@ class Track:
 
     @property
     def radius_m(self) -> float:
-        """The radius (m) of a disc of its median area."""
-        return radius_of(float(np.median([s.area_m2 for s in self.sightings])))
+        """The radius (m) of a disc of its median area (NaN where an area is not known). The
+        areas are kept in order as sightings are appended, so that a pothole seen for long (a
+        vehicle standing beside it) costs the tracker no more a frame."""
+        areas = self._areas
+        for sighting in self.sightings[len(areas) + self._unknown_areas:]:
+            if math.isnan(sighting.area_m2):
+                self._unknown_areas += 1
+            else:
+                bisect.insort(areas, sighting.area_m2)
+        count = len(areas)
+        if self._unknown_areas or not count:
+            return radius_of(math.nan)
+        middle = count // 2
+        return radius_of(areas[middle] if count % 2 else (areas[middle - 1] + areas[middle]) / 2)
 
     def best(self) -> Sighting:
         """The nearest sighting that lies whole in the image inside the observed range (else
