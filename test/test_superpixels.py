@@ -7,6 +7,8 @@ from pothole_detector.backend import CPU
 from pothole_detector.stages.superpixels import (grid_count, region_size, slic,
                                                  superpixel_grid, superpixel_means, superpixels)
 
+from slic_reference import slic_reference
+
 
 def disc_image(height=96, width=128):
     v, u = np.mgrid[0:height, 0:width]
@@ -41,6 +43,21 @@ def test_odd_sizes_and_nan(shape):
     found = superpixels(CPU, image, 8, 2.0, 3, downsample=1)
     labels, n = found.labels, found.count
     assert labels.shape == shape and labels.min() >= 0 and labels.max() < n
+
+
+@pytest.mark.parametrize("shape,step,compactness,iterations",
+                         [((61, 97), 8, 2.0, 6), ((120, 200), 10, 0.5, 4),
+                          ((33, 40), 16, 10.0, 3), ((13, 7), 8, 2.0, 2)])
+def test_the_compiled_iterations_give_the_array_form_s_labels(shape, step, compactness,
+                                                              iterations):
+    rng = np.random.default_rng(step)
+    ramp = np.cumsum(rng.normal(0, 0.3, shape), axis=1)
+    image = (32 - 0.1 * ramp + rng.normal(0, 0.5, shape)).astype(np.float32)
+    valid = rng.random(shape) < 0.85
+    labels, count = slic(CPU, image, valid, step, compactness, iterations)
+    expected, expected_count = slic_reference(image, valid, step, compactness, iterations)
+    assert count == expected_count and labels.dtype == np.int32
+    np.testing.assert_array_equal(labels, expected)
 
 
 def test_downsampled_labels_cover_the_full_image():

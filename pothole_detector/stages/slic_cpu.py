@@ -1,0 +1,99 @@
+"""SLIC's iterations on the CPU, compiled with Numba: the assignment of every pixel to the
+nearest of the nine centres around its grid cell (rows on Numba's threads) and the centres'
+update, in one pass each over the map instead of an array pass per neighbour. The same float32
+distances, ties and float64 sums, in the same order, as the array form they replace, so the
+labels are those of kernels/slic.cu's reference to the bit. Compiled once and cached beside
+this file (or in the user's cache folder).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from . import census_cpu  # noqa: F401  (sets Numba's thread-safe threading layer first)
+
+# the row and column of a centre beyond the grid: no pixel ever takes it
+FAR = np.float32(1e9)
+
+
+@numba.njit(parallel=True, cache=True)
+def _assign(filled: np.ndarray, valid: np.ndarray, step: int, cells_x: int, cells_y: int,
+            centre_v: np.ndarray, centre_u: np.ndarray, centre_d: np.ndarray,
+            spatial_weight: np.float32, labels: np.ndarray) -> None:
+    """Each pixel's nearest centre of the 3 x 3 cells about its own (the first of equals in
+    row-major order of the neighbours)."""
+    height, width = filled.shape
+    for v in numba.prange(height):
+        cell_i = v // step
+        row = np.float32(v)
+        for u in range(width):
+            cell_j = u // step
+            column = np.float32(u)
+            value = filled[v, u]
+            weight = np.float32(1.0) if valid[v, u] else np.float32(0.0)
+            best = np.float32(np.inf)
+            choice = 0
+            for k in range(9):
+                i = cell_i + k // 3 - 1
+                j = cell_j + k % 3 - 1
+                if 0 <= i < cells_y and 0 <= j < cells_x:
+                    index = i * cells_x + j
+                    cv, cu, cd = centre_v[index], centre_u[index], centre_d[index]
+                else:
+                    cv, cu, cd = FAR, FAR, np.float32(0.0)
+                distance = value - cd
+                distance = distance * distance
+                distance = distance * weight
+                dv = row - cv
+                du = column - cu
+                distance = distance + spatial_weight * (dv * dv + du * du)
+                if distance < best:
+                    best = distance
+                    choice = k
+            labels[v, u] = (cell_i + choice // 3 - 1) * cells_x + cell_j + choice % 3 - 1
+
+
+@numba.njit(cache=True)
+def _update(filled: np.ndarray, valid: np.ndarray, labels: np.ndarray, centre_v: np.ndarray,
+            centre_u: np.ndarray, centre_d: np.ndarray) -> None:
+    """The centres as the means of their pixels (row, column; the value over the valid ones),
+    summed in float64 in row-major order; a centre without pixels stays."""
+    count = np.zeros(centre_v.size)
+    count_valid = np.zeros(centre_v.size)
+    sum_v = np.zeros(centre_v.size)
+    sum_u = np.zeros(centre_v.size)
+    sum_d = np.zeros(centre_v.size)
+    height, width = filled.shape
+    for v in range(height):
+        for u in range(width):
+            label = labels[v, u]
+            count[label] += 1.0
+            sum_v[label] += v
+            sum_u[label] += u
+            if valid[v, u]:
+                count_valid[label] += 1.0
+                sum_d[label] += filled[v, u]
+    for label in range(centre_v.size):
+        if count[label] > 0:
+            centre_v[label] = np.float32(sum_v[label] / count[label])
+            centre_u[label] = np.float32(sum_u[label] / count[label])
+        if count_valid[label] > 0:
+            centre_d[label] = np.float32(sum_d[label] / count_valid[label])
+
+
+def iterate(filled: np.ndarray, valid: np.ndarray, step: int, cells_y: int, cells_x: int,
+            centre_v: np.ndarray, centre_u: np.ndarray, centre_d: np.ndarray,
+            compactness: float, iterations: int) -> np.ndarray:
+    """``iterations`` rounds of SLIC on the float32 HxW ``filled`` map (0 at invalid pixels)
+    with bool HxW ``valid``, from the float32 (cells,) centres (row, column, value; updated in
+    place), grid step ``step`` px and compactness m: int32 HxW labels ``i * cells_x + j``."""
+    labels = np.empty(filled.shape, dtype=np.int32)
+    spatial_weight = np.float32((compactness / step) ** 2)
+    filled = np.ascontiguousarray(filled, dtype=np.float32)
+    valid = np.ascontiguousarray(valid, dtype=np.bool_)
+    for _ in range(iterations):
+        _assign(filled, valid, step, cells_x, cells_y, centre_v, centre_u, centre_d,
+                spatial_weight, labels)
+        _update(filled, valid, labels, centre_v, centre_u, centre_d)
+    return labels
