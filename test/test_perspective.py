@@ -93,11 +93,38 @@ def test_pixel_shifts_follow_the_roll_so_the_band_is_narrower():
     assert shift_range(shifts, 2000) == (int(kappa.min()), int(kappa.max()))
 
 
+def _add_shifts_array_form(d0, shifts):
+    """add_shifts as array code (the form of kernels/sgm.cu's sgm_finish, step by step)."""
+    column = np.arange(d0.shape[1], dtype=np.float32)[None, :] - d0
+    column = np.where(np.isfinite(column), column, np.float32(0))
+    left_column = np.floor(column)
+    fraction = column - left_column
+    left_column = left_column.astype(np.int64)
+    lower = shift_at(np, shifts, left_column)
+    upper = shift_at(np, shifts, left_column + 1)
+    shift = lower.astype(np.float32) + fraction * (upper - lower).astype(np.float32)
+    return (d0 + shift).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_add_shifts_gives_the_array_form_s_bits(seed):
+    rng = np.random.default_rng(seed)
+    height, width = 37, 251
+    base = rng.integers(-5 * SHIFT_ONE, 60 * SHIFT_ONE, height)
+    step = rng.integers(-SHIFT_ONE // 4, SHIFT_ONE // 4, height)
+    shifts = np.stack([np.zeros(height, np.int64), base, step]).astype(np.int32)
+    d0 = rng.uniform(-2, 80, (height, width)).astype(np.float32)
+    d0[rng.random(d0.shape) < 0.1] = np.nan
+    d0[0, :5] = np.float32(3.0)
+    expected = _add_shifts_array_form(d0, shifts)
+    np.testing.assert_array_equal(add_shifts(d0, shifts), expected)
+
+
 def test_add_shifts_interpolates_kappa_between_the_columns_beside_the_match():
     shifts = shifts_table(np.array([5 * SHIFT_ONE // 2]), np.array([SHIFT_ONE // 4]))
     # kappa(x) = 2, 2, 3, 3, 3, 3, 4, 4 for x = 0..7
     d0 = np.array([[np.nan, 0.0, 0.0, 1.0, 2.5, 0.25, 0.5, 1.25]], dtype=np.float32)
-    d1 = add_shifts(np, d0, shifts)
+    d1 = add_shifts(d0, shifts)
     # u - d0 = 1, 2, 2, 1.5 (kappa 2 -> 3: 2.5), 4.75, 5.5 (3 -> 4: 3.5), 5.75 (3.75)
     np.testing.assert_array_equal(d1, np.array(
         [[np.nan, 2.0, 3.0, 4.0, 5.0, 3.25, 4.0, 5.0]], dtype=np.float32))
@@ -122,7 +149,7 @@ def test_matching_the_transformed_pair_recovers_disparity():
     for v in range(height):
         for u in (60, 151, 298):
             d0 = [k for k in range(levels) if transformed[v, u - k] == left[v, u]][0]
-            d1 = add_shifts(np, np.full((1, width), d0, np.float32), shifts[:, v:v + 1])[0, u]
+            d1 = add_shifts(np.full((1, width), d0, np.float32), shifts[:, v:v + 1])[0, u]
             assert d1 == true_d[v, u]
 
 
@@ -130,4 +157,4 @@ def test_no_shifts_leave_the_pair_as_it_is():
     image = np.arange(12, dtype=np.uint8).reshape(3, 4)
     np.testing.assert_array_equal(transform_right(np, image, no_shifts(3)), image)
     d0 = np.array([[0.5, 1.25, 2.0, 3.0]] * 3, dtype=np.float32)
-    np.testing.assert_array_equal(add_shifts(np, d0, no_shifts(3)), d0)
+    np.testing.assert_array_equal(add_shifts(d0, no_shifts(3)), d0)

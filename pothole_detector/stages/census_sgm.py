@@ -39,7 +39,7 @@ import numpy as np
 
 from ..backend import Backend, StageClock
 from ..errors import ConfigError
-from . import perspective
+from . import census_cpu, perspective
 
 CENSUS_RADIUS_Y, CENSUS_RADIUS_X = 3, 4
 CENSUS_OFFSETS: tuple[tuple[int, int], ...] = tuple(
@@ -58,27 +58,26 @@ MAX_P2 = 127 - INVALID_COST
 DIRECTION_PAIRS: tuple[tuple[int, int], ...] = ((0, 2), (1, 3), (4, 6), (5, 7))
 
 
+_CENSUS_OFFSETS_ARRAY = np.array(CENSUS_OFFSETS, dtype=np.int64)
+
+
 def census_transform(image: np.ndarray) -> np.ndarray:
-    """uint32 HxW census words of a uint8 HxW image (on the host)."""
-    height, width = image.shape
+    """uint32 HxW census words of a uint8 HxW image (on the host): bit k set where the pixel
+    CENSUS_OFFSETS[k] ahead is brighter than the one as far behind, edge-replicated (a Numba
+    kernel, census_cpu.census_words)."""
     ry, rx = CENSUS_RADIUS_Y, CENSUS_RADIUS_X
-    padded = np.pad(image, ((ry, ry), (rx, rx)), mode="edge")
-    words = np.zeros((height, width), dtype=np.uint32)
-    for bit, (dy, dx) in enumerate(CENSUS_OFFSETS):
-        ahead = padded[ry + dy:ry + dy + height, rx + dx:rx + dx + width]
-        behind = padded[ry - dy:ry - dy + height, rx - dx:rx - dx + width]
-        words |= (ahead > behind).astype(np.uint32) << np.uint32(bit)
-    return words
+    padded = np.pad(np.ascontiguousarray(image, dtype=np.uint8), ((ry, ry), (rx, rx)),
+                    mode="edge")
+    return census_cpu.census_words(padded, ry, rx, _CENSUS_OFFSETS_ARRAY)
 
 
 def textureless(census_left: np.ndarray) -> np.ndarray:
     """bool HxW: pixels whose census word (uint32 HxW) is 0 together with their 8
     neighbours' (edge-replicated): no pair of the window differs upwards anywhere in the 3x3
-    windows, so no match there means anything (a blank or saturated patch)."""
-    height, width = census_left.shape
-    flat = np.pad(census_left == 0, 1, mode="edge")
-    return np.logical_and.reduce([flat[a:a + height, b:b + width]
-                                  for a in range(3) for b in range(3)])
+    windows, so no match there means anything (a blank or saturated patch). A 3 x 3 erosion
+    of the blank words."""
+    blank = (census_left == 0).astype(np.uint8)
+    return cv2.erode(blank, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
 
 
 def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
@@ -92,7 +91,7 @@ def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
     height, width = raw.shape
     if median:
         raw = cv2.medianBlur(raw, 3)
-    disparity = perspective.add_shifts(np, raw, shifts)
+    disparity = perspective.add_shifts(raw, shifts)
     columns = np.arange(width)[None, :]
     band_outside = columns - (levels - 1) < shifts[perspective.SHIFT_FIRST][:, None]
     invalid = (raw < 0) | (columns.astype(np.float32) - disparity < 0) | band_outside \
@@ -108,8 +107,6 @@ def cpu_disparity(left: np.ndarray, right: np.ndarray, shifts: np.ndarray, level
     """The whole census SGM on the host: float32 HxW D1 (px, NaN invalid) of uint8 HxW images
     and the int32 (3, H) GPT ``shifts``, with stages/census_cpu.py's compiled kernels (the same
     integers as the GPU's)."""
-    from . import census_cpu
-
     check_settings(left.shape, levels, p1, p2)
     census_left = census_transform(left)
     transformed = perspective.transform_right(np, census_transform(right), shifts)

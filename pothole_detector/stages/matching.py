@@ -18,7 +18,7 @@ import numpy as np
 from ..backend import Backend, to_host
 from ..errors import InputError, NoTextureError
 from ..params import Config
-from . import census_sgm
+from . import census_cpu, census_sgm
 from .perspective import add_shifts, transform_right
 
 _SGBM_MODES = {
@@ -159,8 +159,8 @@ class Matcher:
                 left, right, shifts, levels, config.census_p1, config.census_p2,
                 config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter)
         else:
-            disparity = add_shifts(np, sgm_disparity(left, transform_right(np, right, shifts),
-                                                     levels, config, block_size), shifts)
+            disparity = add_shifts(sgm_disparity(left, transform_right(np, right, shifts),
+                                                 levels, config, block_size), shifts)
             outside = np.arange(left.shape[1], dtype=np.float32)[None, :] - disparity < 0
             # SGBM matches a blank patch at the lowest level (every cost 0), which on the GPT
             # band is the road prior itself: drop such pixels as the census matcher does
@@ -172,8 +172,6 @@ class Matcher:
 def set_host_threads(count: int) -> None:
     """Run the host's matchers (OpenCV and the census SGM's CPU kernels) on at most ``count``
     threads: a worker process's or task's share of the cores."""
-    from . import census_cpu
-
     cv2.setNumThreads(count)
     census_cpu.set_threads(count)
 

@@ -24,8 +24,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numba
 import numpy as np
 
+from . import census_cpu  # noqa: F401  (sets Numba's thread-safe threading layer first)
 from .road_model import RoadModel
 
 LEVEL_MULTIPLE = 16
@@ -93,22 +95,35 @@ def transform_right(xp: Any, image: Any, shifts: Any) -> Any:
     return xp.where(inside, shifted, 0).astype(image.dtype)
 
 
-def add_shifts(xp: Any, d0: Any, shifts: Any) -> Any:
-    """D1 = D0 + kappa(u - D0, v) (float32 HxW px) from level-space D0 (float32 HxW px; NaN
-    stays NaN, values below 0, the invalid ones, come out meaningless): kappa interpolated
+def add_shifts(d0: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """D1 = D0 + kappa(u - D0, v) (float32 HxW px) from level-space D0 (float32 HxW px, host;
+    NaN stays NaN, values below 0, the invalid ones, come out meaningless): kappa interpolated
     linearly between the columns beside u - D0. float32 throughout, in the order the GPU's
     sgm_finish uses, so both give the same bits (the product t (k1 - k0) is exact: k1 - k0 is
-    -1, 0 or 1)."""
-    width = d0.shape[1]
-    column = xp.arange(width, dtype=xp.float32)[None, :] - d0
-    column = xp.where(xp.isfinite(column), column, xp.float32(0))
-    left_column = xp.floor(column)
-    fraction = column - left_column
-    left_column = left_column.astype(xp.int64)
-    lower = shift_at(xp, shifts, left_column)
-    upper = shift_at(xp, shifts, left_column + 1)
-    shift = lower.astype(xp.float32) + fraction * (upper - lower).astype(xp.float32)
-    return (d0 + shift).astype(xp.float32)
+    -1, 0 or 1). A Numba kernel, rows on its threads."""
+    shifts = np.ascontiguousarray(shifts, dtype=np.int32)
+    return _add_shifts(np.ascontiguousarray(d0, dtype=np.float32),
+                       shifts[SHIFT_BASE].astype(np.int64), shifts[SHIFT_STEP].astype(np.int64))
+
+
+@numba.njit(parallel=True, cache=True)
+def _add_shifts(d0: np.ndarray, base: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """add_shifts' kernel."""
+    height, width = d0.shape
+    out = np.empty((height, width), dtype=np.float32)
+    for v in numba.prange(height):
+        for u in range(width):
+            column = np.float32(u) - d0[v, u]
+            if not np.isfinite(column):
+                column = np.float32(0.0)
+            left = np.floor(column)
+            fraction = column - left
+            left_column = np.int64(left)
+            lower = max((base[v] + step[v] * left_column) >> SHIFT_BITS, 0)
+            upper = max((base[v] + step[v] * (left_column + 1)) >> SHIFT_BITS, 0)
+            shift = np.float32(lower) + fraction * np.float32(upper - lower)
+            out[v, u] = d0[v, u] + shift
+    return out
 
 
 def shift_range(shifts: np.ndarray, width: int) -> tuple[int, int]:
