@@ -60,6 +60,28 @@ def test_the_compiled_iterations_give_the_array_form_s_labels(shape, step, compa
     np.testing.assert_array_equal(labels, expected)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_compiled_means_give_the_bincount_form_s_bits(dtype):
+    rng = np.random.default_rng(5)
+    values = rng.normal(30, 3, (53, 71)).astype(dtype)
+    values[rng.random(values.shape) < 0.2] = np.nan
+    labels = rng.integers(0, 40, values.shape).astype(np.int32)
+    labels[labels == 7] = 8
+    values[labels == 9] = np.nan
+    mean, fraction = superpixel_means(CPU, values, labels, 41)
+    valid = np.isfinite(values).ravel()
+    count = np.bincount(labels.ravel(), minlength=41).astype(np.float64)
+    count_valid = np.bincount(labels.ravel(), weights=valid.astype(np.float64), minlength=41)
+    total = np.bincount(labels.ravel(), minlength=41,
+                        weights=np.where(valid, values.ravel(), 0).astype(np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        expected = np.where(count_valid > 0, total / np.maximum(count_valid, 1), np.nan)
+    np.testing.assert_array_equal(mean, expected.astype(np.float32))
+    np.testing.assert_array_equal(fraction,
+                                  (count_valid / np.maximum(count, 1)).astype(np.float32))
+    assert np.isnan(mean[[7, 9, 40]]).all() and fraction[7] == 0 and fraction[9] == 0
+
+
 def test_downsampled_labels_cover_the_full_image():
     image, disc = disc_image(97, 131)
     found = superpixels(CPU, image, 16, 2.0, 6, downsample=2)

@@ -1,6 +1,7 @@
 """SLIC's iterations on the CPU, compiled with Numba: the assignment of every pixel to the
 nearest of the nine centres around its grid cell (rows on Numba's threads) and the centres'
-update, in one pass each over the map instead of an array pass per neighbour. The same float32
+update, in one pass each over the map instead of an array pass per neighbour; and the
+superpixels' sums. The same float32
 distances, ties and float64 sums, in the same order, as the array form they replace, so the
 labels are those of kernels/slic.cu's reference to the bit. Compiled once and cached beside
 this file (or in the user's cache folder).
@@ -97,3 +98,24 @@ def iterate(filled: np.ndarray, valid: np.ndarray, step: int, cells_y: int, cell
                 spatial_weight, labels)
         _update(filled, valid, labels, centre_v, centre_u, centre_d)
     return labels
+
+
+@numba.njit(cache=True)
+def superpixel_sums(values: np.ndarray, labels: np.ndarray,
+                    count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per label of the flat int ``labels`` (0..count-1): its pixels, its pixels with a finite
+    value of the flat float ``values``, and their values' sum, float64 (count,) each, summed
+    in the pixels' order."""
+    pixels = np.zeros(count)
+    finite = np.zeros(count)
+    total = np.zeros(count)
+    for index in range(labels.size):
+        label = labels[index]
+        if label < 0 or label >= count:
+            raise ValueError("a superpixel label lies outside 0..count-1")
+        pixels[label] += 1.0
+        value = values[index]
+        if np.isfinite(value):
+            finite[label] += 1.0
+            total[label] += np.float64(value)
+    return pixels, finite, total

@@ -268,7 +268,8 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
                      ) -> tuple[Any, Any]:
     """Per-superpixel mean of the valid D2 values (float32 (n,), NaN where none is valid) and
     fraction of valid pixels (float32 (n,)). On the GPU: one pass of per-warp sums and one
-    small kernel (kernels/slic.cu)."""
+    small kernel (kernels/slic.cu); on the CPU one pass of a Numba kernel
+    (slic_cpu.superpixel_sums)."""
     xp = backend.xp
     if backend.is_gpu:
         sums = xp.zeros((n_labels, 3), dtype=xp.float64)
@@ -282,13 +283,11 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
         _kernel(backend, "superpixel_finish")(
             ((n_labels + 255) // 256,), (256,), (sums, mean, fraction, np.int32(n_labels)))
         return mean, fraction
-    valid = xp.isfinite(transformed).ravel()
-    flat = labels.ravel()
-    count = xp.bincount(flat, minlength=n_labels).astype(xp.float64)
-    count_valid = xp.bincount(flat, weights=valid.astype(xp.float64), minlength=n_labels)
-    total = xp.bincount(flat, weights=xp.where(valid, transformed.ravel(), 0).astype(xp.float64),
-                        minlength=n_labels)
-    mean = xp.where(count_valid > 0, total / xp.maximum(count_valid, 1), xp.nan)
+    count, count_valid, total = slic_cpu.superpixel_sums(
+        np.ascontiguousarray(transformed).ravel(), np.ascontiguousarray(labels).ravel(),
+        n_labels)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = xp.where(count_valid > 0, total / xp.maximum(count_valid, 1), xp.nan)
     fraction = count_valid / xp.maximum(count, 1)
     return mean.astype(xp.float32), fraction.astype(xp.float32)
 
