@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from ..backend import Backend
+from ..backend import CPU, Backend
 from . import slic_cpu
 
 
@@ -290,6 +290,16 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
         mean = xp.where(count_valid > 0, total / xp.maximum(count_valid, 1), xp.nan)
     fraction = count_valid / xp.maximum(count, 1)
     return mean.astype(xp.float32), fraction.astype(xp.float32)
+
+
+def compile_cpu_kernels() -> None:
+    """Compile (or load from Numba's cache) the CPU kernels of SLIC and the superpixel sums
+    now, on a small map."""
+    rng = np.random.default_rng(0)
+    image = rng.normal(32, 1, (24, 40)).astype(np.float32)
+    valid = rng.random(image.shape) < 0.9
+    labels, count = slic(CPU, image, valid, 8, 2.0, 1)
+    superpixel_means(CPU, image, labels, count)
 
 
 def _kernel(backend: Backend, name: str) -> Any:
