@@ -19,28 +19,6 @@ _POPCOUNT_16 = np.array([bin(value).count("1") for value in range(1 << 16)], dty
 
 
 @numba.njit(parallel=True, cache=True)
-def census_words(padded: np.ndarray, radius_y: int, radius_x: int,
-                 offsets: np.ndarray) -> np.ndarray:
-    """census_sgm.census_transform's kernel on the uint8 image padded by the radii
-    (edge-replicated): bit k of each word is set where the pixel offsets[k] (dy, dx) ahead is
-    brighter than the one as far behind; rows on the threads."""
-    height = padded.shape[0] - 2 * radius_y
-    width = padded.shape[1] - 2 * radius_x
-    words = np.empty((height, width), dtype=np.uint32)
-    for v in numba.prange(height):
-        y = v + radius_y
-        for u in range(width):
-            x = u + radius_x
-            word = np.uint32(0)
-            for bit in range(offsets.shape[0]):
-                dy, dx = offsets[bit, 0], offsets[bit, 1]
-                if padded[y + dy, x + dx] > padded[y - dy, x - dx]:
-                    word |= np.uint32(1) << np.uint32(bit)
-            words[v, u] = word
-    return words
-
-
-@numba.njit(parallel=True, cache=True)
 def _cost_volume(census_left: np.ndarray, transformed_right: np.ndarray, first: np.ndarray,
                  levels: int, invalid_cost: int, popcount: np.ndarray) -> np.ndarray:
     """matching_cost's kernel: rows on the threads."""

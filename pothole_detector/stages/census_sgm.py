@@ -58,17 +58,17 @@ MAX_P2 = 127 - INVALID_COST
 DIRECTION_PAIRS: tuple[tuple[int, int], ...] = ((0, 2), (1, 3), (4, 6), (5, 7))
 
 
-_CENSUS_OFFSETS_ARRAY = np.array(CENSUS_OFFSETS, dtype=np.int64)
-
-
 def census_transform(image: np.ndarray) -> np.ndarray:
-    """uint32 HxW census words of a uint8 HxW image (on the host): bit k set where the pixel
-    CENSUS_OFFSETS[k] ahead is brighter than the one as far behind, edge-replicated (a Numba
-    kernel, census_cpu.census_words)."""
+    """uint32 HxW census words of a uint8 HxW image (on the host)."""
+    height, width = image.shape
     ry, rx = CENSUS_RADIUS_Y, CENSUS_RADIUS_X
-    padded = np.pad(np.ascontiguousarray(image, dtype=np.uint8), ((ry, ry), (rx, rx)),
-                    mode="edge")
-    return census_cpu.census_words(padded, ry, rx, _CENSUS_OFFSETS_ARRAY)
+    padded = np.pad(image, ((ry, ry), (rx, rx)), mode="edge")
+    words = np.zeros((height, width), dtype=np.uint32)
+    for bit, (dy, dx) in enumerate(CENSUS_OFFSETS):
+        ahead = padded[ry + dy:ry + dy + height, rx + dx:rx + dx + width]
+        behind = padded[ry - dy:ry - dy + height, rx - dx:rx - dx + width]
+        words |= (ahead > behind).astype(np.uint32) << np.uint32(bit)
+    return words
 
 
 def textureless(census_left: np.ndarray) -> np.ndarray:
