@@ -223,14 +223,22 @@ def _fit_curvature(xp: Any, design: Any, residual: Any, mask: Any) -> tuple[floa
     return tuple(float(c) for c in np.linalg.lstsq(system[:, :6], system[:, 6], rcond=None)[0])
 
 
+def masked_median(xp: Any, values: Any, mask: Any) -> tuple[Any, Any]:
+    """The median of ``values`` where the bool ``mask`` holds (the mean of the two middle ones
+    for an even count; meaningless for none) and that count, as 0-d backend arrays: a sort
+    with the others last and a take at the count, nothing read back."""
+    ordered = xp.sort(xp.where(mask, values, xp.inf).reshape(-1))
+    count = xp.count_nonzero(mask)
+    low = xp.take(ordered, xp.maximum((count - 1) // 2, 0))
+    high = xp.take(ordered, xp.minimum(count // 2, ordered.size - 1))
+    return (low + high) / 2, count
+
+
 def _robust_sigma(xp: Any, residual: Any, mask: Any) -> Any:
     """1.4826 x median absolute residual of the masked pixels (px), as a 0-d backend array
     (0 when nothing is masked); no host readback."""
-    values = xp.sort(xp.where(mask, xp.abs(residual), xp.inf).reshape(-1))
-    count = mask.sum()
-    low = xp.take(values, xp.maximum((count - 1) // 2, 0))
-    high = xp.take(values, xp.minimum(count // 2, values.size - 1))
-    return xp.where(count > 0, 1.4826 * (low + high) / 2, 0.0)
+    median, count = masked_median(xp, xp.abs(residual), mask)
+    return xp.where(count > 0, 1.4826 * median, 0.0)
 
 
 class RoadFitFailed(NoRoadError):

@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 from ..backend import Backend
+from .road_model import masked_median
 from .superpixels import superpixel_means
 
 # RMS gradient (grey levels) that a superpixel without any gradient counts as
@@ -43,12 +44,7 @@ def deficit(backend: Backend, left: Any, valid: Any, labels: Any, count: int,
     xp = backend.xp
     energy, _ = superpixel_means(backend, gradient_energy(backend, left, valid), labels, count)
     rms = xp.sqrt(energy.astype(xp.float64))
-    usable = observed & xp.isfinite(rms)
-    ordered = xp.sort(xp.where(usable, rms, xp.inf))
-    used = xp.count_nonzero(usable)
-    low = xp.take(ordered, xp.maximum((used - 1) // 2, 0))
-    high = xp.take(ordered, xp.minimum(used // 2, count - 1))
-    typical = (low + high) / 2
+    typical, used = masked_median(xp, rms, observed & xp.isfinite(rms))
     known = xp.isfinite(rms) & (used > 0)
     ratio = typical / xp.maximum(xp.where(known, rms, 1.0), FLAT_RMS_GREY)
     return xp.where(known, xp.maximum(ratio, 1.0), 1.0)
