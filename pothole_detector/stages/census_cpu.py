@@ -10,9 +10,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# the node, the survey's threads and Ray actors may call the kernels from several threads
-numba.config.THREADING_LAYER = "threadsafe"
-
 _OUTSIDE = 1 << 20
 _MAX_PATH_COST = 1 << 14
 _POPCOUNT_16 = np.array([bin(value).count("1") for value in range(1 << 16)], dtype=np.uint8)

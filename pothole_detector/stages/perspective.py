@@ -27,7 +27,6 @@ from typing import Any
 import numba
 import numpy as np
 
-from . import census_cpu  # noqa: F401  (sets Numba's thread-safe threading layer first)
 from .road_model import RoadModel
 
 LEVEL_MULTIPLE = 16

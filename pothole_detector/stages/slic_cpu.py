@@ -12,8 +12,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from . import census_cpu  # noqa: F401  (sets Numba's thread-safe threading layer first)
-
 # the row and column of a centre beyond the grid: no pixel ever takes it
 FAR = np.float32(1e9)
 
