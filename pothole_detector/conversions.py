@@ -202,9 +202,10 @@ def potholes_message(potholes: Sequence[Pothole], road: RoadModel | None, header
                      observed_range_m: tuple[float, float] = (math.nan, math.nan)
                      ) -> PotholeArray:
     """pothole_detector_msgs/PotholeArray of measured potholes, the frame's road model and the
-    observed range of the road (near, far: m along the road; NaN where none was observed:
-    status NOT_OBSERVED, else PROCESSED)."""
-    seen = any(math.isfinite(value) for value in observed_range_m)
+    observed range of the road (near, far: m along the road; NaN where none was observed).
+    Status NOT_OBSERVED where no road was observed and no pothole found beyond it, else
+    PROCESSED."""
+    seen = any(math.isfinite(value) for value in observed_range_m) or len(potholes) > 0
     msg = PotholeArray(header=header, observed_near_m=float(observed_range_m[0]),
                        observed_far_m=float(observed_range_m[1]),
                        status=PotholeArray.PROCESSED if seen else PotholeArray.NOT_OBSERVED)

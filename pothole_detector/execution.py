@@ -444,7 +444,7 @@ class FrameExecutor:
                 arrays.disparity.copy(), arrays.transformed.copy(), None,
                 superpixels.Superpixels(None, found.count, found.labels.copy(), None, None),
                 arrays.candidate.copy(), arrays.labels.copy(), arrays.observed.copy(),
-                arrays.drops.copy(), arrays.region_px)
+                arrays.drops.copy(), arrays.region_px, searched=arrays.searched.copy())
 
     def _wait(self, frame: _Frame, readback: Readback) -> np.ndarray:
         """A readback's bytes; the wait counts into the frame's host_wait on the GPU."""
@@ -498,6 +498,7 @@ class FrameExecutor:
         return PipelineResult(
             disparity=arrays.disparity, transformed=arrays.transformed, labels=arrays.labels,
             superpixels=arrays.superpixels.labels, observed=arrays.observed,
+            searched=arrays.searched,
             observed_range_m=(float(host.observed_range[0]), float(host.observed_range[1])),
             road=frame.road,
             threshold_px=thresholding.reference_level(

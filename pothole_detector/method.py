@@ -29,7 +29,8 @@ from .stages import threshold as thresholding
 from .stages.transform import transform_disparity
 
 _log = logging.getLogger(__name__)
-ARRAY_FIELDS = ("disparity", "transformed", "labels", "superpixels", "observed")
+ARRAY_FIELDS = ("disparity", "transformed", "labels", "superpixels", "observed", "searched")
+SUPERPIXEL_FIELDS = ("observed", "searched")
 
 
 @dataclass
@@ -40,7 +41,12 @@ class PipelineResult:
     ``disparity`` (D1) and ``transformed`` (D2) are float32 HxW px, NaN where invalid;
     ``labels`` int32 HxW (0 = road, k = pothole k); ``superpixels`` int32 HxW; ``observed``
     bool (superpixel count,): where the road is observed, i.e. a pothole ``delta_pd_m`` deep
-    would stand out of the disparity noise (``host("observed")`` gives it as a bool HxW mask);
+    would stand out of the disparity noise of one pixel (``host("observed")`` gives it as a
+    bool HxW mask); ``searched`` bool (superpixel count,): where potholes were looked for,
+    where such a pothole would stand out of the noise of the superpixel means about the local
+    road (stages/local_road.py), which reaches farther than the observed road and leaves out
+    superpixels too poorly textured to match (stages/texture.py); the observed road itself
+    without the local road reference or in pixels mode;
     ``observed_range_m`` (near, far): the distance ahead along the road (m, from the point below
     the camera, along the optical axis's direction on the road plane) that the observed
     superpixels span, NaN where none is;
@@ -59,6 +65,7 @@ class PipelineResult:
     labels: Any
     superpixels: Any
     observed: Any
+    searched: Any
     observed_range_m: tuple[float, float]
     road: road_model.RoadModel
     threshold_px: float
@@ -74,8 +81,8 @@ class PipelineResult:
         GPU, the array itself on the CPU."""
         if name not in ARRAY_FIELDS:
             raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
-        if name == "observed":
-            return to_host(self.observed)[to_host(self.superpixels)]
+        if name in SUPERPIXEL_FIELDS:
+            return to_host(getattr(self, name))[to_host(self.superpixels)]
         return to_host(getattr(self, name))
 
     def at(self, name: str, pixels: np.ndarray) -> np.ndarray:
@@ -84,8 +91,8 @@ class PipelineResult:
         values copied to the host."""
         if name not in ARRAY_FIELDS:
             raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
-        if name == "observed":
-            return gather(self.observed, pixels, through=self.superpixels)
+        if name in SUPERPIXEL_FIELDS:
+            return gather(getattr(self, name), pixels, through=self.superpixels)
         return gather(getattr(self, name), pixels)
 
 
@@ -100,7 +107,10 @@ class FrameArrays:
     superpixel, how far (px) the road around it lies below the road model
     (stages/local_road.py); ``inconsistent``: bool per superpixel, where the two views
     disagree on its brightness (stages/photometric.py); ``bumps``: bool per superpixel, where
-    the road stands significantly above the local road (local_road.bumps)."""
+    the road stands significantly above the local road (local_road.bumps); ``searched``: bool
+    per superpixel, where potholes are looked for (PipelineResult); ``depressed``: with the
+    local road reference, bool per superpixel, the searched ones that lie below the local road
+    by more than refine_depth_fraction of their threshold (components.join_pieces)."""
 
     disparity: Any
     transformed: Any
@@ -114,6 +124,8 @@ class FrameArrays:
     local: Any = None
     inconsistent: Any = None
     bumps: Any = None
+    searched: Any = None
+    depressed: Any = None
 
 
 class FrameReport(Protocol):
@@ -320,26 +332,34 @@ class Method:
                 config.threshold_noise_sigmas, config.max_threshold_m)
             observed, drops = observe(report.observed_range)
             drop = config.delta_pd_px if pixels else drops
-            local = bumps = None
+            searched, local, bumps, depressed = observed, None, None, None
             if config.road_reference == "local":
-                usable = observed & (found.valid_fraction > config.superpixel_min_valid_fraction)
+                ahead, ahead_drops = thresholding.observation(
+                    backend, transformed.shape, region_px, config.slic_downsample,
+                    report.road_params, report.road, self.calibration, config.delta_pd_m,
+                    config.delta_pd_px if pixels else 0.0, config.threshold_noise_sigmas)
+                usable = ahead & (found.valid_fraction > config.superpixel_min_valid_fraction)
                 local, noise = local_road.offsets(
-                    backend, found.means, usable, drops, transformed.shape, region_px,
+                    backend, found.means, usable, ahead_drops, transformed.shape, region_px,
                     config.slic_downsample, report.road_params, self.calibration,
                     config.delta_dt_px, config.local_road_radius_m, report.road)
+                superpixel_noise = noise
                 if not pixels:
-                    _, drop = observe(noise_px=noise * texture.deficit(
-                        backend, left, valid, found.labels, found.count, observed)
-                        if config.texture_noise else noise)
+                    if config.texture_noise:
+                        superpixel_noise = noise * texture.deficit(
+                            backend, left, valid, found.labels, found.count, ahead)
+                    searched, drop = observe(noise_px=superpixel_noise)
+                depressed = searched & (found.means < xp.float32(config.delta_dt_px) - local
+                                        - config.refine_depth_fraction * drop)
                 drop = drop + local
                 if config.bump_noise_sigmas > 0:
-                    bumps = local_road.bumps(backend, found.means, local, noise, observed,
+                    bumps = local_road.bumps(backend, found.means, local, noise, searched,
                                              config.delta_dt_px, config.bump_noise_sigmas)
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 thresholding.reference_for(config.threshold_reference, config.threshold_mode),
                 found.means,
-                xp.where(observed, found.valid_fraction, xp.float32(-1)), drop,
+                xp.where(searched, found.valid_fraction, xp.float32(-1)), drop,
                 config.superpixel_min_valid_fraction)
             candidate = xp.take(selected, found.grid)
             flagged = None
@@ -347,10 +367,10 @@ class Method:
                 disagreement, _ = superpixels.superpixel_means(
                     backend, photometric.disagreement(backend, left, right, disparity),
                     found.labels, found.count)
-                flagged = photometric.inconsistent(backend, disagreement, observed & ~selected,
+                flagged = photometric.inconsistent(backend, disagreement, searched & ~selected,
                                                    config.photometric_factor)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops, region_px, local, flagged, bumps)
+                            drops, region_px, local, flagged, bumps, searched, depressed)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -373,12 +393,13 @@ class Method:
                 filled, smoothed = filled + shift, smoothed + shift
             labels = refine.refine_labels(
                 backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
-                frame.observed, refine.radius(frame.region_px),
+                frame.searched, refine.radius(frame.region_px),
                 config.refine_depth_fraction)
             labels = refine.extend_occluded(backend, labels, filled, smoothed, road,
-                                            found.labels, frame.observed)
+                                            found.labels, frame.searched)
             labels = components.join_pieces(backend, labels, refine.radius(frame.region_px) // 2,
-                                            report.components_kept, config.slic_downsample)
+                                            report.components_kept, config.slic_downsample,
+                                            found.grid, frame.depressed, frame.region_px)
         with clock.stage("measure"):
             measure.measure(backend, labels, report.capacity, smoothed, road,
                             self.calibration, sums=report.sums, extremes=report.extremes)

@@ -129,3 +129,29 @@ def test_pieces_of_one_depression_join_and_others_keep_apart():
         assert (joined[labels == 0] == 0).all()
         apart = join_pieces(CPU, labels, 0, count, factor)
         assert count[0] == 4 and len(np.unique(apart)) == 5
+
+
+def test_pieces_join_across_depressed_road_and_not_across_level_road():
+    """Superpixels of 4 x 4 cells on a grid reduced by 2. Pieces 1 and 2 lie 9 px apart:
+    beyond the reach of 2 px, they join where the road between them is depressed (within the
+    bridge of 8 px of each), and stay apart where it is level. A depressed superpixel that
+    no piece reaches is no component, and pieces 18 px apart (more than two bridges) stay
+    apart however depressed the road between them: the count and the numbering (raster
+    order) hold only pieces."""
+    labels = np.zeros((32, 64), np.int32)
+    labels[8:16, 0:15] = 1
+    labels[8:16, 24:40] = 2
+    labels[8:16, 58:64] = 3         # 18 px beyond piece 2
+    grid, _ = grid_superpixels(16, 32, 4)
+    level = np.zeros(grid.max() + 1, bool)
+    depressed = level.copy()
+    depressed[grid[4:8, 7:12]] = True   # the gap between pieces 1 and 2 (px 15-23)
+    depressed[grid[12:16, 0:4]] = True  # far below piece 1, beyond its bridge
+    depressed[grid[4:8, 20:29]] = True  # the gap between pieces 2 and 3 (px 40-57)
+    count = np.zeros(1, np.int32)
+    joined = join_pieces(CPU, labels, 2, count, 2, grid, depressed, 8)
+    assert count[0] == 2
+    assert (joined[labels == 1] == 1).all() and (joined[labels == 2] == 1).all()
+    assert (joined[labels == 3] == 2).all() and (joined[labels == 0] == 0).all()
+    apart = join_pieces(CPU, labels, 2, count, 2, grid, level, 8)
+    assert count[0] == 3 and [apart[8, 0], apart[8, 24], apart[8, 58]] == [1, 2, 3]

@@ -60,6 +60,8 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
     assert array.status == array.PROCESSED
     unobserved = conversions.potholes_message([], None, HEADER)
     assert math.isnan(unobserved.observed_far_m) and unobserved.status == unobserved.NOT_OBSERVED
+    beyond = conversions.potholes_message(result.potholes, result.road, HEADER)
+    assert math.isnan(beyond.observed_far_m) and beyond.status == beyond.PROCESSED
     failed = conversions.failed_potholes_message(HEADER, "no road plane")
     assert (failed.status, failed.reason, list(failed.potholes)) == (failed.FAILED,
                                                                      "no road plane", [])

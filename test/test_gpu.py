@@ -570,6 +570,16 @@ def test_joining_pieces_on_the_gpu_matches_the_cpu(gpu):
         got = components.join_pieces(gpu, gpu.upload(labels), reach, got_count, factor)
         np.testing.assert_array_equal(to_host(got), want)
         assert int(to_host(got_count)[0]) == int(want_count[0]) <= count
+    # across depressed superpixels (4 x 4 cells of the grid reduced by 2)
+    rows, cols = np.mgrid[0:60, 0:100]
+    grid = ((rows // 4) * 25 + cols // 4).astype(np.int32)
+    depressed = rng.random(int(grid.max()) + 1) < 0.3
+    want_count, got_count = np.zeros(1, np.int32), gpu.xp.zeros(1, dtype=gpu.xp.int32)
+    want = components.join_pieces(CPU, labels, 1, want_count, 2, grid, depressed, 6)
+    got = components.join_pieces(gpu, gpu.upload(labels), 1, got_count, 2, gpu.upload(grid),
+                                 gpu.upload(depressed), 6)
+    np.testing.assert_array_equal(to_host(got), want)
+    assert int(to_host(got_count)[0]) == int(want_count[0]) < count
 
 
 def test_component_filters_with_thousands_of_components(gpu):
@@ -677,6 +687,8 @@ def test_whole_pipeline_with_census_on_both_backends(demo_sample):
     labels_cpu, labels_gpu = cpu.labels > 0, to_host(gpu.labels) > 0
     assert (labels_cpu == labels_gpu).mean() > 0.998
     assert len(gpu.potholes) == len(cpu.potholes) >= 2
+    for name in ("observed", "searched"):
+        assert (gpu.host(name) == cpu.host(name)).mean() > 0.99, name
 
 
 def test_gpu_pipeline_finds_the_rendered_potholes(demo_sample):
@@ -880,7 +892,8 @@ def assert_same_results(got_all, want_all, graphed_at_least):
             continue
         replays += "graph" in got.timings_ms
         assert "graph" not in want.timings_ms
-        for name in ("disparity", "transformed", "labels", "superpixels"):
+        for name in ("disparity", "transformed", "labels", "superpixels", "observed",
+                     "searched"):
             np.testing.assert_array_equal(to_host(getattr(got, name)),
                                           to_host(getattr(want, name)), err_msg=name)
         assert (got.band, got.threshold_px, got.seeded) == (want.band, want.threshold_px,

@@ -257,17 +257,23 @@ def test_a_640x480_vehicle_rig_drive_is_processed_frame_by_frame():
                    and p.area_m2 > 0 and p.max_depth_m > 0 for p in outcome.potholes)
 
 
-def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_never_a_pothole(demo_sample):
-    """A vehicle rig (disparity noise about 0.2 px) resolves a pothole delta_pd_m = 8 mm deep
-    only near the camera: the far road is not observed, no pothole is reported there, and the
-    observed range matches the geometry; the demo rig sees all of its road."""
+def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_searched_by_superpixels(
+        demo_sample):
+    """A vehicle rig (disparity noise about 0.2 px a pixel) resolves a pothole delta_pd_m deep
+    only near the camera: the far road is not observed and the observed range matches the
+    geometry; the superpixel means, less noisy, are searched farther, and what they find
+    there is the pothole 5 m ahead, nothing else; the demo rig sees all of its road."""
     from pothole_detector.synthetic import vehicle_scene
     sample = render(vehicle_scene(pitch_deg=15.0))
     config = Config({"threshold_mode": "metres"})
     result = Pipeline(config, sample.calibration).run(sample.left, sample.right)
-    observed = result.host("observed")
+    observed, searched = result.host("observed"), result.host("searched")
+    labels = result.host("labels")
     assert observed.shape == sample.left.shape and 0.1 < observed.mean() < 0.9
-    assert not (result.host("labels")[~observed] > 0).any()
+    assert observed.mean() < searched.mean() < 0.9
+    assert not (labels[~searched] > 0).any()
+    beyond = (labels > 0) & ~observed
+    assert beyond.any() and np.mean(sample.labels[beyond] == 2) > 0.7
     near, far = result.observed_range_m
     assert 0 < near < far < 6
     # the resolvable depth at the far end of the observed road, from the geometry alone

@@ -144,7 +144,7 @@ def test_the_pieces_of_a_shallow_wide_pothole_are_one_pothole(monkeypatch):
     labels = Pipeline(Config(), calibration, CPU).run(*pair).host("labels")
     assert len(on_it(labels)) == 1 and (on_it(labels)[0], wide) in match_potholes(labels, truth)
 
-    def apart(backend, labels, reach_px, count, factor):
+    def apart(backend, labels, reach_px, count, *_):
         count[...] = labels.max()
         return labels
 
@@ -155,8 +155,8 @@ def test_the_pieces_of_a_shallow_wide_pothole_are_one_pothole(monkeypatch):
 def test_smooth_patches_are_too_poorly_textured_to_read_as_potholes():
     """Validation vehicle scene 7014: two patches of little texture read 1-4 cm below the
     road, one inside a wide white line (whose inside the matcher fills in from its edges),
-    one beside the groove of a smooth round cover. With the road's noise alone they are
-    false potholes; the noise scaled by how little texture they have puts them in it, and
+    one beside the groove of a smooth round cover. With the road's noise alone the cover's is
+    a false pothole; the noise scaled by how little texture they have puts them in it, and
     every pothole reported is a true one."""
     from pothole_detector.evaluation import match_potholes
     from pothole_detector.pipeline import Pipeline
@@ -168,5 +168,5 @@ def test_smooth_patches_are_too_poorly_textured_to_read_as_potholes():
         labels = result.host("labels")
         true = {d for d, _ in match_potholes(labels, truth)}
         false[scaled] = [p for p in result.potholes if p.label not in true]
-    assert not false[True] and len(false[False]) == 2
+    assert not false[True] and len(false[False]) == 1
     assert all(0.01 < p.mean_depth_m < 0.04 for p in false[False])

@@ -120,30 +120,54 @@ def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_la
 
 
 def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
-                factor: int = 1) -> Any:
+                factor: int = 1, grid: Any = None, depressed: Any = None,
+                bridge_px: int = 0) -> Any:
     """One depression, one component: the components of the int32 HxW ``labels`` (0 off them)
-    that come within about 2 ``reach_px`` px of each other are joined, and all are numbered
-    1..m; m goes into the backend int32 (1,) ``count``. A shallow, wide pothole often shows as
-    pieces, its shallowest parts under the threshold; gaps narrower than the segmentation
-    resolves (half a superpixel, with ``reach_px`` a quarter of one) do not part a depression.
+    that come within about 2 ``reach_px`` px of each other, or that a depressed stretch of
+    road joins, are joined, and all are numbered 1..m; m goes into the backend int32 (1,)
+    ``count``. A shallow, wide pothole often shows as pieces, its shallowest parts under the
+    threshold: gaps narrower than the segmentation resolves (half a superpixel, with
+    ``reach_px`` a quarter of one) do not part a depression, nor do gaps of road that lies
+    below the road around it (``depressed``: bool per superpixel, of the SLIC ``grid`` labels)
+    within ``bridge_px`` px of a component, while road at the level of the road around it
+    between two potholes keeps them apart.
     Worked out on the grid reduced by ``factor`` (the SLIC grid's; a cell is on where any of
     its pixels is labelled): its cells within ceil(``reach_px`` / ``factor``) cells of a labelled
-    one, in rows and in columns, are labelled as 8-connected components in raster order of
-    their first cell, and each labelled pixel takes its cell's. Returns the int32 HxW labels;
-    nothing read back."""
+    one, in rows and in columns, and its depressed cells within ceil(``bridge_px`` /
+    ``factor``) cells, are labelled as 8-connected components in raster order of their first
+    cell that holds a labelled one, and each labelled pixel takes its cell's. Returns the
+    int32 HxW labels; nothing read back."""
     xp = backend.xp
     on = labels > 0
     height, width = on.shape
     padded = xp.pad(on, ((0, -height % factor), (0, -width % factor)))
     cells = padded.reshape(padded.shape[0] // factor, factor, padded.shape[1] // factor,
                            factor).any(axis=(1, 3)).astype(xp.uint8)
-    size = 2 * -(-reach_px // factor) + 1
-    near = backend.ndimage.maximum_filter1d(
-        backend.ndimage.maximum_filter1d(cells, size, axis=0), size, axis=1) > 0
+    near = _dilated(backend, cells, -(-reach_px // factor)) > 0
+    if depressed is not None and bridge_px > 0:
+        rows, cols = min(grid.shape[0], cells.shape[0]), min(grid.shape[1], cells.shape[1])
+        bridge = xp.zeros_like(near)
+        bridge[:rows, :cols] = xp.take(depressed, grid[:rows, :cols])
+        near |= bridge & (_dilated(backend, cells, -(-bridge_px // factor)) > 0)
     joined, found = (label_on_device if backend.is_gpu else label_components)(backend, near)
-    count[...] = found
+    if depressed is not None and bridge_px > 0:
+        # bridges that reach no component are no component: number those that hold one
+        holds = xp.zeros(joined.size + 1, dtype=xp.int32)
+        holds[joined * (cells > 0)] = 1
+        holds[0] = 0
+        joined = (xp.cumsum(holds, dtype=xp.int32) * holds)[joined]
+        count[...] = holds.sum()
+    else:
+        count[...] = found
     return xp.where(on, upsample_labels(backend, joined.astype(xp.int32), factor, on.shape),
                     0).astype(xp.int32)
+
+
+def _dilated(backend: Backend, cells: Any, reach: int) -> Any:
+    """``cells`` (uint8 2D) dilated by a square of ``reach`` cells each way."""
+    size = 2 * reach + 1
+    return backend.ndimage.maximum_filter1d(
+        backend.ndimage.maximum_filter1d(cells, size, axis=0), size, axis=1)
 
 
 def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:

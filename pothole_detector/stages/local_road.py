@@ -46,14 +46,14 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
 
     ``means``: float32 (count,) mean transformed disparity D2 of each superpixel (grid label
     order, superpixels.grid_count of the HxW ``shape`` with ``region_size_px`` and
-    ``downsample``); ``usable``: bool (count,), superpixels that may carry the road (observed,
-    with valid pixels); ``drops``: float64 (count,) threshold drops (px), the band about the
-    local surface a superpixel must lie in to count as road; ``road_params``: the global
-    model's kernel parameters; ``road_level``: delta_DT (px). The window about superpixel k
-    reaches ``radius_m`` along and across the road: B / d m per pixel across at road
-    disparity d, B / (d cos i) along it, i the angle between the pixel's ray and the road's
-    normal. On the GPU one single-block kernel (kernels/local_road.cu) holds every round and
-    the noise."""
+    ``downsample``); ``usable``: bool (count,), superpixels that may carry the road (the road
+    ahead where the model holds, with valid pixels); ``drops``: float64 (count,) threshold
+    drops (px), the band about the local surface a superpixel must lie in to count as road;
+    ``road_params``: the global model's kernel parameters; ``road_level``: delta_DT (px). The
+    window about superpixel k reaches ``radius_m`` along and across the road: B / d m per
+    pixel across at road disparity d, B / (d cos i) along it, i the angle between the pixel's
+    ray and the road's normal. On the GPU one single-block kernel (kernels/local_road.cu)
+    holds every round and the noise."""
     xp = backend.xp
     height, width = shape[0] // downsample, shape[1] // downsample
     step = superpixels.grid_step(region_size_px, downsample)

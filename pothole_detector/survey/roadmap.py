@@ -104,10 +104,11 @@ def near_potholes(pixels: np.ndarray, width: int,
 def result_patch(result: Any, pixels: np.ndarray, plane: RoadFrame,
                  calibration: StereoCalibration, cell_m: float) -> RoadPatch:
     """The road patch (:func:`road_patch`) of a PipelineResult at ``pixels`` (flat indices),
-    those of its observed road with a disparity: only they are read back from the backend."""
+    those of the road searched for potholes with a disparity: only they are read back from the
+    backend."""
     width = result.disparity.shape[1]
     disparity = result.at("disparity", pixels)
-    keep = result.at("observed", pixels) & (disparity > 0)
+    keep = result.at("searched", pixels) & (disparity > 0)
     rows, cols = np.divmod(pixels[keep], width)
     return road_patch(rows, cols, disparity[keep], result.road, plane, calibration, cell_m)
 
