@@ -290,7 +290,7 @@ def test_compiling_the_cpu_kernels_ahead_covers_what_a_frame_needs(demo_sample):
 
     census_sgm.compile_cpu_kernels()
     kernels = (census_cpu._cost_volume, census_cpu._write_row_paths,
-               census_cpu._add_crossing_row, census_cpu._select)
+               census_cpu._add_crossing_paths, census_cpu._select)
     compiled = [list(kernel.signatures) for kernel in kernels]
     assert all(compiled)
     Pipeline(Config(), demo_sample.calibration).run(demo_sample.left, demo_sample.right)

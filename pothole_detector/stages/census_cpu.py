@@ -7,63 +7,73 @@ threads; compiled once and cached beside this file (or in the user's cache folde
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 _OUTSIDE = 1 << 20
-_MAX_PATH_COST = 1 << 14
-_POPCOUNT_16 = np.array([bin(value).count("1") for value in range(1 << 16)], dtype=np.uint8)
+# A path cost above any real one (31 + P2 <= 127): the sentinel at both ends of a path's levels
+# (index 0 and D + 1), so that every level takes the same steps; plus P1 it fits int16.
+_FAR = 1 << 14
+
+
+@intrinsic
+def _popcount(typingctx: Any, word: Any) -> Any:
+    """The number of set bits of an integer (the CPU's population count), as uint8."""
+    if not isinstance(word, types.Integer):
+        return None
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.trunc(builder.ctpop(args[0]), context.get_value_type(types.uint8))
+
+    return types.uint8(word), codegen
 
 
 @numba.njit(parallel=True, cache=True)
 def _cost_volume(census_left: np.ndarray, transformed_right: np.ndarray, first: np.ndarray,
-                 levels: int, invalid_cost: int, popcount: np.ndarray) -> np.ndarray:
+                 levels: int, invalid_cost: int) -> np.ndarray:
     """matching_cost's kernel: rows on the threads."""
     height, width = census_left.shape
     cost = np.empty((height, width, levels), dtype=np.uint8)
     for v in numba.prange(height):
+        right = transformed_right[v]
         for u in range(width):
             word = census_left[v, u]
-            for d in range(levels):
-                column = u - d
-                if column >= first[v]:
-                    other = word ^ transformed_right[v, min(max(column, 0), width - 1)]
-                    cost[v, u, d] = popcount[other & 0xFFFF] + popcount[other >> 16]
-                else:
-                    cost[v, u, d] = invalid_cost
+            out = cost[v, u]
+            inside = min(levels, max(u - first[v] + 1, 0))
+            for d in range(inside):
+                out[d] = _popcount(word ^ right[u - d])
+            for d in range(inside, levels):
+                out[d] = invalid_cost
     return cost
 
 
 @numba.njit(inline="always")
-def _step(cost: np.ndarray, v: int, u: int, source: np.ndarray, before: tuple[int, int],
-          target: np.ndarray, after: tuple[int, int], least: int, p1: int, p2: int) -> int:
-    """One step of a path: target[after] (D,) = cost[v, u] plus the least of source[before]
-    at the same level, a level off + P1 and its least + P2, less its ``least``; returns the
-    least of target[after]."""
-    levels = cost.shape[2]
-    last = levels - 1
+def _step(cost: np.ndarray, source: np.ndarray, target: np.ndarray, least: int, p1: int,
+          p2: int) -> int:
+    """One step of a path: target[1:D+1] = ``cost`` (D,) plus the least of ``source`` at the
+    same level, a level off + P1 and ``least`` + P2, less ``least`` (``source`` and
+    ``target``: (D + 2,) with _FAR at both ends); returns the least of the new costs."""
     jump = least + p2
-    value = cost[v, u, 0] + min(min(source[before][0], source[before][1] + p1), jump) - least
-    target[after][0] = value
-    new_least = value
-    for d in range(1, last):
-        near = min(source[before][d], min(source[before][d - 1], source[before][d + 1]) + p1)
-        value = cost[v, u, d] + min(near, jump) - least
-        target[after][d] = value
+    new_least = _FAR
+    for d in range(cost.shape[0]):
+        near = min(source[d + 1], min(source[d], source[d + 2]) + p1)
+        value = cost[d] + min(near, jump) - least
+        target[d + 1] = value
         new_least = min(new_least, value)
-    value = cost[v, u, last] + min(min(source[before][last], source[before][last - 1] + p1),
-                                   jump) - least
-    target[after][last] = value
-    return min(new_least, value)
+    return new_least
 
 
 @numba.njit(inline="always")
-def _start(cost: np.ndarray, v: int, u: int, paths: np.ndarray, after: tuple[int, int]) -> int:
-    """A path's first pixel: paths[after] (D,) = cost[v, u]; returns its least."""
-    least = _MAX_PATH_COST
-    for d in range(cost.shape[2]):
-        paths[after][d] = cost[v, u, d]
-        least = min(least, cost[v, u, d])
+def _start(cost: np.ndarray, target: np.ndarray) -> int:
+    """A path's first pixel: target[1:D+1] = ``cost`` (D,); returns its least."""
+    least = _FAR
+    for d in range(cost.shape[0]):
+        target[d + 1] = cost[d]
+        least = min(least, cost[d])
     return least
 
 
@@ -72,38 +82,54 @@ def _write_row_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int) -> N
     """Writes the sum of the two paths along the rows into ``total``: rows on the threads."""
     height, width, levels = cost.shape
     for v in numba.prange(height):
-        paths = np.empty((2, 1, levels), dtype=np.int16)
-        for forward in (True, False):
-            u = 0 if forward else width - 1
-            least = _start(cost, v, u, paths, (0, 0))
+        paths = np.full((2, levels + 2), _FAR, dtype=np.int16)
+        least = _start(cost[v, 0], paths[0])
+        for d in range(levels):
+            total[v, 0, d] = paths[0, d + 1]
+        for u in range(1, width):
+            least = _step(cost[v, u], paths[1 - u % 2], paths[u % 2], least, p1, p2)
+            out, path = total[v, u], paths[u % 2]
             for d in range(levels):
-                total[v, u, d] = paths[0, 0, d] + (0 if forward else total[v, u, d])
-            for step in range(1, width):
-                u += 1 if forward else -1
-                new, old = step % 2, 1 - step % 2
-                least = _step(cost, v, u, paths, (old, 0), paths, (new, 0), least, p1, p2)
-                for d in range(levels):
-                    total[v, u, d] = paths[new, 0, d] + (0 if forward else total[v, u, d])
+                out[d] = path[d + 1]
+        least = _start(cost[v, width - 1], paths[0])
+        out = total[v, width - 1]
+        for d in range(levels):
+            out[d] += paths[0, d + 1]
+        for step in range(1, width):
+            u = width - 1 - step
+            least = _step(cost[v, u], paths[1 - step % 2], paths[step % 2], least, p1, p2)
+            out, path = total[v, u], paths[step % 2]
+            for d in range(levels):
+                out[d] += path[d + 1]
 
 
 @numba.njit(parallel=True, cache=True)
-def _add_crossing_row(cost: np.ndarray, total: np.ndarray, before: np.ndarray,
-                      before_least: np.ndarray, after: np.ndarray, after_least: np.ndarray,
-                      v: int, starts: bool, p1: int, p2: int) -> None:
-    """Row ``v`` of the three paths that come from the row before (dx = -1, 0, 1): each
-    pixel's step from pixel u - dx of ``before`` (3xWxD, leasts 3xW) into ``after``, their
-    sum added to ``total``; pixels on the threads."""
-    width, levels = cost.shape[1], cost.shape[2]
-    for u in numba.prange(width):
-        for path in range(3):
-            previous = u - (path - 1)
-            if starts or previous < 0 or previous >= width:
-                after_least[path, u] = _start(cost, v, u, after, (path, u))
-            else:
-                after_least[path, u] = _step(cost, v, u, before, (path, previous), after,
-                                             (path, u), before_least[path, previous], p1, p2)
-        for d in range(levels):
-            total[v, u, d] += after[0, u, d] + after[1, u, d] + after[2, u, d]
+def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
+                        down: bool) -> None:
+    """Adds the three paths that come from the row before (dx = -1, 0, 1) to ``total``, row
+    after row down the image (``down``) or up it: each pixel's step from pixel u - dx of the
+    row before; the pixels of a row on the threads."""
+    height, width, levels = cost.shape
+    before = np.full((3, width, levels + 2), _FAR, dtype=np.int16)
+    after = np.full((3, width, levels + 2), _FAR, dtype=np.int16)
+    before_least = np.empty((3, width), dtype=np.int16)
+    after_least = np.empty((3, width), dtype=np.int16)
+    for index in range(height):
+        v = index if down else height - 1 - index
+        for u in numba.prange(width):
+            here = cost[v, u]
+            for path in range(3):
+                previous = u - (path - 1)
+                if index == 0 or previous < 0 or previous >= width:
+                    after_least[path, u] = _start(here, after[path, u])
+                else:
+                    after_least[path, u] = _step(here, before[path, previous], after[path, u],
+                                                 before_least[path, previous], p1, p2)
+            out, first, second, third = total[v, u], after[0, u], after[1, u], after[2, u]
+            for d in range(levels):
+                out[d] += first[d + 1] + second[d + 1] + third[d + 1]
+        before, after = after, before
+        before_least, after_least = after_least, before_least
 
 
 @numba.njit(parallel=True, cache=True)
@@ -153,26 +179,17 @@ def matching_cost(census_left: np.ndarray, transformed_right: np.ndarray, first:
     the GPT-transformed right ones; ``invalid_cost`` where u - d < ``first`` (int (H,), each
     row's first column that shows a right pixel)."""
     return _cost_volume(census_left, transformed_right, first.astype(np.int64), levels,
-                        invalid_cost, _POPCOUNT_16)
+                        invalid_cost)
 
 
 def path_sums(cost: np.ndarray, p1: int, p2: int) -> np.ndarray:
     """uint16 HxWxD sum S of the eight path costs L_r (census_sgm.DIRECTIONS) of the uint8
     HxWxD ``cost``: the two along the rows, then the three from above a row at a time down the
     image, then the three from below up it."""
-    height, width, levels = cost.shape
     total = np.empty(cost.shape, dtype=np.uint16)
     _write_row_paths(cost, total, p1, p2)
-    before = np.empty((3, width, levels), dtype=np.int16)
-    after = np.empty_like(before)
-    before_least = np.empty((3, width), dtype=np.int16)
-    after_least = np.empty_like(before_least)
-    for rows in (range(height), range(height - 1, -1, -1)):
-        for index, v in enumerate(rows):
-            _add_crossing_row(cost, total, before, before_least, after, after_least, v,
-                              index == 0, p1, p2)
-            before, after = after, before
-            before_least, after_least = after_least, before_least
+    _add_crossing_paths(cost, total, p1, p2, True)
+    _add_crossing_paths(cost, total, p1, p2, False)
     return total
 
 
