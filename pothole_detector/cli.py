@@ -223,7 +223,7 @@ def run_detect(args: argparse.Namespace) -> int:
     write_labels(out / "labels.png", labels)
     (out / "potholes.json").write_text(json.dumps(detection_json(result), indent=2) + "\n")
     write_rgb(out / "overlay.png", overlay(pipeline.view(left), labels, result.potholes,
-                                           result.host("observed")))
+                                           result.host("observed"), result.host("searched")))
     print(f"{len(result.potholes)} pothole(s); road roll {result.road.roll_deg:.2f} deg, "
           f"inliers {result.road.inlier_fraction:.0%}; {result.timings_ms['total']:.0f} ms on "
           f"{result.backend}; wrote {out}")

@@ -34,18 +34,28 @@ PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200),
                     (145, 30, 180), (70, 240, 240), (240, 50, 230)], dtype=np.uint8)
 
 
+UNSEARCHED_SHADE, UNOBSERVED_SHADE = 0.4, 0.7
+
+
 def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
-            observed: np.ndarray | None = None) -> np.ndarray:
+            observed: np.ndarray | None = None,
+            searched: np.ndarray | None = None) -> np.ndarray:
     """RGB uint8 HxWx3: ``image`` with each pothole tinted and outlined, its id, maximum depth
-    (cm) and area (m^2) written beside it; where the bool HxW ``observed`` is false (the road
-    is too far or too noisy to show a pothole), dimmed."""
+    (cm) and area (m^2) written beside it; where the bool HxW ``searched`` is false (the road
+    is too far or too noisy for a pothole to show) dimmed to UNSEARCHED_SHADE, and where it
+    is searched but the bool HxW ``observed`` is false (a pothole would show in a
+    superpixel's mean, not in one pixel) to UNOBSERVED_SHADE; without ``searched``, the road
+    not observed to UNSEARCHED_SHADE."""
     if image.ndim == 2:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
     if image.dtype != np.uint8:
         image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
     canvas = image.copy()
     if observed is not None:
-        canvas[~observed] = (canvas[~observed] * 0.4).astype(np.uint8)
+        unsearched = ~observed if searched is None else ~searched
+        beyond = np.zeros_like(unsearched) if searched is None else searched & ~observed
+        canvas[unsearched] = (canvas[unsearched] * UNSEARCHED_SHADE).astype(np.uint8)
+        canvas[beyond] = (canvas[beyond] * UNOBSERVED_SHADE).astype(np.uint8)
     scale = max(0.5, min(image.shape[:2]) / 700.0)
     thickness = max(1, int(round(2 * scale)))
     for pothole in potholes:

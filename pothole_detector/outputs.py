@@ -91,7 +91,8 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
         messages["pothole_markers"] = conversions.markers_message(
             array("labels"), potholes, result.road, calibration, header)
     if "overlay" in wanted:
-        made.overlay = overlay(left, array("labels"), potholes, array("observed"))
+        made.overlay = overlay(left, array("labels"), potholes, array("observed"),
+                               array("searched"))
         messages["overlay"] = conversions.array_to_image(made.overlay, "rgb8", header)
     return made
 
