@@ -52,9 +52,9 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
         image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
     canvas = image.copy()
     if observed is not None:
-        unsearched = ~observed if searched is None else ~searched
-        beyond = np.zeros_like(unsearched) if searched is None else searched & ~observed
-        canvas[unsearched] = (canvas[unsearched] * UNSEARCHED_SHADE).astype(np.uint8)
+        looked = observed if searched is None else searched
+        beyond = looked & ~observed
+        canvas[~looked] = (canvas[~looked] * UNSEARCHED_SHADE).astype(np.uint8)
         canvas[beyond] = (canvas[beyond] * UNOBSERVED_SHADE).astype(np.uint8)
     scale = max(0.5, min(image.shape[:2]) / 700.0)
     thickness = max(1, int(round(2 * scale)))

@@ -11,6 +11,7 @@ together.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, Callable, Protocol
@@ -329,15 +330,12 @@ class Method:
                 thresholding.observation, backend, transformed.shape, region_px,
                 config.slic_downsample, report.road_params, report.road, self.calibration,
                 config.delta_pd_m, config.delta_pd_px if pixels else 0.0,
-                config.threshold_noise_sigmas, config.max_threshold_m)
-            observed, drops = observe(report.observed_range)
+                config.threshold_noise_sigmas, max_depth_m=config.max_threshold_m)
+            observed, drops = observe(observed_range=report.observed_range)
             drop = config.delta_pd_px if pixels else drops
             searched, local, bumps, depressed = observed, None, None, None
             if config.road_reference == "local":
-                ahead, ahead_drops = thresholding.observation(
-                    backend, transformed.shape, region_px, config.slic_downsample,
-                    report.road_params, report.road, self.calibration, config.delta_pd_m,
-                    config.delta_pd_px if pixels else 0.0, config.threshold_noise_sigmas)
+                ahead, ahead_drops = observe(max_depth_m=math.inf)
                 usable = ahead & (found.valid_fraction > config.superpixel_min_valid_fraction)
                 local, noise = local_road.offsets(
                     backend, found.means, usable, ahead_drops, transformed.shape, region_px,

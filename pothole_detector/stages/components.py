@@ -144,21 +144,21 @@ def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
     cells = padded.reshape(padded.shape[0] // factor, factor, padded.shape[1] // factor,
                            factor).any(axis=(1, 3)).astype(xp.uint8)
     near = _dilated(backend, cells, -(-reach_px // factor)) > 0
-    if depressed is not None and bridge_px > 0:
+    bridging = depressed is not None and bridge_px > 0
+    if bridging:
         rows, cols = min(grid.shape[0], cells.shape[0]), min(grid.shape[1], cells.shape[1])
         bridge = xp.zeros_like(near)
         bridge[:rows, :cols] = xp.take(depressed, grid[:rows, :cols])
         near |= bridge & (_dilated(backend, cells, -(-bridge_px // factor)) > 0)
     joined, found = (label_on_device if backend.is_gpu else label_components)(backend, near)
-    if depressed is not None and bridge_px > 0:
+    if bridging:
         # bridges that reach no component are no component: number those that hold one
-        holds = xp.zeros(joined.size + 1, dtype=xp.int32)
-        holds[joined * (cells > 0)] = 1
-        holds[0] = 0
-        joined = (xp.cumsum(holds, dtype=xp.int32) * holds)[joined]
-        count[...] = holds.sum()
-    else:
-        count[...] = found
+        holds = xp.zeros(joined.size + 1, dtype=bool)
+        holds[joined * (cells > 0)] = True
+        holds[0] = False
+        joined = renumbering(xp, holds)[joined]
+        found = holds.sum()
+    count[...] = found
     return xp.where(on, upsample_labels(backend, joined.astype(xp.int32), factor, on.shape),
                     0).astype(xp.int32)
 
@@ -170,9 +170,15 @@ def _dilated(backend: Backend, cells: Any, reach: int) -> Any:
         backend.ndimage.maximum_filter1d(cells, size, axis=0), size, axis=1)
 
 
+def renumbering(xp: Any, keep: Any) -> Any:
+    """int32 (k+1,): label i's new label, 1..m in order where the bool (k+1,) ``keep`` is
+    true, 0 where not; on the backend, nothing read back."""
+    return xp.cumsum(keep).astype(xp.int32) * keep
+
+
 def relabel(xp: Any, labels: Any, keep: Any) -> tuple[Any, int]:
     """Keep the labels where the bool (k+1,) ``keep`` is true, renumbered 1..m in order."""
-    new_ids = xp.cumsum(keep).astype(xp.int32) * keep
+    new_ids = renumbering(xp, keep)
     kept = int(to_host(keep.sum()))
     return new_ids[labels].astype(xp.int32), kept
 
