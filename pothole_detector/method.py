@@ -384,11 +384,10 @@ class Method:
                 config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
                 report.capacity, report.components, frame.inconsistent, frame.bumps)
         with clock.stage("refine"):
-            filled, smoothed = refine.smooth(backend, frame.disparity)
-            if frame.local is not None:
-                shift = local_road.pixel_offsets(backend, frame.local, frame.disparity.shape,
-                                                 frame.region_px, config.slic_downsample)
-                filled, smoothed = filled + shift, smoothed + shift
+            shift = None if frame.local is None else local_road.pixel_offsets(
+                backend, frame.local, frame.disparity.shape, frame.region_px,
+                config.slic_downsample)
+            filled, smoothed = refine.smooth(backend, frame.disparity, shift)
             labels = refine.refine_labels(
                 backend, labels, filled, road, config.delta_dt_px, found.labels, frame.drops,
                 frame.searched, refine.radius(frame.region_px),

@@ -1083,6 +1083,12 @@ def test_refinement_on_the_gpu_matches_the_reference(gpu):
     for got, want in ((got_filled, filled), (got_smoothed, smoothed)):
         np.testing.assert_allclose(to_host(got), want, rtol=1e-5, atol=1e-4)
         np.testing.assert_array_equal(np.isnan(to_host(got)), np.isnan(want))
+    offsets = rng.uniform(-1.0, 1.0, disparity.shape).astype(np.float32)
+    shifted = smooth(CPU, disparity, offsets)
+    got_shifted = smooth(gpu, gpu.upload(disparity), gpu.upload(offsets))
+    for got, want, plain in zip(got_shifted, shifted, (filled, smoothed)):
+        np.testing.assert_allclose(to_host(got), want, rtol=1e-5, atol=1e-4)
+        np.testing.assert_array_equal(want, plain + offsets)
     want = refine_labels(CPU, labels, filled, road, 32.0, superpixel_labels, drops, observed,
                          10, 0.25)
     for params in (road, road_model.device_params(gpu, road)):
@@ -1217,6 +1223,21 @@ def test_photometric_disagreement_matches_the_cpu(gpu):
     device = photometric.disagreement(gpu, gpu.upload(left), gpu.upload(right),
                                       gpu.upload(disparity))
     np.testing.assert_allclose(to_host(device), cpu, rtol=1e-5, atol=1e-3)
+    # a frame larger than one sweep of the reduction's threads, a gain of 1.3 between the
+    # views and a glossy patch that the trimmed gain leaves out
+    height, width = 400, 720
+    scene = rng.integers(40, 160, (height, width + 32)).astype(np.float32)
+    left = scene[:, 16:width + 16].copy()
+    left[100:200, 300:400] = 250
+    right = scene[:, 22:width + 22] / 1.3
+    disparity = np.full((height, width), 6.0, np.float32)
+    disparity[:, :8] = np.nan
+    left, right = left.astype(np.uint8), right.astype(np.uint8)
+    cpu = photometric.disagreement(CPU, left, right, disparity)
+    device = to_host(photometric.disagreement(gpu, gpu.upload(left), gpu.upload(right),
+                                              gpu.upload(disparity)))
+    np.testing.assert_allclose(device, cpu, rtol=1e-5, atol=1e-3)
+    assert np.nanmedian(cpu[:, 8:]) < 1.0 and np.nanmin(cpu[110:190, 310:390]) > 50
     means = rng.uniform(0, 4, 50).astype(np.float32)
     road = rng.random(50) < 0.7
     np.testing.assert_array_equal(

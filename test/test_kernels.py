@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from pothole_detector import backend
-from pothole_detector.stages import (census_sgm, local_road, measure, rectify, refine, road_model,
-                                     superpixels, threshold)
+from pothole_detector.stages import (census_sgm, local_road, measure, photometric, rectify,
+                                     refine, road_model, superpixels, threshold)
 
 ARCHITECTURE = "sm_90"
 
@@ -69,6 +69,8 @@ KERNEL_BUILDS: dict[str, list[dict[str, int]]] = {
     "sgm.cu": _matcher_builds(),
     "rectify.cu": [rectify.REMAP_DEFINES],
     "local_road.cu": [local_road._DEFINES],
+    "photometric.cu": [photometric._DEFINES],
+    "texture.cu": [{}],
 }
 
 

@@ -196,3 +196,81 @@ extern "C" __global__ void label_number(const int* parent, const int* root_count
     const int root = parent[index];
     labels[index] = root < 0 ? 0 : root_count[root];
 }
+
+// join_pieces (stages/components.py, whose array code is the reference) on the grid reduced by
+// `factor` (rows x cols cells), one thread per cell or pixel:
+// join_cells: a cell is on where any pixel of its factor x factor square is labelled.
+// join_rows: the cells' running maxima along the row within `reach` and `bridge_reach`.
+// join_near: those along the column: a cell is near where an on cell lies within `reach`
+//   (rows and columns), or where it is depressed (bridging, and inside the rows_in x cols_in
+//   SLIC grid) with an on cell within `bridge_reach`.
+// join_holds: holds[k] where an on cell is labelled k.
+// join_labels: each labelled pixel takes its cell's joined label, through `table` where given.
+extern "C" __global__ void join_cells(const int* labels, int height, int width, int factor,
+                                      int rows, int cols, unsigned char* cells) {
+    const int k = blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= rows * cols) return;
+    const int top = (k / cols) * factor, left = (k % cols) * factor;
+    unsigned char on = 0;
+    for (int r = top; r < min(top + factor, height); ++r)
+        for (int c = left; c < min(left + factor, width); ++c)
+            on |= labels[(long long)r * width + c] > 0;
+    cells[k] = on;
+}
+
+extern "C" __global__ void join_rows(const unsigned char* cells, int rows, int cols, int reach,
+                                     int bridge_reach, unsigned char* near_rows,
+                                     unsigned char* bridge_rows) {
+    const int k = blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= rows * cols) return;
+    const int j = k % cols, widest = max(reach, bridge_reach);
+    const unsigned char* row = cells + (k - j);
+    unsigned char near = 0, bridge = 0;
+    for (int c = max(j - widest, 0); c <= min(j + widest, cols - 1); ++c) {
+        const unsigned char on = row[c];
+        if (abs(c - j) <= reach) near |= on;
+        if (abs(c - j) <= bridge_reach) bridge |= on;
+    }
+    near_rows[k] = near;
+    bridge_rows[k] = bridge;
+}
+
+extern "C" __global__ void join_near(const unsigned char* near_rows,
+                                     const unsigned char* bridge_rows, int rows, int cols,
+                                     int reach, int bridge_reach, const bool* depressed,
+                                     const int* grid, int rows_in, int cols_in, int bridging,
+                                     bool* near) {
+    const int k = blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= rows * cols) return;
+    const int i = k / cols, j = k % cols;
+    bool found = false;
+    for (int r = max(i - reach, 0); r <= min(i + reach, rows - 1) && !found; ++r)
+        found = near_rows[r * cols + j] != 0;
+    if (!found && bridging && i < rows_in && j < cols_in && depressed[grid[i * cols_in + j]]) {
+        for (int r = max(i - bridge_reach, 0); r <= min(i + bridge_reach, rows - 1) && !found;
+             ++r)
+            found = bridge_rows[r * cols + j] != 0;
+    }
+    near[k] = found;
+}
+
+extern "C" __global__ void join_holds(const int* joined, const unsigned char* cells, int size,
+                                      bool* holds) {
+    const int k = blockIdx.x * blockDim.x + threadIdx.x;
+    if (k < size && cells[k] && joined[k] > 0) holds[joined[k]] = true;
+}
+
+extern "C" __global__ void join_labels(const int* labels, const int* joined, const int* table,
+                                       int use_table, int height, int width, int factor,
+                                       int rows, int cols, int* out) {
+    const int c = blockIdx.x * blockDim.x + threadIdx.x;
+    const int r = blockIdx.y * blockDim.y + threadIdx.y;
+    if (c >= width || r >= height) return;
+    const long long index = (long long)r * width + c;
+    int label = 0;
+    if (labels[index] > 0) {
+        label = joined[min(r / factor, rows - 1) * cols + min(c / factor, cols - 1)];
+        if (use_table) label = table[label];
+    }
+    out[index] = label;
+}

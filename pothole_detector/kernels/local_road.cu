@@ -14,13 +14,22 @@ __device__ void summed_areas(double* table, int moments, int rows, int cols) {
     const int stride = (rows + 1) * (cols + 1);
     for (int e = threadIdx.x; e < moments * rows; e += blockDim.x) {
         double* line = table + (e / rows) * stride + (e % rows + 1) * (cols + 1);
-        for (int j = 2; j <= cols; ++j) line[j] += line[j - 1];
+        double running = line[1];
+#pragma unroll 8
+        for (int j = 2; j <= cols; ++j) {
+            running += line[j];
+            line[j] = running;
+        }
     }
     __syncthreads();
     for (int e = threadIdx.x; e < moments * cols; e += blockDim.x) {
         double* column = table + (e / cols) * stride + e % cols + 1;
-        for (int i = 2; i <= rows; ++i)
-            column[i * (cols + 1)] += column[(i - 1) * (cols + 1)];
+        double running = column[cols + 1];
+#pragma unroll 8
+        for (int i = 2; i <= rows; ++i) {
+            running += column[i * (cols + 1)];
+            column[i * (cols + 1)] = running;
+        }
     }
     __syncthreads();
 }
@@ -133,4 +142,38 @@ extern "C" __global__ void local_road_fit(
         noise[k] = support >= MIN_PLANE_SUPPORT ? sqrt(spread / fmax(support - 3.0, 1.0))
                                                 : sigma;
     }
+}
+
+// local_pixel_offsets (stages/local_road.py, pixel_offsets, whose array code is the reference):
+// one thread per full-resolution pixel, the cells' offsets bilinear between the cells' centres
+// (cell_px apart, centres at (k + 0.5) cell_px), constant past the outer centres, in float.
+__device__ __forceinline__ void cell_weights(int pixel, int cells, float cell_px, int* low,
+                                             int* high, float* weight) {
+    float position = __fsub_rn(__fdiv_rn(__fadd_rn((float)pixel, 0.5f), cell_px), 0.5f);
+    position = fminf(fmaxf(position, 0.0f), (float)(cells - 1));
+    *low = (int)floorf(position);
+    *high = min(*low + 1, cells - 1);
+    *weight = __fsub_rn(position, (float)*low);
+}
+
+extern "C" __global__ void local_pixel_offsets(const double* cell_offsets, int cells_y,
+                                               int cells_x, float cell_px, int height, int width,
+                                               float* out) {
+    const int col = blockIdx.x * blockDim.x + threadIdx.x;
+    const int row = blockIdx.y * blockDim.y + threadIdx.y;
+    if (col >= width || row >= height) return;
+    int left, right, top, bottom;
+    float across_weight, down_weight;
+    cell_weights(col, cells_x, cell_px, &left, &right, &across_weight);
+    cell_weights(row, cells_y, cell_px, &top, &bottom, &down_weight);
+    const float keep_across = __fsub_rn(1.0f, across_weight);
+    const float keep_down = __fsub_rn(1.0f, down_weight);
+    const double* upper = cell_offsets + (long long)top * cells_x;
+    const double* lower = cell_offsets + (long long)bottom * cells_x;
+    const float at_top = __fadd_rn(__fmul_rn(__double2float_rn(upper[left]), keep_across),
+                                   __fmul_rn(__double2float_rn(upper[right]), across_weight));
+    const float at_bottom = __fadd_rn(__fmul_rn(__double2float_rn(lower[left]), keep_across),
+                                      __fmul_rn(__double2float_rn(lower[right]), across_weight));
+    out[(long long)row * width + col] = __fadd_rn(__fmul_rn(at_top, keep_down),
+                                                  __fmul_rn(at_bottom, down_weight));
 }

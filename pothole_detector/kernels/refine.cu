@@ -2,7 +2,7 @@
 // pixel.
 // refine_smooth: the mean of the valid (finite) disparities of the SMOOTHING x SMOOTHING
 //   square about each pixel, clipped at the image border: filled (NaN where none is valid)
-//   and smoothed (NaN where the pixel itself is invalid).
+//   and smoothed (NaN where the pixel itself is invalid), both plus offsets where shifted.
 // refine_grow: a labelled pixel keeps its label; an unlabelled one whose superpixel is observed
 //   and whose transformed filled disparity (as kernels/transform.cu computes it) lies more
 //   than fraction x its superpixel's drop below delta takes the largest label within `radius`
@@ -12,28 +12,46 @@
 //   0 < k <= road disparity at u + 1 less filled at u - (SMOOTHING - 1), up to the next
 //   labelled pixel, whose superpixel is observed, and sets smoothed NaN there (no other thread
 //   writes those pixels).
-// Defined by the launcher (stages/refine.py, _kernel): SMOOTHING and the road parameters'
-// layout (ROAD_*).
+// Defined by the launcher (stages/refine.py, _kernel): SMOOTHING, the block's BLOCK_X x
+// BLOCK_Y threads and the road parameters' layout (ROAD_*).
 #include "road_disparity.cuh"
 
-extern "C" __global__ void refine_smooth(const float* disparity, int height, int width,
-                                         float* filled, float* smoothed) {
-    const int col = blockIdx.x * blockDim.x + threadIdx.x;
-    const int row = blockIdx.y * blockDim.y + threadIdx.y;
-    if (col >= width || row >= height) return;
+#define TILE_X (BLOCK_X + SMOOTHING - 1)
+#define TILE_Y (BLOCK_Y + SMOOTHING - 1)
+
+extern "C" __global__ void refine_smooth(const float* disparity, const float* offsets,
+                                         int shifted, int height, int width, float* filled,
+                                         float* smoothed) {
+    // the block's squares, NaN outside the image, in the order of the clipped sums
+    __shared__ float tile[TILE_Y][TILE_X];
     const int half = SMOOTHING / 2;
+    const int top = blockIdx.y * BLOCK_Y - half, left = blockIdx.x * BLOCK_X - half;
+    for (int e = threadIdx.y * BLOCK_X + threadIdx.x; e < TILE_X * TILE_Y;
+         e += BLOCK_X * BLOCK_Y) {
+        const int r = top + e / TILE_X, c = left + e % TILE_X;
+        tile[e / TILE_X][e % TILE_X] = r >= 0 && r < height && c >= 0 && c < width
+                                           ? disparity[(long long)r * width + c]
+                                           : __int_as_float(0x7fc00000);
+    }
+    __syncthreads();
+    const int col = blockIdx.x * BLOCK_X + threadIdx.x;
+    const int row = blockIdx.y * BLOCK_Y + threadIdx.y;
+    if (col >= width || row >= height) return;
     float total = 0.0f;
     int count = 0;
-    for (int r = max(row - half, 0); r <= min(row + half, height - 1); ++r)
-        for (int c = max(col - half, 0); c <= min(col + half, width - 1); ++c) {
-            const float value = disparity[(long long)r * width + c];
+#pragma unroll
+    for (int dy = 0; dy < SMOOTHING; ++dy)
+#pragma unroll
+        for (int dx = 0; dx < SMOOTHING; ++dx) {
+            const float value = tile[threadIdx.y + dy][threadIdx.x + dx];
             if (isfinite(value)) {
                 total += value;
                 ++count;
             }
         }
     const long long index = (long long)row * width + col;
-    const float mean = count > 0 ? total / count : __int_as_float(0x7fc00000);
+    float mean = count > 0 ? total / count : __int_as_float(0x7fc00000);
+    if (shifted) mean = __fadd_rn(mean, offsets[index]);
     filled[index] = mean;
     smoothed[index] = isfinite(disparity[index]) ? mean : __int_as_float(0x7fc00000);
 }
@@ -45,23 +63,40 @@ extern "C" __global__ void refine_grow(const int* labels, const float* filled,
                                        int* out) {
     const int col = blockIdx.x * blockDim.x + threadIdx.x;
     const int row = blockIdx.y * blockDim.y + threadIdx.y;
-    if (col >= width || row >= height) return;
+    const bool inside = col < width && row < height;
     const long long index = (long long)row * width + col;
-    if (labels[index] > 0) {
-        out[index] = labels[index];
-        return;
+    int label = 0;
+    bool deep = false;
+    if (inside) {
+        label = labels[index];
+        if (label <= 0) {
+            const float road_value = __double2float_rn(road_disparity(road, col, row));
+            const float transformed = __fadd_rn(__fsub_rn(filled[index], road_value), delta);
+            const float below = __fsub_rn(delta, transformed);
+            const int superpixel = superpixels[index];
+            deep = observed[superpixel] && (double)below > fraction * drops[superpixel];
+        }
     }
-    const float road_value = __double2float_rn(road_disparity(road, col, row));
-    const float transformed = __fadd_rn(__fsub_rn(filled[index], road_value), delta);
-    const float below = __fsub_rn(delta, transformed);
-    const int superpixel = superpixels[index];
+    // most blocks have no deep pixel, or no label within reach of any of their pixels
     int found = 0;
-    if (observed[superpixel] && (double)below > fraction * drops[superpixel]) {
-        for (int r = max(row - radius, 0); r <= min(row + radius, height - 1); ++r)
-            for (int c = max(col - radius, 0); c <= min(col + radius, width - 1); ++c)
-                found = max(found, labels[(long long)r * width + c]);
+    if (__syncthreads_or(deep)) {
+        const int top = max((int)(blockIdx.y * blockDim.y) - radius, 0);
+        const int bottom = min((int)((blockIdx.y + 1) * blockDim.y) - 1 + radius, height - 1);
+        const int first = max((int)(blockIdx.x * blockDim.x) - radius, 0);
+        const int span = min((int)((blockIdx.x + 1) * blockDim.x) - 1 + radius, width - 1)
+                         - first + 1;
+        const int reach = (bottom - top + 1) * span;
+        bool labelled = false;
+        for (int e = threadIdx.y * blockDim.x + threadIdx.x; e < reach && !labelled;
+             e += blockDim.x * blockDim.y)
+            labelled = labels[(long long)(top + e / span) * width + first + e % span] > 0;
+        if (__syncthreads_or(labelled) && deep) {
+            for (int r = max(row - radius, 0); r <= min(row + radius, height - 1); ++r)
+                for (int c = max(col - radius, 0); c <= min(col + radius, width - 1); ++c)
+                    found = max(found, labels[(long long)r * width + c]);
+        }
     }
-    out[index] = found;
+    if (inside) out[index] = label > 0 ? label : found;
 }
 
 extern "C" __global__ void refine_occluded(const int* labels, const float* filled,

@@ -136,7 +136,11 @@ def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
     one, in rows and in columns, and its depressed cells within ceil(``bridge_px`` /
     ``factor``) cells, are labelled as 8-connected components in raster order of their first
     cell that holds a labelled one, and each labelled pixel takes its cell's. Returns the
-    int32 HxW labels; nothing read back."""
+    int32 HxW labels; nothing read back. On the GPU five small kernels and the device
+    labelling (kernels/components.cu)."""
+    if backend.is_gpu:
+        return _join_on_device(backend, labels, reach_px, count, factor, grid, depressed,
+                               bridge_px)
     xp = backend.xp
     on = labels > 0
     height, width = on.shape
@@ -161,6 +165,51 @@ def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
     count[...] = found
     return xp.where(on, upsample_labels(backend, joined.astype(xp.int32), factor, on.shape),
                     0).astype(xp.int32)
+
+
+def _join_on_device(backend: Backend, labels: Any, reach_px: int, count: Any, factor: int,
+                    grid: Any, depressed: Any, bridge_px: int) -> Any:
+    """:func:`join_pieces` on the GPU, the same labels."""
+    xp = backend.xp
+    i32 = np.int32
+    labels = xp.ascontiguousarray(labels, dtype=xp.int32)
+    height, width = labels.shape
+    rows, cols = -(-height // factor), -(-width // factor)
+    size = rows * cols
+    cell_grid, block = ((size + 255) // 256,), (256,)
+    cells = xp.empty((rows, cols), dtype=xp.uint8)
+    _kernel(backend, "join_cells")(
+        cell_grid, block, (labels, i32(height), i32(width), i32(factor), i32(rows), i32(cols),
+                           cells))
+    bridging = depressed is not None and bridge_px > 0
+    reach, bridge_reach = -(-reach_px // factor), -(-bridge_px // factor) if bridging else 0
+    near_rows = xp.empty((rows, cols), dtype=xp.uint8)
+    bridge_rows = xp.empty((rows, cols), dtype=xp.uint8)
+    _kernel(backend, "join_rows")(
+        cell_grid, block, (cells, i32(rows), i32(cols), i32(reach), i32(bridge_reach),
+                           near_rows, bridge_rows))
+    near = xp.empty((rows, cols), dtype=xp.bool_)
+    flags = xp.ascontiguousarray(depressed, dtype=xp.bool_) if bridging else near
+    slic_grid = xp.ascontiguousarray(grid, dtype=xp.int32) if bridging else cells
+    rows_in, cols_in = slic_grid.shape if bridging else (0, 0)
+    _kernel(backend, "join_near")(
+        cell_grid, block, (near_rows, bridge_rows, i32(rows), i32(cols), i32(reach),
+                           i32(bridge_reach), flags, slic_grid, i32(rows_in), i32(cols_in),
+                           i32(bridging), near))
+    joined, found = label_on_device(backend, near)
+    table = joined
+    if bridging:
+        holds = xp.zeros(size + 1, dtype=xp.bool_)
+        _kernel(backend, "join_holds")(cell_grid, block, (joined, cells, i32(size), holds))
+        table = renumbering(xp, holds)
+        found = holds.sum()
+    count[...] = found
+    out = xp.empty((height, width), dtype=xp.int32)
+    _kernel(backend, "join_labels")(
+        (-(-width // 32), -(-height // 8)), (32, 8),
+        (labels, joined, table, i32(bridging), i32(height), i32(width), i32(factor), i32(rows),
+         i32(cols), out))
+    return out
 
 
 def _dilated(backend: Backend, cells: Any, reach: int) -> Any:

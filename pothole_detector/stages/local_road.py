@@ -178,11 +178,20 @@ def pixel_offsets(backend: Backend, cell_offsets: Any, shape: tuple[int, int],
                   region_size_px: int, downsample: int) -> Any:
     """The per-superpixel ``cell_offsets`` (float64 (count,), grid label order) as a float32
     HxW map over the full-resolution ``shape``: bilinear between the grid cells' centres
-    (superpixels.cell_centres), constant past the outer centres."""
+    (superpixels.cell_centres), constant past the outer centres. On the GPU one kernel
+    (kernels/local_road.cu)."""
     xp = backend.xp
     cells_y, cells_x = superpixels.grid_shape(shape, region_size_px, downsample)
-    grid = cell_offsets.reshape(cells_y, cells_x).astype(xp.float32)
     cell_px = float(superpixels.grid_step(region_size_px, downsample) * downsample)
+    if backend.is_gpu:
+        height, width = shape
+        out = xp.empty((height, width), dtype=xp.float32)
+        backend.kernel("local_road.cu", "local_pixel_offsets", _DEFINES)(
+            (-(-width // 32), -(-height // 8)), (32, 8),
+            (xp.ascontiguousarray(cell_offsets, dtype=xp.float64), np.int32(cells_y),
+             np.int32(cells_x), np.float32(cell_px), np.int32(height), np.int32(width), out))
+        return out
+    grid = cell_offsets.reshape(cells_y, cells_x).astype(xp.float32)
     columns = _interpolation(xp, shape[1], cells_x, cell_px)
     rows = _interpolation(xp, shape[0], cells_y, cell_px)
     across = grid[:, columns[0]] * columns[2] + grid[:, columns[1]] * columns[3]

@@ -18,16 +18,18 @@ from .transform import transform_disparity
 SMOOTHING_PX = 7
 # kernels/refine.cu: the block of one thread per pixel
 _BLOCK = (32, 8)
-_REFINE_DEFINES = {"SMOOTHING": SMOOTHING_PX, **ROAD_DEFINES}
+_REFINE_DEFINES = {"SMOOTHING": SMOOTHING_PX, "BLOCK_X": _BLOCK[0], "BLOCK_Y": _BLOCK[1],
+                   **ROAD_DEFINES}
 
 
-def smooth(backend: Backend, disparity: Any) -> tuple[Any, Any]:
+def smooth(backend: Backend, disparity: Any, offsets: Any = None) -> tuple[Any, Any]:
     """The mean of the valid values of a float32 HxW disparity map (NaN invalid) over the
     SMOOTHING_PX x SMOOTHING_PX square about each pixel, clipped at the border: matching noise
     averaged out, the depth structure of a pothole kept. Returns float32 HxW ``filled`` (NaN
     only where no value of the square is valid: an occluded pothole wall takes its
-    neighbours') and ``smoothed`` (NaN where the pixel itself is invalid). On the GPU one
-    kernel (kernels/refine.cu)."""
+    neighbours') and ``smoothed`` (NaN where the pixel itself is invalid), both plus
+    ``offsets`` (float32 HxW px, the local road's: local_road.pixel_offsets) where given. On
+    the GPU one kernel (kernels/refine.cu)."""
     xp, ndimage = backend.xp, backend.ndimage
     if backend.is_gpu:
         height, width = disparity.shape
@@ -35,8 +37,10 @@ def smooth(backend: Backend, disparity: Any) -> tuple[Any, Any]:
         smoothed = xp.empty((height, width), dtype=xp.float32)
         _kernel(backend, "refine_smooth")(
             _grid(height, width), _BLOCK,
-            (xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height),
-             np.int32(width), filled, smoothed))
+            (xp.ascontiguousarray(disparity, dtype=xp.float32),
+             disparity if offsets is None else xp.ascontiguousarray(offsets, dtype=xp.float32),
+             np.int32(offsets is not None), np.int32(height), np.int32(width), filled,
+             smoothed))
         return filled, smoothed
     valid = xp.isfinite(disparity)
     total = ndimage.uniform_filter(xp.where(valid, disparity, 0).astype(xp.float32),
@@ -45,6 +49,8 @@ def smooth(backend: Backend, disparity: Any) -> tuple[Any, Any]:
     mean = total / xp.maximum(share, xp.float32(1e-6))
     nan = xp.float32(xp.nan)
     filled = xp.where(share > 1e-4, mean, nan).astype(xp.float32)
+    if offsets is not None:
+        filled = filled + offsets
     return filled, xp.where(valid, filled, nan)
 
 

@@ -13,19 +13,32 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from ..backend import Backend
 from .road_model import masked_median
 from .superpixels import superpixel_means
 
 # RMS gradient (grey levels) that a superpixel without any gradient counts as
 FLAT_RMS_GREY = 1e-3
+# kernels/texture.cu: threads of a block
+_THREADS = 256
 
 
 def gradient_energy(backend: Backend, left: Any, valid: Any) -> Any:
     """The squared horizontal gradient of the uint8 HxW ``left`` image, (I(u+1) - I(u-1))^2 / 4
     (grey levels^2), where the bool HxW ``valid`` holds and both neighbours exist: float32
-    HxW, NaN elsewhere."""
+    HxW, NaN elsewhere. On the GPU one kernel (kernels/texture.cu)."""
     xp = backend.xp
+    if backend.is_gpu:
+        height, width = left.shape
+        size = height * width
+        energy = xp.empty((height, width), dtype=xp.float32)
+        backend.kernel("texture.cu", "gradient_energy", {})(
+            (-(-size // _THREADS),), (_THREADS,),
+            (xp.ascontiguousarray(left, dtype=xp.uint8),
+             xp.ascontiguousarray(valid, dtype=xp.bool_), np.int64(size), np.int32(width), energy))
+        return energy
     image = left.astype(xp.float32)
     energy = xp.full(image.shape, xp.nan, dtype=xp.float32)
     energy[:, 1:-1] = 0.25 * (image[:, 2:] - image[:, :-2]) ** 2
@@ -40,9 +53,22 @@ def deficit(backend: Backend, left: Any, valid: Any, labels: Any, count: int,
     pixel, and everywhere where none is observed. A superpixel without any gradient (flat,
     saturated) counts as FLAT_RMS_GREY, so that its noise is large but finite. ``left``:
     uint8 HxW; ``valid``: bool HxW (the pixels with a disparity); ``labels``: int32 HxW
-    superpixel labels 0..count-1. Returns float64 (count,); nothing read back."""
+    superpixel labels 0..count-1. Returns float64 (count,); nothing read back. On the GPU
+    two kernels about a sort (kernels/texture.cu)."""
     xp = backend.xp
     energy, _ = superpixel_means(backend, gradient_energy(backend, left, valid), labels, count)
+    if backend.is_gpu:
+        rms = xp.empty(count, dtype=xp.float64)
+        keys = xp.empty(count, dtype=xp.float64)
+        blocks = (-(-count // _THREADS),)
+        backend.kernel("texture.cu", "texture_keys", {})(
+            blocks, (_THREADS,), (energy, xp.ascontiguousarray(observed, dtype=xp.bool_),
+                                  np.int32(count), rms, keys))
+        out = xp.empty(count, dtype=xp.float64)
+        backend.kernel("texture.cu", "texture_deficit", {})(
+            blocks, (_THREADS,), (rms, xp.sort(keys), np.int32(count),
+                                  np.float64(FLAT_RMS_GREY), out))
+        return out
     rms = xp.sqrt(energy.astype(xp.float64))
     typical, used = masked_median(xp, rms, observed & xp.isfinite(rms))
     known = xp.isfinite(rms) & (used > 0)
