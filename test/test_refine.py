@@ -101,3 +101,44 @@ def test_the_strip_only_the_left_camera_sees_beside_a_right_rim_joins_the_pothol
     assert (out[8] == labels[8]).all() and (out[:2] == 0).all() and (out[9:] == 0).all()
     joined = (out > 0) & (labels == 0)
     assert np.isnan(smoothed[joined]).all() and np.isfinite(smoothed[~joined]).all()
+
+
+def extend_occluded_reference(labels, filled, smoothed, road, superpixel_labels, observed):
+    """The array form extend_occluded's kernel replaces."""
+    height, width = labels.shape
+    labelled = labels > 0
+    cols = np.arange(width)
+    last = np.maximum.accumulate(np.where(labelled, cols[None, :], -1), axis=1)
+    ends = np.nonzero(labelled[:, :-1] & ~labelled[:, 1:])
+    inside = ends[1] - (SMOOTHING_PX - 1)
+    floor = np.where(inside >= 0, filled[ends[0], np.maximum(inside, 0)], np.nan)
+    step = road.at(np, (ends[1] + 1).astype(np.float64), ends[0].astype(np.float64)) - floor
+    strip = np.full((height, width), np.nan)
+    strip[ends] = step
+    end = np.maximum(last, 0)
+    joins = ~labelled & (last >= 0) \
+        & (cols[None, :] - last <= np.take_along_axis(strip, end, axis=1)) \
+        & np.take(observed, superpixel_labels)
+    smoothed[joins] = np.nan
+    return np.where(joins, np.take_along_axis(labels, end, axis=1), labels).astype(np.int32)
+
+
+def test_the_strips_are_the_array_forms():
+    rng = np.random.default_rng(6)
+    height, width = 60, 90
+    road = RoadModel(np.float64(20.0), np.float64(0.2), 0.01)
+    disparity = (road.disparity(np, height, width)
+                 - 6.0 * (rng.random((height, width)) < 0.3)).astype(np.float32)
+    labels = (rng.random((height // 6, width // 6)) < 0.3).repeat(6, 0).repeat(6, 1).astype(
+        np.int32) * rng.integers(1, 5, (height, width)).astype(np.int32)
+    superpixel_labels = (np.arange(height)[:, None] // 15 * 6
+                         + np.arange(width)[None, :] // 15).astype(np.int32)
+    observed = rng.random(24) < 0.8
+    filled, smoothed = smooth(CPU, disparity)
+    want_smoothed = smoothed.copy()
+    want = extend_occluded_reference(labels, filled, want_smoothed, road, superpixel_labels,
+                                     observed)
+    got = extend_occluded(CPU, labels, filled, smoothed, road, superpixel_labels, observed)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(smoothed, want_smoothed)
+    assert (got != labels).sum() > 20

@@ -5,7 +5,8 @@ import pytest
 
 from pothole_detector.backend import CPU
 from pothole_detector.stages.superpixels import (grid_count, region_size, slic,
-                                                 superpixel_grid, superpixel_means, superpixels)
+                                                 superpixel_grid, superpixel_means, superpixels,
+                                                 upsample_labels)
 
 from slic_reference import slic_reference
 
@@ -119,3 +120,15 @@ def test_region_size_shares_the_width_and_shrinks_on_a_grazing_road(given, width
     """width / 64, times the axis's sine over sin(30 deg) below it, at most halved, at least
     8 px; a step that is given stays."""
     assert region_size(given, width, axis_sine) == step
+
+
+@pytest.mark.parametrize("dtype", (np.int32, np.bool_, np.uint8))
+def test_upsampling_on_the_host_is_fancy_indexing(dtype):
+    rng = np.random.default_rng(9)
+    small = rng.integers(0, 7, (13, 21)).astype(dtype)
+    for factor, shape in ((2, (26, 42)), (2, (27, 45)), (3, (38, 60))):
+        rows = np.minimum(np.arange(shape[0]) // factor, small.shape[0] - 1)
+        cols = np.minimum(np.arange(shape[1]) // factor, small.shape[1] - 1)
+        got = upsample_labels(CPU, small, factor, shape)
+        assert got.dtype == small.dtype
+        np.testing.assert_array_equal(got, small[rows[:, None], cols[None, :]])

@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.threshold import (histogram_threshold, neighbour_mean,
+from pothole_detector.stages.threshold import (_bin_sums, histogram_threshold, neighbour_mean,
                                                select_superpixels)
 
 
@@ -31,7 +31,7 @@ def brute_force_threshold(g1, g2, candidates):
 def test_neighbour_mean_known_answer():
     image = np.arange(9, dtype=np.float32).reshape(3, 3)
     image[0, 0] = np.nan
-    result = neighbour_mean(np, image)
+    result = neighbour_mean(image)
     assert result[1, 1] == np.float32((1 + 2 + 3 + 5 + 6 + 7 + 8) / 7)
     assert result[0, 0] == np.float32((1 + 3 + 4) / 3)
 
@@ -47,9 +47,47 @@ def test_cumulative_search_equals_brute_force():
     image = two_level_map()
     image[60:80, 10:30] = 26.0
     t_r, _ = histogram_threshold(CPU, image, 0.5, 32.0)
-    g2 = neighbour_mean(np, image)
+    g2 = neighbour_mean(image)
     candidates = np.arange(15.0, 35.0, 0.5)
     assert abs(brute_force_threshold(image, g2, candidates) - t_r) <= 0.5
+
+
+def neighbour_mean_reference(image):
+    """The array form neighbour_mean's kernel replaces: the same float32 sums in order."""
+    valid = np.isfinite(image)
+    values = np.pad(np.where(valid, image, 0).astype(np.float32), 1)
+    counts = np.pad(valid.astype(np.float32), 1)
+    height, width = image.shape
+    total = np.zeros((height, width), dtype=np.float32)
+    number = np.zeros((height, width), dtype=np.float32)
+    for dv in (0, 1, 2):
+        for du in (0, 1, 2):
+            if dv == 1 and du == 1:
+                continue
+            total += values[dv:dv + height, du:du + width]
+            number += counts[dv:dv + height, du:du + width]
+    return np.where(number > 0, total / np.maximum(number, 1), np.nan).astype(np.float32)
+
+
+def test_neighbour_mean_is_the_array_forms():
+    rng = np.random.default_rng(4)
+    image = rng.normal(30.0, 5.0, (61, 83)).astype(np.float32)
+    image[rng.random(image.shape) < 0.3] = np.nan
+    image[:4, :4] = np.nan
+    np.testing.assert_array_equal(neighbour_mean(image), neighbour_mean_reference(image))
+
+
+def test_the_bin_sums_are_bincounts():
+    rng = np.random.default_rng(5)
+    n, n_bins = 5000, 40
+    high = rng.integers(0, n_bins + 1, n)
+    low = np.minimum(high, rng.integers(0, n_bins + 1, n))
+    a, b = rng.normal(30.0, 3.0, n), rng.normal(30.0, 3.0, n)
+    tables = _bin_sums(high, low, a, b, n_bins)
+    for side, index in enumerate((high, low)):
+        want = np.stack([np.bincount(index, weights=w, minlength=n_bins + 1)[:n_bins]
+                         for w in (None, a, b, a * a + b * b)])
+        np.testing.assert_array_equal(tables[side], want)
 
 
 def test_one_cluster_gives_nan():

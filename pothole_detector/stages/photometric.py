@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..backend import Backend
+from . import box_cpu
 from .matching import matched_columns
 
 # side (px) of the square over which each view's brightness is averaged before comparing
@@ -42,16 +43,14 @@ def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any
     those that agree, GAIN_ROUNDS): float32 HxW, NaN where the disparity is. ``left``,
     ``right``: uint8 HxW on the backend; ``disparity``: float32 HxW px, NaN invalid. Nothing
     read back. On the GPU a kernel for the means, two passes a round and one for the result
-    (kernels/photometric.cu)."""
+    (kernels/photometric.cu); on the CPU the means by stages/box_cpu.py."""
     if backend.is_gpu:
         return _disagreement_gpu(backend, left, right, disparity)
-    xp, ndimage = backend.xp, backend.ndimage
+    xp = backend.xp
     valid = xp.isfinite(disparity)
-    left_mean = ndimage.uniform_filter(left.astype(xp.float32), BRIGHTNESS_WINDOW_PX,
-                                       mode="nearest")
-    right_mean = xp.take_along_axis(
-        ndimage.uniform_filter(right.astype(xp.float32), BRIGHTNESS_WINDOW_PX,
-                               mode="nearest"), matched_columns(xp, disparity), axis=1)
+    left_mean = box_cpu.box_mean(left, BRIGHTNESS_WINDOW_PX, "nearest")
+    right_mean = box_cpu.gather_columns(box_cpu.box_mean(right, BRIGHTNESS_WINDOW_PX, "nearest"),
+                                        matched_columns(xp, disparity))
     agreeing = valid
     for _ in range(GAIN_ROUNDS):
         difference = xp.abs(left_mean - _gain(xp, left_mean, right_mean, agreeing) * right_mean)

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..backend import Backend
+from . import box_cpu
 from .road_model import ROAD_DEFINES, RoadModel, device_params
 from .transform import transform_disparity
 
@@ -29,8 +31,8 @@ def smooth(backend: Backend, disparity: Any, offsets: Any = None) -> tuple[Any, 
     only where no value of the square is valid: an occluded pothole wall takes its
     neighbours') and ``smoothed`` (NaN where the pixel itself is invalid), both plus
     ``offsets`` (float32 HxW px, the local road's: local_road.pixel_offsets) where given. On
-    the GPU one kernel (kernels/refine.cu)."""
-    xp, ndimage = backend.xp, backend.ndimage
+    the GPU one kernel (kernels/refine.cu), on the CPU two box means (stages/box_cpu.py)."""
+    xp = backend.xp
     if backend.is_gpu:
         height, width = disparity.shape
         filled = xp.empty((height, width), dtype=xp.float32)
@@ -43,9 +45,8 @@ def smooth(backend: Backend, disparity: Any, offsets: Any = None) -> tuple[Any, 
              smoothed))
         return filled, smoothed
     valid = xp.isfinite(disparity)
-    total = ndimage.uniform_filter(xp.where(valid, disparity, 0).astype(xp.float32),
-                                   SMOOTHING_PX, mode="constant")
-    share = ndimage.uniform_filter(valid.astype(xp.float32), SMOOTHING_PX, mode="constant")
+    total = box_cpu.box_mean(xp.where(valid, disparity, 0), SMOOTHING_PX, "constant")
+    share = box_cpu.box_mean(valid, SMOOTHING_PX, "constant")
     mean = total / xp.maximum(share, xp.float32(1e-6))
     nan = xp.float32(xp.nan)
     filled = xp.where(share > 1e-4, mean, nan).astype(xp.float32)
@@ -119,20 +120,36 @@ def extend_occluded(backend: Backend, labels: Any, filled: Any, smoothed: Any,
              np.int32(height), np.int32(width), out))
         return out
     labelled = labels > 0
-    cols = xp.arange(width)
-    last = xp.maximum.accumulate(xp.where(labelled, cols[None, :], -1), axis=1)
     ends = xp.nonzero(labelled[:, :-1] & ~labelled[:, 1:])
     inside = ends[1] - (SMOOTHING_PX - 1)
     floor = xp.where(inside >= 0, filled[ends[0], xp.maximum(inside, 0)], xp.nan)
     step = road.at(xp, (ends[1] + 1).astype(xp.float64), ends[0].astype(xp.float64)) - floor
-    strip = xp.full((height, width), xp.nan)
-    strip[ends] = step
-    end = xp.maximum(last, 0)
-    joins = ~labelled & (last >= 0) \
-        & (cols[None, :] - last <= xp.take_along_axis(strip, end, axis=1)) \
-        & xp.take(observed, superpixel_labels)
-    smoothed[joins] = xp.nan
-    return xp.where(joins, xp.take_along_axis(labels, end, axis=1), labels).astype(xp.int32)
+    out = xp.ascontiguousarray(labels, dtype=xp.int32).copy()
+    _join_strips(out, smoothed, ends[1], xp.searchsorted(ends[0], xp.arange(height + 1)),
+                 xp.asarray(step, dtype=xp.float64), superpixel_labels,
+                 xp.ascontiguousarray(observed, dtype=xp.bool_))
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _join_strips(labels: np.ndarray, smoothed: np.ndarray, end_columns: np.ndarray,
+                 row_starts: np.ndarray, steps: np.ndarray, superpixel_labels: np.ndarray,
+                 observed: np.ndarray) -> None:
+    """extend_occluded's strips, in place: after each run end (``end_columns`` of row v at
+    ``row_starts[v]``..``row_starts[v + 1]``, its strip width in ``steps``), the unlabelled
+    pixels up to that width and up to the next labelled one whose superpixel is observed take
+    the run's label, and ``smoothed`` NaN there."""
+    height, width = labels.shape
+    for v in numba.prange(height):
+        for at in range(row_starts[v], row_starts[v + 1]):
+            end = end_columns[at]
+            label = labels[v, end]
+            u = end + 1
+            while u < width and labels[v, u] <= 0 and u - end <= steps[at]:
+                if observed[superpixel_labels[v, u]]:
+                    labels[v, u] = label
+                    smoothed[v, u] = np.nan
+                u += 1
 
 
 def radius(region_size_px: int) -> int:

@@ -117,3 +117,16 @@ def superpixel_sums(values: np.ndarray, labels: np.ndarray,
             finite[label] += 1.0
             total[label] += np.float64(value)
     return pixels, finite, total
+
+
+@numba.njit(parallel=True, cache=True)
+def upsample(labels: np.ndarray, factor: int, height: int, width: int) -> np.ndarray:
+    """superpixels.upsample_labels on the host: pixel (v, u) of the height x width result takes
+    ``labels`` (2D, any dtype) at (min(v // factor, rows - 1), min(u // factor, cols - 1))."""
+    rows, cols = labels.shape
+    out = np.empty((height, width), dtype=labels.dtype)
+    for v in numba.prange(height):
+        source = min(v // factor, rows - 1)
+        for u in range(width):
+            out[v, u] = labels[source, min(u // factor, cols - 1)]
+    return out

@@ -246,7 +246,7 @@ def grid_step(region_size_px: int, downsample: int) -> int:
 def upsample_labels(backend: Backend, labels: Any, factor: int, shape: tuple[int, int]) -> Any:
     """Nearest-neighbour enlargement of a label image (any dtype) by ``factor`` to ``shape``;
     rows and columns past the enlarged image repeat the last one. On the GPU, one kernel for
-    int32 labels (kernels/slic.cu)."""
+    int32 labels (kernels/slic.cu); on the host a Numba kernel (slic_cpu.upsample)."""
     if factor == 1 and labels.shape == tuple(shape):
         return labels
     xp = backend.xp
@@ -259,6 +259,8 @@ def upsample_labels(backend: Backend, labels: Any, factor: int, shape: tuple[int
              np.int32(labels.shape[1]), np.int32(factor), np.int32(height), np.int32(width),
              result))
         return result
+    if xp is np:
+        return slic_cpu.upsample(np.ascontiguousarray(labels), factor, height, width)
     rows = xp.minimum(xp.arange(height) // factor, labels.shape[0] - 1)
     cols = xp.minimum(xp.arange(width) // factor, labels.shape[1] - 1)
     return labels[rows[:, None], cols[None, :]]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..backend import Backend, to_host
@@ -22,21 +23,30 @@ _THRESHOLD_KERNEL = {"TILE": 64, "TABLE_THREADS": 256, "SEARCH_THREADS": 1024}
 REFERENCES = ("split", "road_mean", "road_fit")
 
 
-def neighbour_mean(xp: Any, image: Any) -> Any:
-    """Mean of the valid values among each pixel's 8 neighbours (HxW float32; NaN if none)."""
-    valid = xp.isfinite(image)
-    values = xp.pad(xp.where(valid, image, 0).astype(xp.float32), 1)
-    counts = xp.pad(valid.astype(xp.float32), 1)
+def neighbour_mean(image: np.ndarray) -> np.ndarray:
+    """Mean of the valid values among each pixel's 8 neighbours (HxW float32 on the host; NaN
+    if none): one Numba pass, the float32 sums added in row-major order of the neighbours."""
+    return _neighbour_mean(np.ascontiguousarray(image, dtype=np.float32))
+
+
+@numba.njit(parallel=True, cache=True)
+def _neighbour_mean(image: np.ndarray) -> np.ndarray:
     height, width = image.shape
-    total = xp.zeros((height, width), dtype=xp.float32)
-    number = xp.zeros((height, width), dtype=xp.float32)
-    for dv in (0, 1, 2):
-        for du in (0, 1, 2):
-            if dv == 1 and du == 1:
-                continue
-            total += values[dv:dv + height, du:du + width]
-            number += counts[dv:dv + height, du:du + width]
-    return xp.where(number > 0, total / xp.maximum(number, 1), xp.nan).astype(xp.float32)
+    out = np.empty((height, width), dtype=np.float32)
+    for v in numba.prange(height):
+        for u in range(width):
+            total = np.float32(0.0)
+            number = np.float32(0.0)
+            for dv in range(-1, 2):
+                for du in range(-1, 2):
+                    if dv == 0 and du == 0:
+                        continue
+                    y, x = v + dv, u + du
+                    if 0 <= y < height and 0 <= x < width and np.isfinite(image[y, x]):
+                        total += image[y, x]
+                        number += np.float32(1.0)
+            out[v, u] = total / max(number, np.float32(1.0)) if number > 0 else np.nan
+    return out
 
 
 def histogram_range(bin_px: float, road_level: float) -> tuple[float, int]:
@@ -106,20 +116,36 @@ def _tables(xp: Any, transformed: Any, lo: float, bin_px: float,
     """(4, n_bins) float64 tables over max(i1, i2) and over min(i1, i2): count and sums of
     g1, g2, g1^2 + g2^2 of the pixels inside the histogram range."""
     g1 = transformed
-    g2 = neighbour_mean(xp, transformed)
+    g2 = neighbour_mean(transformed)
     i1 = xp.floor((g1 - lo) / bin_px)
     i2 = xp.floor((g2 - lo) / bin_px)
     keep = xp.isfinite(i1) & xp.isfinite(i2) & (i1 >= 0) & (i2 >= 0) & (i1 < n_bins) \
         & (i2 < n_bins)
     a = g1.astype(xp.float64).ravel()
     b = g2.astype(xp.float64).ravel()
-    weights = (None, a, b, a * a + b * b)
     keep = keep.ravel()
     # pixels left out (NaN ones too) go to one extra bin past the table, dropped after the count
     high = xp.where(keep, xp.maximum(i1, i2).ravel(), n_bins).astype(xp.int64)
     low = xp.where(keep, xp.minimum(i1, i2).ravel(), n_bins).astype(xp.int64)
-    return tuple(xp.stack([xp.bincount(index, weights=w, minlength=n_bins + 1)[:n_bins]
-                           for w in weights]) for index in (high, low))
+    tables = _bin_sums(high, low, a, b, n_bins)
+    return tables[0], tables[1]
+
+
+@numba.njit(cache=True)
+def _bin_sums(high: np.ndarray, low: np.ndarray, a: np.ndarray, b: np.ndarray,
+              n_bins: int) -> np.ndarray:
+    """float64 (2, 4, n_bins): per bin of ``high`` and of ``low`` (int64 (n,), n_bins: left
+    out) the count and the sums of ``a``, ``b`` and a^2 + b^2 (float64 (n,)), added in order
+    as np.bincount adds its weights."""
+    tables = np.zeros((2, 4, n_bins + 1))
+    for k in range(high.shape[0]):
+        square = a[k] * a[k] + b[k] * b[k]
+        for side, index in ((0, high[k]), (1, low[k])):
+            tables[side, 0, index] += 1.0
+            tables[side, 1, index] += a[k]
+            tables[side, 2, index] += b[k]
+            tables[side, 3, index] += square
+    return tables[:, :, :n_bins].copy()
 
 
 def _search(xp: Any, by_high: Any, by_low: Any) -> tuple[bool, int, float]:

@@ -1,0 +1,99 @@
+"""The mean over a square on the CPU, compiled with Numba: scipy.ndimage.uniform_filter's
+arithmetic (a pass down the columns, then one along the rows, each a running sum in float64 of
+the window's values, divided by its size and written as float32), with the columns of a pass
+and the rows of the next on Numba's threads. Compiled once and cached beside this file (or in
+the user's cache folder).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# how the square reaches past the border: the border pixel repeated, or zeros
+MODES = ("nearest", "constant")
+# columns of one thread's share of the pass down the columns
+_COLUMN_CHUNK = 64
+
+
+@numba.njit(cache=True, inline="always")
+def _outside(row: int, height: int, nearest: bool) -> int:
+    """The row whose value stands for ``row`` (-1: a zero)."""
+    if 0 <= row < height:
+        return row
+    if not nearest:
+        return -1
+    return 0 if row < 0 else height - 1
+
+
+@numba.njit(parallel=True, cache=True)
+def _down_columns(image: np.ndarray, size: int, nearest: bool, out: np.ndarray) -> None:
+    height, width = image.shape
+    before = size // 2
+    chunks = (width + _COLUMN_CHUNK - 1) // _COLUMN_CHUNK
+    for chunk in numba.prange(chunks):
+        start = chunk * _COLUMN_CHUNK
+        stop = min(start + _COLUMN_CHUNK, width)
+        running = np.zeros(stop - start, dtype=np.float64)
+        for k in range(size):
+            source = _outside(k - before, height, nearest)
+            if source >= 0:
+                for u in range(start, stop):
+                    running[u - start] += np.float64(image[source, u])
+        for u in range(start, stop):
+            out[0, u] = np.float32(running[u - start] / size)
+        for v in range(1, height):
+            entering = _outside(v + size - 1 - before, height, nearest)
+            leaving = _outside(v - 1 - before, height, nearest)
+            for u in range(start, stop):
+                new = np.float64(image[entering, u]) if entering >= 0 else 0.0
+                old = np.float64(image[leaving, u]) if leaving >= 0 else 0.0
+                running[u - start] += new - old
+                out[v, u] = np.float32(running[u - start] / size)
+
+
+@numba.njit(parallel=True, cache=True)
+def _along_rows(image: np.ndarray, size: int, nearest: bool, out: np.ndarray) -> None:
+    height, width = image.shape
+    before = size // 2
+    for v in numba.prange(height):
+        running = 0.0
+        for k in range(size):
+            source = _outside(k - before, width, nearest)
+            if source >= 0:
+                running += np.float64(image[v, source])
+        out[v, 0] = np.float32(running / size)
+        for u in range(1, width):
+            entering = _outside(u + size - 1 - before, width, nearest)
+            leaving = _outside(u - 1 - before, width, nearest)
+            new = np.float64(image[v, entering]) if entering >= 0 else 0.0
+            old = np.float64(image[v, leaving]) if leaving >= 0 else 0.0
+            running += new - old
+            out[v, u] = np.float32(running / size)
+
+
+def box_mean(image: np.ndarray, size: int, mode: str) -> np.ndarray:
+    """float32 HxW: the mean of the ``size`` x ``size`` square about each pixel of the 2D
+    ``image`` (any real dtype, read as float32), the square reaching past the border as
+    ``mode`` says (MODES): scipy.ndimage.uniform_filter(image as float32, size, mode=mode)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)}, not {mode!r}")
+    source = np.ascontiguousarray(image, dtype=np.float32)
+    between = np.empty_like(source)
+    out = np.empty_like(source)
+    if source.size:
+        _down_columns(source, size, mode == "nearest", between)
+        _along_rows(between, size, mode == "nearest", out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def gather_columns(image: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """float32 HxW: ``image[v, columns[v, u]]`` (np.take_along_axis along the rows) for the
+    float32 HxW ``image`` and int32 HxW ``columns`` inside it."""
+    height, width = columns.shape
+    out = np.empty((height, width), dtype=np.float32)
+    for v in numba.prange(height):
+        for u in range(width):
+            out[v, u] = image[v, columns[v, u]]
+    return out
