@@ -56,12 +56,14 @@ def _step(cost: np.ndarray, source: np.ndarray, target: np.ndarray, least: int, 
           p2: int) -> int:
     """One step of a path: target[1:D+1] = ``cost`` (D,) plus the least of ``source`` at the
     same level, a level off + P1 and ``least`` + P2, less ``least`` (``source`` and
-    ``target``: (D + 2,) with _FAR at both ends); returns the least of the new costs."""
-    jump = least + p2
-    new_least = _FAR
+    ``target``: (D + 2,) with _FAR at both ends); returns the least of the new costs. In int16
+    throughout (every value fits), so the loop runs on the widest vectors."""
+    floor = np.int16(least)
+    jump = np.int16(floor + p2)
+    new_least = np.int16(_FAR)
     for d in range(cost.shape[0]):
-        near = min(source[d + 1], min(source[d], source[d + 2]) + p1)
-        value = cost[d] + min(near, jump) - least
+        near = min(source[d + 1], np.int16(min(source[d], source[d + 2]) + p1))
+        value = np.int16(np.int16(cost[d]) + min(near, jump) - floor)
         target[d + 1] = value
         new_least = min(new_least, value)
     return new_least
@@ -81,13 +83,15 @@ def _start(cost: np.ndarray, target: np.ndarray) -> int:
 def _write_row_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int) -> None:
     """Writes the sum of the two paths along the rows into ``total``: rows on the threads."""
     height, width, levels = cost.shape
+    penalty1, penalty2 = np.int16(p1), np.int16(p2)
     for v in numba.prange(height):
         paths = np.full((2, levels + 2), _FAR, dtype=np.int16)
         least = _start(cost[v, 0], paths[0])
         for d in range(levels):
             total[v, 0, d] = paths[0, d + 1]
         for u in range(1, width):
-            least = _step(cost[v, u], paths[1 - u % 2], paths[u % 2], least, p1, p2)
+            least = _step(cost[v, u], paths[1 - u % 2], paths[u % 2], least, penalty1,
+                          penalty2)
             out, path = total[v, u], paths[u % 2]
             for d in range(levels):
                 out[d] = path[d + 1]
@@ -97,7 +101,8 @@ def _write_row_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int) -> N
             out[d] += paths[0, d + 1]
         for step in range(1, width):
             u = width - 1 - step
-            least = _step(cost[v, u], paths[1 - step % 2], paths[step % 2], least, p1, p2)
+            least = _step(cost[v, u], paths[1 - step % 2], paths[step % 2], least, penalty1,
+                          penalty2)
             out, path = total[v, u], paths[step % 2]
             for d in range(levels):
                 out[d] += path[d + 1]
@@ -110,6 +115,7 @@ def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
     after row down the image (``down``) or up it: each pixel's step from pixel u - dx of the
     row before; the pixels of a row on the threads."""
     height, width, levels = cost.shape
+    penalty1, penalty2 = np.int16(p1), np.int16(p2)
     before = np.full((3, width, levels + 2), _FAR, dtype=np.int16)
     after = np.full((3, width, levels + 2), _FAR, dtype=np.int16)
     before_least = np.empty((3, width), dtype=np.int16)
@@ -124,7 +130,8 @@ def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
                     after_least[path, u] = _start(here, after[path, u])
                 else:
                     after_least[path, u] = _step(here, before[path, previous], after[path, u],
-                                                 before_least[path, previous], p1, p2)
+                                                 before_least[path, previous], penalty1,
+                                                 penalty2)
             out, first, second, third = total[v, u], after[0, u], after[1, u], after[2, u]
             for d in range(levels):
                 out[d] += first[d + 1] + second[d + 1] + third[d + 1]
