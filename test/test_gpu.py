@@ -867,7 +867,7 @@ def test_block_mean_and_upsample_kernels_match_the_reference(gpu, shape, factor)
     rng = np.random.default_rng(shape[0])
     image = rng.normal(30, 3, shape).astype(np.float32)
     image[rng.random(shape) < 0.4] = np.nan
-    means, valid = superpixels._block_mean(np, image, np.isfinite(image), factor)
+    means, valid = superpixels._block_mean(image, np.isfinite(image), factor)
     filled, valid_gpu = superpixels._block_mean_gpu(gpu, gpu.upload(image), factor)
     np.testing.assert_array_equal(to_host(valid_gpu).astype(bool), valid)
     np.testing.assert_allclose(to_host(filled), np.where(valid, means, 0), rtol=1e-6)

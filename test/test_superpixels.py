@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.superpixels import (grid_count, region_size, slic,
+from pothole_detector.stages.superpixels import (_block_mean, grid_count, region_size, slic,
                                                  superpixel_grid, superpixel_means, superpixels,
                                                  upsample_labels)
 
@@ -132,3 +132,24 @@ def test_upsampling_on_the_host_is_fancy_indexing(dtype):
         got = upsample_labels(CPU, small, factor, shape)
         assert got.dtype == small.dtype
         np.testing.assert_array_equal(got, small[rows[:, None], cols[None, :]])
+
+
+def block_mean_reference(image, valid, factor):
+    """The array form superpixels._block_mean's kernel replaces."""
+    height, width = image.shape[0] // factor, image.shape[1] // factor
+    crop = (slice(0, height * factor), slice(0, width * factor))
+    values = np.where(valid, image, 0)[crop].reshape(height, factor, width, factor)
+    counts = valid[crop].reshape(height, factor, width, factor).sum(axis=(1, 3))
+    means = values.sum(axis=(1, 3)) / np.maximum(counts, 1)
+    return means.astype(np.float32), counts * 2 >= factor * factor
+
+
+@pytest.mark.parametrize("factor", (1, 2, 3, 4))
+def test_block_means_are_the_array_forms(factor):
+    rng = np.random.default_rng(factor)
+    image = rng.normal(30.0, 5.0, (61, 83)).astype(np.float32)
+    valid = rng.random(image.shape) < 0.7
+    means, enough = _block_mean(image, valid, factor)
+    want_means, want_enough = block_mean_reference(image, valid, factor)
+    np.testing.assert_array_equal(means, want_means)
+    np.testing.assert_array_equal(enough, want_enough)

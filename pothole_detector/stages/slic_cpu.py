@@ -130,3 +130,29 @@ def upsample(labels: np.ndarray, factor: int, height: int, width: int) -> np.nda
         for u in range(width):
             out[v, u] = labels[source, min(u // factor, cols - 1)]
     return out
+
+
+@numba.njit(parallel=True, cache=True)
+def block_mean(image: np.ndarray, valid: np.ndarray, factor: int) -> tuple[np.ndarray,
+                                                                            np.ndarray]:
+    """superpixels._block_mean on the host: the mean of the ``valid`` pixels of each ``factor``
+    x ``factor`` block of the float32 HxW ``image`` (float32; each block row summed in float32,
+    the rows added in order, as NumPy's reduction over the block axes adds them) and whether at
+    least half of the block is valid."""
+    height, width = image.shape[0] // factor, image.shape[1] // factor
+    means = np.empty((height, width), dtype=np.float32)
+    enough = np.empty((height, width), dtype=np.bool_)
+    for i in numba.prange(height):
+        for j in range(width):
+            total = np.float32(0.0)
+            count = 0
+            for a in range(factor):
+                row = np.float32(0.0)
+                for b in range(factor):
+                    if valid[i * factor + a, j * factor + b]:
+                        row += image[i * factor + a, j * factor + b]
+                        count += 1
+                total += row
+            means[i, j] = np.float32(np.float64(total) / max(count, 1))
+            enough[i, j] = count * 2 >= factor * factor
+    return means, enough

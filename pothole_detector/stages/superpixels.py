@@ -32,14 +32,12 @@ GRAZING_REFERENCE_SINE = 0.5
 MIN_GRAZING_SHARE = 0.5
 _SLIC_DEFINES = {"UPDATE_THREADS": UPDATE_THREADS}
 
-def _block_mean(xp: Any, image: Any, valid: Any, factor: int) -> tuple[Any, Any]:
-    """Valid-pixel mean of ``factor`` x ``factor`` blocks, and blocks at least half valid."""
-    height, width = image.shape[0] // factor, image.shape[1] // factor
-    crop = (slice(0, height * factor), slice(0, width * factor))
-    values = xp.where(valid, image, 0)[crop].reshape(height, factor, width, factor)
-    counts = valid[crop].reshape(height, factor, width, factor).sum(axis=(1, 3))
-    means = values.sum(axis=(1, 3)) / xp.maximum(counts, 1)
-    return means.astype(xp.float32), counts * 2 >= factor * factor
+def _block_mean(image: np.ndarray, valid: np.ndarray,
+                factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Valid-pixel mean of ``factor`` x ``factor`` blocks (float32), and blocks at least half
+    valid, on the host (slic_cpu.block_mean)."""
+    return slic_cpu.block_mean(np.ascontiguousarray(image, dtype=np.float32),
+                               np.ascontiguousarray(valid, dtype=np.bool_), factor)
 
 
 def slic(backend: Backend, image: Any, valid: Any, region_size: int, compactness: float,
@@ -174,7 +172,7 @@ def superpixel_grid(backend: Backend, transformed: Any, region_size_px: int,
                                 step, compactness, iterations)
     valid = xp.isfinite(transformed)
     if downsample > 1:
-        image, image_valid = _block_mean(xp, transformed, valid, downsample)
+        image, image_valid = _block_mean(transformed, valid, downsample)
     else:
         image, image_valid = transformed, valid
     return slic(backend, image, image_valid, step, compactness, iterations)
