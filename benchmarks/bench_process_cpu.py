@@ -1,0 +1,80 @@
+"""`pothole-detector process` on the CPU against OpenCV's SGBM alone, in the same run: a drive
+bag of our generator (the survey drive, every frame rendered) is processed end to end (bag
+reading, the pipeline, every output topic written), and OpenCV's StereoSGBM (3WAY, block 5,
+128 disparities, no left-right check) matches the same pairs on the same threads. Prints a
+Markdown table for docs/benchmarks.md.
+
+    python benchmarks/bench_process_cpu.py [--size 640x480] [--frames 20] [--threads 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from datetime import date
+from multiprocessing import get_context
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from pothole_detector.bagtools import process, write_drive_bag  # noqa: E402
+from pothole_detector.params import Config  # noqa: E402
+from pothole_detector.stages.matching import set_host_threads, sgm_disparity, to_gray8  # noqa: E402
+from pothole_detector.synthetic import render, survey_drive  # noqa: E402
+
+SGBM_LEVELS = 128
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--size", default="640x480")
+    parser.add_argument("--frames", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    width, height = (int(n) for n in args.size.split("x"))
+    set_host_threads(args.threads)
+    cv2.setNumThreads(args.threads)
+    scenes = survey_drive(frames=args.frames, width=width, height=height)
+    with ProcessPoolExecutor(args.threads, mp_context=get_context("spawn")) as pool:
+        samples = list(pool.map(render, scenes))
+    with tempfile.TemporaryDirectory() as folder:
+        bag = Path(folder) / "drive"
+        write_drive_bag(bag, [s.camera_y_m for s in scenes], samples, "odom",
+                        ground_truth=False)
+        config = Config({"backend": "cpu"})
+        process(bag, Path(folder) / "warm", config)  # compiled kernels loaded, caches warm
+        started = time.perf_counter()
+        summary = process(bag, Path(folder) / "out", config)
+        process_ms = (time.perf_counter() - started) * 1e3 / max(summary.frames, 1)
+    sgbm_config = Config({"lr_max_diff_px": -1, "speckle_window_px": 0,
+                          "median_filter": False})
+    pairs = [(to_gray8(s.left), to_gray8(s.right)) for s in samples]
+    sgbm_ms = []
+    for left, right in pairs:
+        begun = time.perf_counter()
+        sgm_disparity(left, right, SGBM_LEVELS, sgbm_config)
+        sgbm_ms.append((time.perf_counter() - begun) * 1e3)
+    sgbm = float(np.mean(sgbm_ms))
+    print(f"`process` on the CPU against OpenCV SGBM alone, {date.today()}, "
+          f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores, "
+          f"{args.threads} threads; {args.frames} frames of the survey drive at {args.size}\n")
+    print("| size | frames | processed | process ms/frame (all) | ms a frame, median "
+          "| OpenCV SGBM ms/frame | process / SGBM |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print(f"| {args.size} | {args.frames} | {summary.frames} | {process_ms:.1f} | "
+          f"{float(np.median(summary.milliseconds)):.1f} | {sgbm:.1f} | "
+          f"{process_ms / sgbm:.2f}x |")
+
+
+if __name__ == "__main__":
+    main()
