@@ -44,7 +44,7 @@ from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
 from .pipeline import Pipeline
 from .recordings.camera import pipeline_inputs, stereo_camera
 from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
-from .stages import census_sgm, rectify, superpixels
+from .stages import host_kernels
 from .sync import StereoSynchronizer
 from .survey.motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
 from .survey.roadmap import LiveMap
@@ -309,10 +309,7 @@ class PotholeDetectorNode(Node):
         WARM_UP_WAITING_SETS) and the diagnostics say so."""
         config = self._config
         if not self._backend_for(config).is_gpu:
-            if config.matcher == "census":
-                census_sgm.compile_cpu_kernels()
-            rectify.compile_cpu_kernel()
-            superpixels.compile_cpu_kernels()
+            host_kernels.compile_cpu_kernels(census=config.matcher == "census")
         with self._lock:
             self._warming_up = False
 

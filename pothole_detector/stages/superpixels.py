@@ -293,13 +293,16 @@ def superpixel_means(backend: Backend, transformed: Any, labels: Any, n_labels: 
 
 
 def compile_cpu_kernels() -> None:
-    """Compile (or load from Numba's cache) the CPU kernels of SLIC and the superpixel sums
-    now, on a small map."""
+    """Compile (or load from Numba's cache) the CPU kernels of SLIC, the superpixel sums, the
+    block means and the upsampling (int32 and bool labels) now, on a small map."""
     rng = np.random.default_rng(0)
     image = rng.normal(32, 1, (24, 40)).astype(np.float32)
     valid = rng.random(image.shape) < 0.9
     labels, count = slic(CPU, image, valid, 8, 2.0, 1)
     superpixel_means(CPU, image, labels, count)
+    _block_mean(image, valid, 2)
+    for small in (labels, valid):
+        upsample_labels(CPU, small, 2, (48, 80))
 
 
 def _kernel(backend: Backend, name: str) -> Any:
