@@ -9,7 +9,8 @@ from pothole_detector.errors import ConfigError
 from pothole_detector.params import Config
 from pothole_detector.stages import census_sgm, perspective
 from pothole_detector.stages.census_sgm import (
-    CENSUS_BITS, CENSUS_OFFSETS, DIRECTION_PAIRS, INVALID_COST, MAX_P2, census_transform,
+    CENSUS_BITS, CENSUS_OFFSETS, CENSUS_RADIUS_X, CENSUS_RADIUS_Y, DIRECTION_PAIRS, INVALID_COST,
+    MAX_P2, census_transform,
     cpu_disparity, textureless)
 from pothole_detector.stages.perspective import no_shifts, row_shifts
 from pothole_detector.stages.road_model import RoadModel
@@ -43,6 +44,25 @@ def test_blank_patches_are_those_of_the_array_form(shape):
     words = census_transform(image)
     np.testing.assert_array_equal(textureless(words), _textureless_array_form(words))
     assert shape[0] < 20 or textureless(words).any()
+
+
+def _census_array_form(image):
+    """The array form census_transform's kernel replaced: a bit plane at a time."""
+    height, width = image.shape
+    ry, rx = CENSUS_RADIUS_Y, CENSUS_RADIUS_X
+    padded = np.pad(image, ((ry, ry), (rx, rx)), mode="edge")
+    words = np.zeros((height, width), dtype=np.uint32)
+    for bit, (dy, dx) in enumerate(CENSUS_OFFSETS):
+        ahead = padded[ry + dy:ry + dy + height, rx + dx:rx + dx + width]
+        behind = padded[ry - dy:ry - dy + height, rx - dx:rx - dx + width]
+        words |= (ahead > behind).astype(np.uint32) << np.uint32(bit)
+    return words
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 9), (5, 3), (47, 131)])
+def test_census_words_are_those_of_the_array_form(shape):
+    image = np.random.default_rng(shape[0]).integers(0, 256, shape, dtype=np.uint8)
+    np.testing.assert_array_equal(census_transform(image), _census_array_form(image))
 
 
 def test_census_of_a_ramp_sets_exactly_the_rightward_bits():

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.threshold import (_bin_sums, histogram_threshold, neighbour_mean,
-                                               select_superpixels)
+from pothole_detector.stages.threshold import (_tables, histogram_range, histogram_threshold,
+                                               neighbour_mean, select_superpixels)
 
 
 def two_level_map():
@@ -77,17 +77,29 @@ def test_neighbour_mean_is_the_array_forms():
     np.testing.assert_array_equal(neighbour_mean(image), neighbour_mean_reference(image))
 
 
-def test_the_bin_sums_are_bincounts():
-    rng = np.random.default_rng(5)
-    n, n_bins = 5000, 40
-    high = rng.integers(0, n_bins + 1, n)
-    low = np.minimum(high, rng.integers(0, n_bins + 1, n))
-    a, b = rng.normal(30.0, 3.0, n), rng.normal(30.0, 3.0, n)
-    tables = _bin_sums(high, low, a, b, n_bins)
-    for side, index in enumerate((high, low)):
-        want = np.stack([np.bincount(index, weights=w, minlength=n_bins + 1)[:n_bins]
-                         for w in (None, a, b, a * a + b * b)])
-        np.testing.assert_array_equal(tables[side], want)
+def tables_reference(transformed, lo, bin_px, n_bins):
+    """The array form of the threshold search's tables: bin pairs, then np.bincount."""
+    g1 = transformed
+    g2 = neighbour_mean_reference(transformed)
+    i1 = np.floor((g1 - lo) / bin_px)
+    i2 = np.floor((g2 - lo) / bin_px)
+    keep = (np.isfinite(i1) & np.isfinite(i2) & (i1 >= 0) & (i2 >= 0) & (i1 < n_bins)
+            & (i2 < n_bins)).ravel()
+    a, b = g1.astype(np.float64).ravel(), g2.astype(np.float64).ravel()
+    high = np.where(keep, np.maximum(i1, i2).ravel(), n_bins).astype(np.int64)
+    low = np.where(keep, np.minimum(i1, i2).ravel(), n_bins).astype(np.int64)
+    return tuple(np.stack([np.bincount(index, weights=w, minlength=n_bins + 1)[:n_bins]
+                           for w in (None, a, b, a * a + b * b)]) for index in (high, low))
+
+
+def test_the_tables_are_bincounts():
+    image = two_level_map()
+    image[np.random.default_rng(5).random(image.shape) < 0.1] = np.nan
+    image[:5] = 200.0  # outside the histogram's range
+    lo, n_bins = histogram_range(0.25, 32.0)
+    for got, want in zip(_tables(image, lo, 0.25, n_bins),
+                         tables_reference(image, lo, 0.25, n_bins)):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_one_cluster_gives_nan():

@@ -33,6 +33,25 @@ def _popcount(typingctx: Any, word: Any) -> Any:
 
 
 @numba.njit(parallel=True, cache=True)
+def census_words(padded: np.ndarray, offsets: np.ndarray, radius_y: int, radius_x: int,
+                 height: int, width: int) -> np.ndarray:
+    """uint32 height x width census words of the uint8 image ``padded`` by ``radius_y``,
+    ``radius_x`` (border repeated): bit k where the pixel ``offsets[k]`` = (dy, dx) ahead is
+    brighter than the one as far behind; rows on the threads, a bit at a time along a row."""
+    words = np.zeros((height, width), dtype=np.uint32)
+    for v in numba.prange(height):
+        out = words[v]
+        for bit in range(offsets.shape[0]):
+            dy, dx = offsets[bit, 0], offsets[bit, 1]
+            ahead = padded[radius_y + dy + v, radius_x + dx:radius_x + dx + width]
+            behind = padded[radius_y - dy + v, radius_x - dx:radius_x - dx + width]
+            shift = np.uint32(bit)
+            for u in range(width):
+                out[u] |= np.uint32(ahead[u] > behind[u]) << shift
+    return words
+
+
+@numba.njit(parallel=True, cache=True)
 def _cost_volume(census_left: np.ndarray, transformed_right: np.ndarray, first: np.ndarray,
                  levels: int, invalid_cost: int) -> np.ndarray:
     """matching_cost's kernel: rows on the threads."""

@@ -46,6 +46,7 @@ CENSUS_OFFSETS: tuple[tuple[int, int], ...] = tuple(
     (dy, dx) for dy in range(CENSUS_RADIUS_Y + 1)
     for dx in range(-CENSUS_RADIUS_X, CENSUS_RADIUS_X + 1) if dy > 0 or dx > 0)
 CENSUS_BITS = len(CENSUS_OFFSETS)
+_OFFSET_TABLE = np.array(CENSUS_OFFSETS, dtype=np.int64)
 INVALID_COST = CENSUS_BITS
 BORDER_Y, BORDER_X = CENSUS_RADIUS_Y + 1, CENSUS_RADIUS_X + 1
 # (dx, dy) of the eight path directions, in the order of the kernels' blockIdx.y.
@@ -59,16 +60,13 @@ DIRECTION_PAIRS: tuple[tuple[int, int], ...] = ((0, 2), (1, 3), (4, 6), (5, 7))
 
 
 def census_transform(image: np.ndarray) -> np.ndarray:
-    """uint32 HxW census words of a uint8 HxW image (on the host)."""
-    height, width = image.shape
+    """uint32 HxW census words of a uint8 HxW image (on the host): bit k set where the pixel
+    CENSUS_OFFSETS[k] ahead is brighter than the one as far behind, the border repeated
+    (census_cpu.census_words, rows on Numba's threads)."""
     ry, rx = CENSUS_RADIUS_Y, CENSUS_RADIUS_X
-    padded = np.pad(image, ((ry, ry), (rx, rx)), mode="edge")
-    words = np.zeros((height, width), dtype=np.uint32)
-    for bit, (dy, dx) in enumerate(CENSUS_OFFSETS):
-        ahead = padded[ry + dy:ry + dy + height, rx + dx:rx + dx + width]
-        behind = padded[ry - dy:ry - dy + height, rx - dx:rx - dx + width]
-        words |= (ahead > behind).astype(np.uint32) << np.uint32(bit)
-    return words
+    padded = np.pad(np.ascontiguousarray(image, dtype=np.uint8), ((ry, ry), (rx, rx)),
+                    mode="edge")
+    return census_cpu.census_words(padded, _OFFSET_TABLE, ry, rx, *image.shape)
 
 
 def textureless(census_left: np.ndarray) -> np.ndarray:

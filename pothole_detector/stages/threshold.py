@@ -74,7 +74,7 @@ def threshold_search(backend: Backend, transformed: Any, bin_px: float, road_lev
     if backend.is_gpu:
         return _search_on_device(backend, transformed, bin_px, road_level, result)
     lo, n_bins = histogram_range(bin_px, road_level)
-    found = np.array(_search(np, *_tables(np, transformed, lo, bin_px, n_bins)), float)
+    found = np.array(_search(np, *_tables(transformed, lo, bin_px, n_bins)), float)
     if result is None:
         return found
     result[...] = found
@@ -111,41 +111,37 @@ def split_from_result(result: np.ndarray, bin_px: float, road_level: float
     return lo + (int(best) + 1) * bin_px, float(road_mean)
 
 
-def _tables(xp: Any, transformed: Any, lo: float, bin_px: float,
-            n_bins: int) -> tuple[Any, Any]:
+def _tables(transformed: np.ndarray, lo: float, bin_px: float,
+            n_bins: int) -> tuple[np.ndarray, np.ndarray]:
     """(4, n_bins) float64 tables over max(i1, i2) and over min(i1, i2): count and sums of
-    g1, g2, g1^2 + g2^2 of the pixels inside the histogram range."""
-    g1 = transformed
-    g2 = neighbour_mean(transformed)
-    i1 = xp.floor((g1 - lo) / bin_px)
-    i2 = xp.floor((g2 - lo) / bin_px)
-    keep = xp.isfinite(i1) & xp.isfinite(i2) & (i1 >= 0) & (i2 >= 0) & (i1 < n_bins) \
-        & (i2 < n_bins)
-    a = g1.astype(xp.float64).ravel()
-    b = g2.astype(xp.float64).ravel()
-    keep = keep.ravel()
-    # pixels left out (NaN ones too) go to one extra bin past the table, dropped after the count
-    high = xp.where(keep, xp.maximum(i1, i2).ravel(), n_bins).astype(xp.int64)
-    low = xp.where(keep, xp.minimum(i1, i2).ravel(), n_bins).astype(xp.int64)
-    tables = _bin_sums(high, low, a, b, n_bins)
+    g1, g2, g1^2 + g2^2 of the pixels inside the histogram range (on the host)."""
+    g1 = np.ascontiguousarray(transformed, dtype=np.float32)
+    tables = _bin_sums(g1.ravel(), neighbour_mean(g1).ravel(), np.float32(lo),
+                       np.float32(bin_px), n_bins)
     return tables[0], tables[1]
 
 
 @numba.njit(cache=True)
-def _bin_sums(high: np.ndarray, low: np.ndarray, a: np.ndarray, b: np.ndarray,
+def _bin_sums(g1: np.ndarray, g2: np.ndarray, lo: np.float32, bin_px: np.float32,
               n_bins: int) -> np.ndarray:
-    """float64 (2, 4, n_bins): per bin of ``high`` and of ``low`` (int64 (n,), n_bins: left
-    out) the count and the sums of ``a``, ``b`` and a^2 + b^2 (float64 (n,)), added in order
-    as np.bincount adds its weights."""
-    tables = np.zeros((2, 4, n_bins + 1))
-    for k in range(high.shape[0]):
-        square = a[k] * a[k] + b[k] * b[k]
-        for side, index in ((0, high[k]), (1, low[k])):
+    """float64 (2, 4, n_bins): per bin pair (i1, i2) = floor((g - lo) / bin_px) of the pixels'
+    D2 ``g1`` and neighbour mean ``g2`` (float32 (n,), both bins inside the table), by the
+    larger and by the smaller bin, the count and the sums of g1, g2 and g1^2 + g2^2 (float64),
+    added in pixel order."""
+    tables = np.zeros((2, 4, n_bins))
+    for k in range(g1.shape[0]):
+        i1 = np.floor((g1[k] - lo) / bin_px)
+        i2 = np.floor((g2[k] - lo) / bin_px)
+        if not (i1 >= 0 and i2 >= 0 and i1 < n_bins and i2 < n_bins):
+            continue
+        a, b = np.float64(g1[k]), np.float64(g2[k])
+        square = a * a + b * b
+        for side, index in ((0, int(max(i1, i2))), (1, int(min(i1, i2)))):
             tables[side, 0, index] += 1.0
-            tables[side, 1, index] += a[k]
-            tables[side, 2, index] += b[k]
+            tables[side, 1, index] += a
+            tables[side, 2, index] += b
             tables[side, 3, index] += square
-    return tables[:, :, :n_bins].copy()
+    return tables
 
 
 def _search(xp: Any, by_high: Any, by_low: Any) -> tuple[bool, int, float]:
