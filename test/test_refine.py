@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.ndimage
 
 from pothole_detector.backend import CPU
 from pothole_detector.stages.refine import (SMOOTHING_PX, extend_occluded, radius,
                                             refine_labels, smooth)
 from pothole_detector.stages.road_model import RoadModel
+from pothole_detector.stages.transform import transform_disparity
 
 # a road at 32 px everywhere with delta_DT 32: the transformed disparity is the disparity
 FLAT = RoadModel(np.float64(32.0), np.float64(0.0), 0.0)
@@ -142,3 +144,33 @@ def test_the_strips_are_the_array_forms():
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(smoothed, want_smoothed)
     assert (got != labels).sum() > 20
+
+
+def refine_labels_reference(labels, filled, road, road_level, superpixel_labels, drops,
+                            observed, radius_px, fraction):
+    """The array form refine_labels' bounding-box pass replaced: the whole map."""
+    below = np.float32(road_level) - transform_disparity(CPU, filled, road, road_level)
+    deep = (below > fraction * np.take(drops, superpixel_labels)) \
+        & np.take(observed, superpixel_labels)
+    near = scipy.ndimage.maximum_filter(labels, size=2 * radius_px + 1, mode="constant")
+    return np.where(labels > 0, labels, np.where(deep, near, 0)).astype(np.int32)
+
+
+@pytest.mark.parametrize("box", [(slice(0, 0), slice(0, 0)), (slice(20, 30), slice(40, 55)),
+                                 (slice(0, 4), slice(80, 90)), (slice(50, 60), slice(0, 90))])
+def test_growth_is_the_whole_map_forms(box):
+    rng = np.random.default_rng(7)
+    height, width = 60, 90
+    road = RoadModel(np.float64(20.0), np.float64(0.2), 0.01)
+    disparity = (road.disparity(np, height, width) - rng.normal(0.8, 1.0, (height, width))
+                 ).astype(np.float32)
+    labels = np.zeros((height, width), np.int32)
+    labels[box] = rng.integers(0, 3, labels[box].shape)
+    superpixel_labels = (np.arange(height)[:, None] // 15 * 6
+                         + np.arange(width)[None, :] // 15).astype(np.int32)
+    drops, observed = rng.uniform(0.5, 2.0, 24), rng.random(24) < 0.8
+    filled, _ = smooth(CPU, disparity)
+    args = (filled, road, 20.0, superpixel_labels, drops, observed, 6, 0.25)
+    want = refine_labels_reference(labels, *args)
+    np.testing.assert_array_equal(refine_labels(CPU, labels, *args), want)
+    assert labels.any() == (want > labels).any()

@@ -14,7 +14,7 @@ import numpy as np
 from ..backend import Backend
 from . import box_cpu
 from .road_model import ROAD_DEFINES, RoadModel, device_params
-from .transform import transform_disparity
+from .transform import road_grid
 
 # side (px) of the square over which a pixel's disparity is averaged
 SMOOTHING_PX = 7
@@ -82,11 +82,23 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
              np.float32(road_level), np.float64(fraction), np.int32(radius_px),
              np.int32(height), np.int32(width), out))
         return out
-    below = xp.float32(road_level) - transform_disparity(backend, filled, road, road_level)
-    deep = (below > fraction * xp.take(drops, superpixel_labels)) \
-        & xp.take(observed, superpixel_labels)
-    near = ndimage.maximum_filter(labels, size=2 * radius_px + 1, mode="constant")
-    return xp.where(labels > 0, labels, xp.where(deep, near, 0)).astype(xp.int32)
+    # only pixels within the radius of a labelled one can change: the labels' bounding box
+    out = labels.astype(xp.int32)
+    labelled = labels > 0
+    rows, cols = xp.flatnonzero(labelled.any(axis=1)), xp.flatnonzero(labelled.any(axis=0))
+    if rows.size == 0:
+        return out
+    height, width = labels.shape
+    box = (slice(max(rows[0] - radius_px, 0), min(rows[-1] + radius_px + 1, height)),
+           slice(max(cols[0] - radius_px, 0), min(cols[-1] + radius_px + 1, width)))
+    transformed = (filled[box] - road_grid(road, height, width)[box]
+                   + xp.float32(road_level)).astype(xp.float32)
+    below = xp.float32(road_level) - transformed
+    inside = superpixel_labels[box]
+    deep = (below > fraction * xp.take(drops, inside)) & xp.take(observed, inside)
+    near = ndimage.maximum_filter(out[box], size=2 * radius_px + 1, mode="constant")
+    out[box] = xp.where(labelled[box], out[box], xp.where(deep, near, 0))
+    return out
 
 
 def extend_occluded(backend: Backend, labels: Any, filled: Any, smoothed: Any,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -27,8 +28,18 @@ def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any
             (xp.ascontiguousarray(disparity, dtype=xp.float32), transformed, np.int32(height),
              np.int32(width), device_params(backend, model), np.float32(delta_dt_px)))
         return transformed
-    road = model.disparity(xp, height, width, xp.float32)
-    return (disparity - road + xp.float32(delta_dt_px)).astype(xp.float32)
+    return (disparity - road_grid(model, height, width)
+            + xp.float32(delta_dt_px)).astype(xp.float32)
+
+
+@lru_cache(maxsize=4)
+def road_grid(model: RoadModel, height: int, width: int) -> np.ndarray:
+    """The road disparity of ``model`` over an HxW grid (float32 px, read-only, on the host),
+    kept for the frame's later stages: the transformation of D1 and the refinement's of the
+    smoothed map read the same grid."""
+    grid = model.disparity(np, height, width, np.float32)
+    grid.flags.writeable = False
+    return grid
 
 
 def _kernel(backend: Backend, name: str) -> Any:
