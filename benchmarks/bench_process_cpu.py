@@ -28,7 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 from pothole_detector.bagtools import process, write_drive_bag  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
-from pothole_detector.stages.matching import set_host_threads, sgm_disparity, to_gray8  # noqa: E402
+from pothole_detector.stages.matching import (set_host_threads, sgm_disparity,  # noqa: E402
+                                               to_gray8)
 from pothole_detector.synthetic import render, survey_drive  # noqa: E402
 
 SGBM_LEVELS = 128
