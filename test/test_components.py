@@ -155,3 +155,15 @@ def test_pieces_join_across_depressed_road_and_not_across_level_road():
     assert (joined[labels == 3] == 2).all() and (joined[labels == 0] == 0).all()
     apart = join_pieces(CPU, labels, 2, count, 2, grid, level, 8)
     assert count[0] == 3 and [apart[8, 0], apart[8, 24], apart[8, 58]] == [1, 2, 3]
+
+
+def test_the_cells_holding_a_label_are_the_padded_block_form():
+    from pothole_detector.stages.components import _cells_on
+    rng = np.random.default_rng(12)
+    for shape, factor in (((20, 30), 2), ((21, 31), 2), ((25, 17), 3), ((8, 8), 1)):
+        labels = (rng.random(shape) < 0.05) * rng.integers(1, 4, shape).astype(np.int32)
+        on = labels > 0
+        padded = np.pad(on, ((0, -shape[0] % factor), (0, -shape[1] % factor)))
+        want = padded.reshape(padded.shape[0] // factor, factor, padded.shape[1] // factor,
+                              factor).any(axis=(1, 3)).astype(np.uint8)
+        np.testing.assert_array_equal(_cells_on(labels, factor), want)

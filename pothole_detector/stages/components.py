@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..backend import Backend, to_host
@@ -143,10 +144,7 @@ def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
                                bridge_px)
     xp = backend.xp
     on = labels > 0
-    height, width = on.shape
-    padded = xp.pad(on, ((0, -height % factor), (0, -width % factor)))
-    cells = padded.reshape(padded.shape[0] // factor, factor, padded.shape[1] // factor,
-                           factor).any(axis=(1, 3)).astype(xp.uint8)
+    cells = _cells_on(np.ascontiguousarray(labels), factor)
     near = _dilated(backend, cells, -(-reach_px // factor)) > 0
     bridging = depressed is not None and bridge_px > 0
     if bridging:
@@ -210,6 +208,21 @@ def _join_on_device(backend: Backend, labels: Any, reach_px: int, count: Any, fa
         (labels, joined, table, i32(bridging), i32(height), i32(width), i32(factor), i32(rows),
          i32(cols), out))
     return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _cells_on(labels: np.ndarray, factor: int) -> np.ndarray:
+    """uint8 (ceil(H / factor), ceil(W / factor)): 1 where any pixel of the cell's ``factor`` x
+    ``factor`` square (clipped at the map's edge) of the HxW ``labels`` is above 0."""
+    height, width = labels.shape
+    rows, cols = -(-height // factor), -(-width // factor)
+    cells = np.zeros((rows, cols), dtype=np.uint8)
+    for i in numba.prange(rows):
+        for v in range(i * factor, min((i + 1) * factor, height)):
+            for u in range(width):
+                if labels[v, u] > 0:
+                    cells[i, u // factor] = 1
+    return cells
 
 
 def _dilated(backend: Backend, cells: Any, reach: int) -> Any:

@@ -7,13 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..backend import CPU
-from . import census_sgm, photometric, rectify, refine, superpixels, threshold
+from . import census_sgm, components, photometric, rectify, refine, superpixels, threshold
 from .road_model import RoadModel
 
 
 def compile_cpu_kernels(census: bool = True) -> None:
     """The census matcher's kernels (``census``: the matcher in use is ours), rectification's,
-    SLIC's and the host passes of the threshold, photometric and refinement stages."""
+    SLIC's and the host passes of the threshold, photometric, refinement and component
+    stages."""
     if census:
         census_sgm.compile_cpu_kernels()
     rectify.compile_cpu_kernel()
@@ -30,3 +31,4 @@ def compile_cpu_kernels(census: bool = True) -> None:
     refine.extend_occluded(CPU, labels, filled, smoothed, RoadModel(np.float64(20.0),
                                                                     np.float64(0.0), 0.0),
                            np.zeros(image.shape, np.int32), np.ones(1, bool))
+    components.join_pieces(CPU, labels, 2, np.zeros(1, np.int32), 2)

@@ -85,9 +85,10 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
     # only pixels within the radius of a labelled one can change: the labels' bounding box
     out = labels.astype(xp.int32)
     labelled = labels > 0
-    rows, cols = xp.flatnonzero(labelled.any(axis=1)), xp.flatnonzero(labelled.any(axis=0))
+    rows = xp.flatnonzero(labelled.any(axis=1))
     if rows.size == 0:
         return out
+    cols = xp.flatnonzero(labelled[rows[0]:rows[-1] + 1].any(axis=0))
     height, width = labels.shape
     box = (slice(max(rows[0] - radius_px, 0), min(rows[-1] + radius_px + 1, height)),
            slice(max(cols[0] - radius_px, 0), min(cols[-1] + radius_px + 1, width)))
