@@ -13,6 +13,7 @@ from __future__ import annotations
 from functools import partial
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..backend import Backend
@@ -43,22 +44,27 @@ def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any
     those that agree, GAIN_ROUNDS): float32 HxW, NaN where the disparity is. ``left``,
     ``right``: uint8 HxW on the backend; ``disparity``: float32 HxW px, NaN invalid. Nothing
     read back. On the GPU a kernel for the means, two passes a round and one for the result
-    (kernels/photometric.cu); on the CPU the means by stages/box_cpu.py."""
+    (kernels/photometric.cu); on the CPU the means by stages/box_cpu.py and the rounds by
+    Numba passes whose sums are NumPy's (:func:`host_sum`)."""
     if backend.is_gpu:
         return _disagreement_gpu(backend, left, right, disparity)
-    xp = backend.xp
-    valid = xp.isfinite(disparity)
     left_mean = box_cpu.box_mean(left, BRIGHTNESS_WINDOW_PX, "nearest")
     right_mean = box_cpu.gather_columns(box_cpu.box_mean(right, BRIGHTNESS_WINDOW_PX, "nearest"),
-                                        matched_columns(xp, disparity))
-    agreeing = valid
+                                        matched_columns(np, disparity))
+    valid = np.isfinite(disparity).ravel()
+    left_flat, right_flat = left_mean.ravel(), right_mean.ravel()
+    agreeing = valid.copy()
+    masked = (np.empty_like(left_flat), np.empty_like(left_flat))
+    difference = np.empty_like(left_flat)
+    buffer = np.getbufsize()
     for _ in range(GAIN_ROUNDS):
-        difference = xp.abs(left_mean - _gain(xp, left_mean, right_mean, agreeing) * right_mean)
-        typical = xp.sum(xp.where(agreeing, difference, 0), dtype=xp.float64) / xp.maximum(
-            xp.count_nonzero(agreeing), 1)
-        agreeing = valid & (difference <= GAIN_TRIM * typical)
-    difference = xp.abs(left_mean - _gain(xp, left_mean, right_mean, agreeing) * right_mean)
-    return xp.where(valid, difference, xp.float32(np.nan)).astype(xp.float32)
+        gain = _host_gain(left_flat, right_flat, agreeing, masked, buffer)
+        _differences(left_flat, right_flat, gain, agreeing, difference, masked[0])
+        typical = host_sum(masked[0], buffer) / max(int(np.count_nonzero(agreeing)), 1)
+        _agreeing(valid, difference, GAIN_TRIM * typical, agreeing)
+    gain = _host_gain(left_flat, right_flat, agreeing, masked, buffer)
+    _differences(left_flat, right_flat, gain, valid, difference, masked[0])
+    return np.where(valid, difference, np.float32(np.nan)).reshape(disparity.shape)
 
 
 def _disagreement_gpu(backend: Backend, left: Any, right: Any, disparity: Any) -> Any:
@@ -90,11 +96,81 @@ def _disagreement_gpu(backend: Backend, left: Any, right: Any, disparity: Any) -
     return out
 
 
-def _gain(xp: Any, left_mean: Any, right_mean: Any, where: Any) -> Any:
-    """The ratio of the summed brightness of the two views over ``where`` (a float32 backend
-    scalar)."""
-    return (xp.sum(xp.where(where, left_mean, 0), dtype=xp.float64) / xp.maximum(
-        xp.sum(xp.where(where, right_mean, 0), dtype=xp.float64), 1.0)).astype(xp.float32)
+def _host_gain(left: np.ndarray, right: np.ndarray, where: np.ndarray,
+               masked: tuple[np.ndarray, np.ndarray], buffer: int) -> np.float32:
+    """The ratio of the summed brightness of the two views (float32 (N,)) over ``where``
+    (bool (N,)), through the scratch ``masked``, as float32."""
+    _masked(left, right, where, masked[0], masked[1])
+    return np.float32(host_sum(masked[0], buffer) / max(host_sum(masked[1], buffer), 1.0))
+
+
+@numba.njit(cache=True)
+def _pairwise(values: np.ndarray, start: int, count: int) -> float:
+    """NumPy's pairwise float64 sum of ``values[start:start + count]`` (float32): eight
+    accumulators over blocks of up to 128, halves (a multiple of 8) above."""
+    if count < 8:
+        total = 0.0
+        for i in range(count):
+            total += np.float64(values[start + i])
+        return total
+    if count <= 128:
+        lanes = np.empty(8)
+        for j in range(8):
+            lanes[j] = np.float64(values[start + j])
+        i = 8
+        while i < count - count % 8:
+            for j in range(8):
+                lanes[j] += np.float64(values[start + i + j])
+            i += 8
+        total = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) \
+            + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]))
+        while i < count:
+            total += np.float64(values[start + i])
+            i += 1
+        return total
+    half = count // 2
+    half -= half % 8
+    return _pairwise(values, start, half) + _pairwise(values, start + half, count - half)
+
+
+@numba.njit(parallel=True, cache=True)
+def host_sum(values: np.ndarray, buffer: int) -> float:
+    """np.sum(``values``, dtype=np.float64) of a float32 (N,) array, to the bit: NumPy casts
+    ``buffer`` (np.getbufsize()) values at a time and adds each buffer's pairwise sum to the
+    total in order; the buffers' sums on Numba's threads."""
+    count = values.shape[0]
+    buffers = (count + buffer - 1) // buffer
+    sums = np.empty(buffers)
+    for index in numba.prange(buffers):
+        start = index * buffer
+        sums[index] = _pairwise(values, start, min(buffer, count - start))
+    total = 0.0
+    for index in range(buffers):
+        total += sums[index]
+    return total
+
+
+@numba.njit(parallel=True, cache=True)
+def _masked(left: np.ndarray, right: np.ndarray, where: np.ndarray, left_out: np.ndarray,
+            right_out: np.ndarray) -> None:
+    for i in numba.prange(left.shape[0]):
+        left_out[i] = left[i] if where[i] else np.float32(0.0)
+        right_out[i] = right[i] if where[i] else np.float32(0.0)
+
+
+@numba.njit(parallel=True, cache=True)
+def _differences(left: np.ndarray, right: np.ndarray, gain: np.float32, where: np.ndarray,
+                 difference: np.ndarray, masked: np.ndarray) -> None:
+    for i in numba.prange(left.shape[0]):
+        difference[i] = abs(left[i] - gain * right[i])
+        masked[i] = difference[i] if where[i] else np.float32(0.0)
+
+
+@numba.njit(parallel=True, cache=True)
+def _agreeing(valid: np.ndarray, difference: np.ndarray, limit: float,
+              agreeing: np.ndarray) -> None:
+    for i in numba.prange(valid.shape[0]):
+        agreeing[i] = valid[i] and difference[i] <= limit
 
 
 def inconsistent(backend: Backend, means: Any, road: Any, factor: float) -> Any:
