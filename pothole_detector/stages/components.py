@@ -152,7 +152,7 @@ def join_pieces(backend: Backend, labels: Any, reach_px: int, count: Any,
         bridge = xp.zeros_like(near)
         bridge[:rows, :cols] = xp.take(depressed, grid[:rows, :cols])
         near |= bridge & (_dilated(backend, cells, -(-bridge_px // factor)) > 0)
-    joined, found = (label_on_device if backend.is_gpu else label_components)(backend, near)
+    joined, found = label_components(backend, near)
     if bridging:
         # bridges that reach no component are no component: number those that hold one
         holds = xp.zeros(joined.size + 1, dtype=bool)
@@ -180,7 +180,8 @@ def _join_on_device(backend: Backend, labels: Any, reach_px: int, count: Any, fa
         cell_grid, block, (labels, i32(height), i32(width), i32(factor), i32(rows), i32(cols),
                            cells))
     bridging = depressed is not None and bridge_px > 0
-    reach, bridge_reach = -(-reach_px // factor), -(-bridge_px // factor) if bridging else 0
+    reach = -(-reach_px // factor)
+    bridge_reach = -(-bridge_px // factor) if bridging else 0
     near_rows = xp.empty((rows, cols), dtype=xp.uint8)
     bridge_rows = xp.empty((rows, cols), dtype=xp.uint8)
     _kernel(backend, "join_rows")(

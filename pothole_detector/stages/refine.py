@@ -14,7 +14,7 @@ import numpy as np
 from ..backend import Backend
 from . import box_cpu
 from .road_model import ROAD_DEFINES, RoadModel, device_params
-from .transform import road_grid
+from .transform import transform_on_host
 
 # side (px) of the square over which a pixel's disparity is averaged
 SMOOTHING_PX = 7
@@ -92,9 +92,7 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
     height, width = labels.shape
     box = (slice(max(rows[0] - radius_px, 0), min(rows[-1] + radius_px + 1, height)),
            slice(max(cols[0] - radius_px, 0), min(cols[-1] + radius_px + 1, width)))
-    transformed = (filled[box] - road_grid(road, height, width)[box]
-                   + xp.float32(road_level)).astype(xp.float32)
-    below = xp.float32(road_level) - transformed
+    below = xp.float32(road_level) - transform_on_host(filled, road, road_level, box)
     inside = superpixel_labels[box]
     deep = (below > fraction * xp.take(drops, inside)) & xp.take(observed, inside)
     near = ndimage.maximum_filter(out[box], size=2 * radius_px + 1, mode="constant")

@@ -28,8 +28,15 @@ def transform_disparity(backend: Backend, disparity: Any, model: RoadModel | Any
             (xp.ascontiguousarray(disparity, dtype=xp.float32), transformed, np.int32(height),
              np.int32(width), device_params(backend, model), np.float32(delta_dt_px)))
         return transformed
-    return (disparity - road_grid(model, height, width)
-            + xp.float32(delta_dt_px)).astype(xp.float32)
+    return transform_on_host(disparity, model, delta_dt_px)
+
+
+def transform_on_host(disparity: np.ndarray, model: RoadModel, delta_dt_px: float,
+                      box: tuple[slice, slice] = (slice(None), slice(None))) -> np.ndarray:
+    """D2 of the host HxW float32 ``disparity`` over its window ``box`` (rows, columns):
+    float32, with the road of :func:`road_grid` at those pixels."""
+    return (disparity[box] - road_grid(model, *disparity.shape)[box]
+            + np.float32(delta_dt_px)).astype(np.float32)
 
 
 @lru_cache(maxsize=4)
