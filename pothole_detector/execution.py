@@ -488,8 +488,8 @@ class FrameExecutor:
         assert frame.road is not None and frame.shifts is not None
         kept = host.components_kept
         potholes, _ = measure.keep_large(
-            measure.potholes_from_sums(host.sums[1:kept + 1], host.extremes[1:kept + 1]),
-            config.min_pothole_area_m2, config.min_pothole_depth_m, config.max_pothole_depth_m)
+            host.sums[1:kept + 1], host.extremes[1:kept + 1], config.min_pothole_area_m2,
+            config.min_pothole_depth_m, config.max_pothole_depth_m)
         timings = clock.timings()
         timings["total"] = sum(timings.values())
         timings["host"] = (time.perf_counter() - frame.started) * 1e3 - frame.lent_ms

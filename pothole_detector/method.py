@@ -111,7 +111,9 @@ class FrameArrays:
     the road stands significantly above the local road (local_road.bumps); ``searched``: bool
     per superpixel, where potholes are looked for (PipelineResult); ``depressed``: with the
     local road reference, bool per superpixel, the searched ones that lie below the local road
-    by more than refine_depth_fraction of their threshold (components.join_pieces)."""
+    by more than refine_depth_fraction of their threshold (components.join_pieces);
+    ``significant``: bool per superpixel, the searched ones deeper below the road around them
+    than corner_significance times their threshold (measure.reportable)."""
 
     disparity: Any
     transformed: Any
@@ -127,6 +129,7 @@ class FrameArrays:
     bumps: Any = None
     searched: Any = None
     depressed: Any = None
+    significant: Any = None
 
 
 class FrameReport(Protocol):
@@ -334,6 +337,10 @@ class Method:
             observed, drops = observe(observed_range=report.observed_range)
             drop = config.delta_pd_px if pixels else drops
             searched, local, bumps, depressed = observed, None, None, None
+            significant = None
+            if config.road_reference != "local" and config.corner_significance > 0:
+                significant = observed & (found.means < xp.float32(config.delta_dt_px)
+                                          - config.corner_significance * drop)
             if config.road_reference == "local":
                 ahead, ahead_drops = observe(max_depth_m=math.inf)
                 usable = ahead & (found.valid_fraction > config.superpixel_min_valid_fraction)
@@ -349,6 +356,9 @@ class Method:
                     searched, drop = observe(noise_px=superpixel_noise)
                 depressed = searched & (found.means < xp.float32(config.delta_dt_px) - local
                                         - config.refine_depth_fraction * drop)
+                if config.corner_significance > 0:
+                    significant = searched & (found.means < xp.float32(config.delta_dt_px)
+                                              - local - config.corner_significance * drop)
                 drop = drop + local
                 if config.bump_noise_sigmas > 0:
                     bumps = local_road.bumps(backend, found.means, local, noise, searched,
@@ -368,7 +378,8 @@ class Method:
                 flagged = photometric.inconsistent(backend, disagreement, searched & ~selected,
                                                    config.photometric_factor)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops, region_px, local, flagged, bumps, searched, depressed)
+                            drops, region_px, local, flagged, bumps, searched, depressed,
+                            significant)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -381,7 +392,7 @@ class Method:
         with clock.stage("components"):
             labels = components.pothole_components(
                 backend, frame.candidate, frame.valid, found.labels, found.count,
-                config.corner_fraction, config.min_pothole_superpixels, config.slic_downsample,
+                config.min_pothole_superpixels, config.slic_downsample,
                 report.capacity, report.components, frame.inconsistent, frame.bumps)
         with clock.stage("refine"):
             shift = None if frame.local is None else local_road.pixel_offsets(
@@ -398,8 +409,10 @@ class Method:
                                             report.components_kept, config.slic_downsample,
                                             found.grid, frame.depressed, frame.region_px)
         with clock.stage("measure"):
+            corners = components.far_corners(backend, frame.valid, config.corner_fraction)
             measure.measure(backend, labels, report.capacity, smoothed, road,
-                            self.calibration, sums=report.sums, extremes=report.extremes)
+                            self.calibration, report.sums, report.extremes, corners,
+                            found.labels, frame.significant)
             return measure.area_filter(backend, labels, report.sums, report.components_kept,
                                        report.capacity, config.min_pothole_area_m2,
                                        report.kept_after_area, config.min_pothole_depth_m,

@@ -205,9 +205,15 @@ PARAMETERS: tuple[Param, ...] = (
           "that rims are not cut at superpixel edges; 0 turns it off.", 0, 1),
     # components
     Param("corner_fraction", float, 0.1,
-          "Components touching a far (top) corner square of this fraction of the short side "
-          "are dropped.",
+          "Potholes reaching into a far (top) corner square of this fraction of the short "
+          "side are dropped, unless corner_significance keeps them.",
           0, 0.5),
+    Param("corner_significance", float, 2.0,
+          "A pothole reaching into a far corner is kept when more than half of its pixels "
+          "lie on superpixels deeper below the road around them than this many times their "
+          "threshold: the far corners are where the road model is extrapolated, so a pothole "
+          "there needs this much more evidence than elsewhere; 0 drops every such pothole.",
+          0, 100),
     Param("min_pothole_superpixels", int, 2, "Components of fewer superpixels are dropped.",
           1, 1000),
     Param("min_pothole_area_m2", float, 0.0005, "Components smaller on the road are dropped.",

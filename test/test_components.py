@@ -3,7 +3,8 @@ from __future__ import annotations
 import numpy as np
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.components import components_found, corner_mask, join_pieces, relabel
+from pothole_detector.stages.components import (components_found, corner_mask, far_corners,
+                                                join_pieces, relabel)
 
 
 def grid_superpixels(height, width, step):
@@ -11,19 +12,16 @@ def grid_superpixels(height, width, step):
     return (v // step) * (width // step) + u // step, (height // step) * (width // step)
 
 
-def test_filters_corner_single_superpixel_and_keeps_diagonal_neighbours():
+def test_filters_single_superpixel_and_keeps_diagonal_neighbours():
     height, width = 100, 100
     superpixels, n = grid_superpixels(height, width, 10)
     candidate = np.zeros((height, width), bool)
-    candidate[0:20, 0:20] = True          # corner
     candidate[40:50, 40:50] = True        # one superpixel
     candidate[60:70, 60:70] = True        # two superpixels touching diagonally
     candidate[70:80, 70:80] = True
-    labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
-                                       0.1, 2)
+    labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n, 2)
     assert count == 1
-    assert labels[65, 65] == 1 and labels[75, 75] == 1
-    assert labels[5, 5] == 0 and labels[45, 45] == 0
+    assert labels[65, 65] == 1 and labels[75, 75] == 1 and labels[45, 45] == 0
 
 
 def test_corner_regions_follow_the_valid_area():
@@ -32,22 +30,16 @@ def test_corner_regions_follow_the_valid_area():
     mask = corner_mask(np, valid, 0.2)
     assert mask[0, 30:40].all() and not mask[0, 40:50].any()
     assert mask[0, 90:100].all() and not mask[20, 35]
+    corners = far_corners(CPU, valid, 0.2)
+    assert corners.side == 10 and corners.first[0] == 30 and corners.last[0] == 99
 
 
-def test_only_the_far_corners_drop_components():
+def test_only_the_top_corners_are_far():
     """The top corners are where the road is farthest; a pothole in a near (bottom) corner
-    is seen best and stays."""
-    height, width = 100, 100
-    superpixels, n = grid_superpixels(height, width, 10)
-    valid = np.ones((height, width), bool)
-    mask = corner_mask(np, valid, 0.1)
+    is seen best."""
+    mask = corner_mask(np, np.ones((100, 100), bool), 0.1)
     assert mask[:10, :10].all() and mask[:10, 90:].all() and not mask[10:].any()
-    candidate = np.zeros((height, width), bool)
-    candidate[0:20, 80:100] = True        # far corner
-    candidate[80:100, 0:20] = True        # near corner
-    labels, count = components_found(CPU, candidate, valid, superpixels, n, 0.1, 2)
-    assert count == 1
-    assert labels[90, 10] == 1 and labels[10, 90] == 0
+    assert mask.sum() == 200
 
 
 def test_relabel_renumbers_in_order():
@@ -69,8 +61,8 @@ def test_labelling_the_reduced_grid_gives_the_full_resolution_labels():
         valid[:, :7] = False
         superpixels = (np.arange(height)[:, None] // 8) * 64 + np.arange(width)[None, :] // 8
         n = int(superpixels.max()) + 1
-        expected = components_found(CPU, full, valid, superpixels, n, 0.1, 1)
-        found = components_found(CPU, small, valid, superpixels, n, 0.1, 1, factor=factor)
+        expected = components_found(CPU, full, valid, superpixels, n, 1)
+        found = components_found(CPU, small, valid, superpixels, n, 1, factor=factor)
         assert found[1] == expected[1] > 3
         np.testing.assert_array_equal(found[0], expected[0])
 
@@ -87,7 +79,7 @@ def test_a_component_mostly_of_inconsistent_superpixels_is_dropped():
     flagged[[21, 22, 31]] = True
     flagged[[26, 27]] = True
     labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
-                                     0.1, 2, inconsistent=flagged)
+                                     2, inconsistent=flagged)
     assert count == 1 and labels[30, 70] == 1 and labels[30, 20] == 0
 
 
@@ -103,10 +95,10 @@ def test_a_component_beside_a_bump_is_dropped():
     bumps = np.zeros(n, bool)
     bumps[[23, 29]] = True
     labels, count = components_found(CPU, candidate, np.ones_like(candidate), superpixels, n,
-                                     0.1, 2, bumps=bumps)
+                                     2, bumps=bumps)
     assert count == 1 and labels[30, 70] == 1 and labels[30, 20] == 0
     small = candidate[::2, ::2]
-    reduced = components_found(CPU, small, np.ones_like(candidate), superpixels, n, 0.1, 2,
+    reduced = components_found(CPU, small, np.ones_like(candidate), superpixels, n, 2,
                                factor=2, bumps=bumps)
     np.testing.assert_array_equal(reduced[0], labels)
 

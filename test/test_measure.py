@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.measure import (depth_below_road, keep_large, measure_potholes,
-                                             potholes_from_sums, road_normal)
+from pothole_detector.stages.components import far_corners
+from pothole_detector.stages.measure import (MEASURE_SUMS, depth_below_road, keep_large,
+                                             measure, measure_potholes, potholes_from_sums,
+                                             reportable, road_normal)
 from pothole_detector.stages.road_model import fit_road
 
 
@@ -42,14 +44,46 @@ def test_keep_large_drops_small_potholes_and_renumbers(demo_sample):
     disparity = demo_sample.disparity.astype(np.float32)
     road = fit_road(np, disparity, stride=2)
     labels = demo_sample.labels.astype(np.int32)
-    potholes = measure_potholes(CPU, labels, int(labels.max()), disparity, road,
-                                demo_sample.calibration)
+    count = int(labels.max())
+    sums, extremes = measure(CPU, labels, count, disparity, road, demo_sample.calibration)
+    potholes = potholes_from_sums(sums[1:], extremes[1:])
     smallest = min(potholes, key=lambda p: p.area_m2)
-    kept, keep = keep_large(potholes, smallest.area_m2 * 1.0001)
+    kept, keep = keep_large(sums[1:], extremes[1:], smallest.area_m2 * 1.0001)
     assert len(kept) == len(potholes) - 1 and [p.label for p in kept] == list(
         range(1, len(kept) + 1))
     assert not keep[0] and not keep[smallest.label] and keep.sum() == len(kept)
     assert [p.pixels for p in kept] == [p.pixels for p in potholes if p is not smallest]
+
+
+def test_a_pothole_in_a_far_corner_stays_only_on_mostly_significant_superpixels(demo_sample):
+    """Three potholes reach into the top-left corner region: the one of which 3 of 4 pixels
+    lie on significant superpixels stays, the half-significant one goes and so does one
+    without any; one away from the corners stays regardless."""
+    disparity = demo_sample.disparity.astype(np.float32)
+    road = fit_road(np, disparity, stride=2)
+    height, width = disparity.shape
+    superpixels = (np.arange(height)[:, None] // 8) * 1000 + np.arange(width)[None, :] // 8
+    superpixels = superpixels.astype(np.int32)
+    significant = np.zeros(int(superpixels.max()) + 1, bool)
+    labels = np.zeros((height, width), np.int32)
+    labels[0:16, 0:16] = 1                 # superpixels 0, 1, 1000, 1001: 3 significant
+    significant[[0, 1, 1000]] = True
+    labels[0:16, 24:40] = 2                # 3, 4, 1003, 1004: 2 significant
+    significant[[3, 4]] = True
+    labels[16:32, 0:16] = 3                # none significant
+    labels[height - 40:height - 24, 60:76] = 4
+    valid = np.isfinite(disparity)
+    corners = far_corners(CPU, np.ones_like(valid), 40 / min(height, width))
+    assert corners.side == 40
+    sums, extremes = measure(CPU, labels, 4, disparity, road, demo_sample.calibration,
+                             corners=corners, superpixel_labels=superpixels,
+                             significant=significant)
+    assert list(sums[1:, 0]) == [256] * 4
+    assert list(sums[1:, 8]) == [256, 256, 256, 0]
+    assert list(sums[1:, 9]) == [192, 128, 0, 0]
+    deep = np.ones((4, MEASURE_SUMS))     # otherwise a possible report
+    deep[:, [0, 8, 9]] = sums[1:, [0, 8, 9]]
+    assert list(reportable(deep, 0.0)) == [True, False, False, True]
 
 
 def test_potholes_from_sums_decode_the_device_table():
@@ -106,15 +140,14 @@ def test_a_far_pothole_whose_bottom_is_hidden_still_makes_a_sane_report():
 
 
 def test_depths_above_the_road_count_as_zero_and_reports_need_finite_positive_numbers():
-    from pothole_detector.stages.measure import MEASURE_SUMS, reportable
     hole, sample, disparity, labels, road = _grazing(15.0, 3.0)
     raised = np.where(labels > 0, disparity + 3.0, disparity).astype(np.float32)
     depth, footprint = depth_below_road(np, *np.nonzero(labels.T > 0), raised.T[labels.T > 0],
                                         road, sample.calibration)
     assert depth.min() == 0.0 and (footprint > 0).all()
     assert measure_potholes(CPU, labels, 1, raised, road, sample.calibration)[0].volume_m3 == 0
-    assert keep_large(measure_potholes(CPU, labels, 1, raised, road, sample.calibration),
-                      0.0)[0] == []
+    raised_sums, raised_extremes = measure(CPU, labels, 1, raised, road, sample.calibration)
+    assert keep_large(raised_sums[1:], raised_extremes[1:], 0.0)[0] == []
     sums = np.ones((4, MEASURE_SUMS))
     sums[1, 4] = 0.0          # no depth below the road
     sums[2, 5] = np.inf       # a non-finite sum
@@ -123,7 +156,6 @@ def test_depths_above_the_road_count_as_zero_and_reports_need_finite_positive_nu
 
 
 def test_reports_need_a_depth_between_the_bounds_and_no_deeper_than_wide():
-    from pothole_detector.stages.measure import MEASURE_SUMS, reportable
     sums = np.ones((5, MEASURE_SUMS))
     sums[:, 1] = 0.04          # 20 cm wide
     sums[:, 3] = 0.04          # floor area

@@ -1,5 +1,6 @@
-// Component filters of stages/components.pothole_components on the device: which components
-// touch a corner region (components.corner_mask) and which superpixels each one holds.
+// Component filters of stages/components.pothole_components on the device: which superpixels
+// each component holds and which components touch a bump; the valid spans of the far corners
+// (components.far_corners).
 
 #include "block_scan.cuh"
 
@@ -35,20 +36,18 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
                  + min(col / factor, small_width - 1)];
 }
 
-// One thread per pixel of component c > 0: touched[c] = 1 inside a far corner region (the top
-// `side` rows, within `side` columns of the row's valid span); bit s of present[c]
+// One thread per pixel of component c > 0: bit s of present[c]
 // (words_per_component words) marks superpixel s, and held[c] counts the distinct ones (the
 // thread whose atomicOr sets the bit adds 1; a plain read first spares the atomic once the
 // bit is set), inconsistent[c] those of them flagged in `flagged` (one byte per superpixel).
-// touched[c] = 1 too where a pixel of c is an 8-neighbour of a pixel off every component whose
+// touched[c] = 1 where a pixel of c is an 8-neighbour of a pixel off every component whose
 // superpixel is flagged in `bumps` (one byte per superpixel). Components past `capacity` (the
 // tables' size) set touched[0], the overflow flag; the caller then runs again with a larger
 // capacity.
 extern "C" __global__ void component_marks(const int* small, const int* superpixels,
                                            const bool* flagged, const bool* bumps,
-                                           const int* first,
-                                           const int* last, int height, int width, int factor,
-                                           int small_height, int small_width, int side,
+                                           int height, int width, int factor,
+                                           int small_height, int small_width,
                                            int words_per_component, int capacity, int* touched,
                                            int* held, int* inconsistent, unsigned* present) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
@@ -60,8 +59,6 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
         touched[0] = 1;
         return;
     }
-    if (row < side && (col < first[row] + side || col > last[row] - side))
-        touched[component] = 1;
     for (int dv = -1; dv <= 1; ++dv) {
         for (int du = -1; du <= 1; ++du) {
             const int v = row + dv, u = col + du;
@@ -81,7 +78,7 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
 }
 
 // One block: component c (1..count, count = min(*components, capacity)) is kept when it
-// touches no corner, holds at least min_superpixels superpixels and no more than half of them
+// touches no bump, holds at least min_superpixels superpixels and no more than half of them
 // are inconsistent; new_id[c] (capacity + 1 entries) numbers the kept ones 1..m in order (0
 // otherwise); kept[0] = m.
 extern "C" __global__ void component_keep(const int* touched, const int* held,

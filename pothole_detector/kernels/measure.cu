@@ -1,7 +1,8 @@
 // Per-pothole sums in one pass over the label image. Reference: stages/measure.py
 // (measure, depth_below_road, surface_patches, hidden_floor_depth). sums: float64
-// [count + 1][8] = pixels, footprint area, valid area, floor area, depth x floor area (the
-// depth hidden_floor_depth estimates), x, y, z x area (valid pixels); extremes: int32
+// [count + 1][10] = pixels, footprint area, valid area, floor area, depth x floor area (the
+// depth hidden_floor_depth estimates), x, y, z x area (valid pixels), pixels in a far corner
+// region, pixels of significant superpixels; extremes: int32
 // [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
 // Warps whose labelled pixels share one label add once per warp.
 // Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS, HIDDEN_FLOOR_*
@@ -106,18 +107,21 @@ extern "C" __global__ void measure_reset(double* sums, int* extremes, int count)
 
 // road: a0, a1, cos(phi), sin(phi), c0..c5, curved (stages/road_model.RoadModel
 // .kernel_params). Road disparity as road_disparity.cuh; the unit normal of its linear part as
-// measure.road_normal computes it.
+// measure.road_normal computes it. The far corner regions (components.in_far_corner): the top
+// `side` rows, within `side` columns of the row's valid span first..last; `significant` (one
+// byte per superpixel of `superpixels`) is read where `has_significant`.
 extern "C" __global__ void __launch_bounds__(THREADS)
 measure_potholes(const int* labels, const float* disparity, int height, int width,
                  double f, double cx, double cy, double fb, const double* road,
-                 double* sums, int* extremes) {
+                 const int* first, const int* last, int side, const int* superpixels,
+                 const bool* significant, int has_significant, double* sums, int* extremes) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     const bool inside = index < (long long)height * width;
     const int label = inside ? labels[index] : 0;
     const unsigned labelled = __ballot_sync(FULL_MASK, label > 0);
     if (labelled == 0) return;
     const int u = (int)(index % width), v = (int)(index / width);
-    double values[SUMS] = {0, 0, 0, 0, 0, 0, 0, 0};
+    double values[SUMS] = {};
     float depth_value = __int_as_float(0xff800000);
     if (label > 0) {
         double normal[3];
@@ -127,6 +131,8 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
                                         &footprint);
         values[0] = 1.0;
         values[1] = footprint;
+        values[8] = v < side && (u < first[v] + side || u > last[v] - side) ? 1.0 : 0.0;
+        values[9] = has_significant && significant[superpixels[index]] ? 1.0 : 0.0;
         if (finite(depth)) {
             const double uu = u, vv = v, z = fb / (double)disparity[index];
             bool edge_on;
@@ -184,7 +190,8 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
 
 // One thread: pothole p (1..min(kept[0], capacity)) stays when its footprint area reaches
 // min_area, its mean depth (over its floor area) lies in [min_depth, max_depth] and is at most
-// its width (the square root of its area), and its sums make a report
+// its width (the square root of its area), where it reaches into a far corner more than half
+// of its pixels are on significant superpixels, and its sums make a report
 // (measure.reportable); new_id numbers the ones that stay
 // 1..m in order (0 for the others and for label 0); kept_after[0] = m. The pipeline's area
 // filter; the host repeats the test on the same sums when it reads them back.
@@ -195,7 +202,8 @@ __device__ bool reportable(const double* row, double min_area, double min_depth,
     const double floor = row[3], depth_floor = row[4];
     return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && floor > 0.0
            && depth_floor > 0.0 && depth_floor >= min_depth * floor
-           && depth_floor <= max_depth * floor && depth_floor <= sqrt(row[1]) * floor;
+           && depth_floor <= max_depth * floor && depth_floor <= sqrt(row[1]) * floor
+           && (row[8] == 0.0 || 2.0 * row[9] > row[0]);
 }
 
 extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numba
@@ -13,6 +14,52 @@ from .superpixels import upsample_labels
 EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 
+@dataclass(frozen=True)
+class FarCorners:
+    """The far corner regions of the area that has disparities (:func:`corner_mask`): int32
+    (H,) ``first`` and ``last`` column with a disparity in each row (0 and W - 1 in a row
+    without any) and the regions' ``side`` (px, 0: no regions)."""
+
+    first: Any
+    last: Any
+    side: int
+
+
+def far_corners(backend: Backend, valid: Any, fraction: float) -> FarCorners:
+    """The far corner regions of the HxW bool ``valid`` area with side ``fraction`` x the short
+    image side; on the GPU one kernel (kernels/components.cu), nothing read back."""
+    xp = backend.xp
+    height, width = valid.shape
+    side = int(round(fraction * min(height, width)))
+    if backend.is_gpu:
+        first = xp.empty(height, dtype=xp.int32)
+        last = xp.empty(height, dtype=xp.int32)
+        _kernel(backend, "row_extents")(
+            ((height + 7) // 8,), (256,),
+            (xp.ascontiguousarray(valid, dtype=xp.bool_), np.int32(height), np.int32(width),
+             first, last))
+        return FarCorners(first, last, side)
+    return _far_corners(xp, valid, side)
+
+
+def _far_corners(xp: Any, valid: Any, side: int) -> FarCorners:
+    """far_corners with array functions (the reference of kernels/components.cu's)."""
+    width = valid.shape[1]
+    has_valid = valid.any(axis=1)
+    first = xp.where(has_valid, xp.argmax(valid, axis=1), 0).astype(xp.int32)
+    last = xp.where(has_valid, width - 1 - xp.argmax(valid[:, ::-1], axis=1),
+                    width - 1).astype(xp.int32)
+    return FarCorners(first, last, side)
+
+
+def in_far_corner(corners: FarCorners, rows: Any, cols: Any) -> Any:
+    """Bool, per pixel (int arrays ``rows``, ``cols``): whether it lies in a far corner
+    region: the top ``side`` rows, within ``side`` columns of its row's valid span."""
+    side = corners.side
+    first, last = corners.first[rows], corners.last[rows]
+    return (rows < side) & ((cols < first + side) | (cols > last - side))
+
+
 def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
     """HxW bool: the far corner regions of the area that has disparities.
 
@@ -21,30 +68,22 @@ def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
     never valid, so the image corner itself is not where the data ends). Only the top
     corners: the road's disparity grows down the image (the seed pass accepts no other
     road), so they are where the road is farthest, seen at the most grazing angle and
-    departs most from its model, while a pothole in a near corner is seen best.
+    departs most from its model, while a pothole in a near corner is seen best. Potholes
+    that reach into them need more evidence (measure.reportable).
     """
     height, width = valid.shape
-    side = int(round(fraction * min(height, width)))
-    mask = xp.zeros((height, width), dtype=bool)
-    if side <= 0:
-        return mask
-    has_valid = valid.any(axis=1)
-    first = xp.where(has_valid, xp.argmax(valid, axis=1), 0)
-    last = xp.where(has_valid, width - 1 - xp.argmax(valid[:, ::-1], axis=1), width - 1)
-    cols = xp.arange(width)[None, :]
-    band = xp.zeros(height, dtype=bool)
-    band[:side] = True
-    near_end = (cols < first[:, None] + side) | (cols > last[:, None] - side)
-    return band[:, None] & near_end
+    corners = _far_corners(xp, valid, int(round(fraction * min(height, width))))
+    rows, cols = xp.indices((height, width))
+    return in_far_corner(corners, rows, cols)
 
 
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
-                       n_superpixels: int, corner_fraction: float, min_superpixels: int,
+                       n_superpixels: int, min_superpixels: int,
                        factor: int = 1, capacity: int | None = None,
                        counts: Any = None, inconsistent: Any = None, bumps: Any = None) -> Any:
-    """The components stage: label the 8-connected components of the bool ``candidate`` mask;
-    drop components that touch a far corner region of the HxW bool ``valid`` area (see
-    corner_mask), hold fewer than ``min_superpixels`` superpixels (HxW
+    """The components stage: label the 8-connected components of the bool ``candidate`` mask
+    (of the HxW shape of the bool ``valid``); drop components that hold fewer than
+    ``min_superpixels`` superpixels (HxW
     ``superpixel_labels``), of whose superpixels more than half are flagged in the bool
     (n_superpixels,) ``inconsistent`` (where given), or that touch a superpixel flagged in
     the bool (n_superpixels,) ``bumps`` (where given; a pixel of it is an 8-neighbour of
@@ -68,15 +107,13 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
             capacity = max(int(to_host(found)[0]), 1)
         counts = xp.empty(3, dtype=xp.int32) if counts is None else counts
         return filter_on_device(backend, small, found, valid, superpixel_labels, n_superpixels,
-                                corner_fraction, min_superpixels, factor, capacity, counts,
-                                inconsistent, bumps)
+                                min_superpixels, factor, capacity, counts, inconsistent, bumps)
     components, count = label_components(backend, candidate)
     components = upsample_labels(backend, components, factor, valid.shape)
     if count == 0:
         labels, kept = components.astype(xp.int32), 0
     else:
         keep = xp.ones(count + 1, dtype=bool)
-        keep[components[corner_mask(xp, valid, corner_fraction)]] = False
         keep[0] = False
         pairs = components.ravel().astype(xp.int64) * n_superpixels + superpixel_labels.ravel()
         present = xp.bincount(pairs[components.ravel() > 0],
@@ -108,14 +145,14 @@ def beside(xp: Any, components: Any, marked: Any) -> Any:
 
 
 def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
-                     n_superpixels: int, corner_fraction: float, min_superpixels: int,
+                     n_superpixels: int, min_superpixels: int,
                      factor: int = 1, inconsistent: Any = None, bumps: Any = None
                      ) -> tuple[Any, int]:
     """:func:`pothole_components` with every component and the kept count read back:
     (int32 HxW labels, k)."""
     counts = backend.xp.zeros(3, dtype=backend.xp.int32)
     labels = pothole_components(backend, candidate, valid, superpixel_labels, n_superpixels,
-                                corner_fraction, min_superpixels, factor, counts=counts,
+                                min_superpixels, factor, counts=counts,
                                 inconsistent=inconsistent, bumps=bumps)
     return labels, int(to_host(counts)[1])
 
@@ -298,24 +335,18 @@ def _words(n_superpixels: int) -> int:
 
 
 def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
-                     superpixel_labels: Any, n_superpixels: int, corner_fraction: float,
-                     min_superpixels: int, factor: int, capacity: int, counts: Any,
-                     inconsistent: Any = None, bumps: Any = None) -> Any:
-    """The corner, bump, superpixel and consistency filters of pothole_components on labels
+                     superpixel_labels: Any, n_superpixels: int, min_superpixels: int,
+                     factor: int, capacity: int, counts: Any, inconsistent: Any = None,
+                     bumps: Any = None) -> Any:
+    """The bump, superpixel and consistency filters of pothole_components on labels
     ``small`` of the (reduced) candidate mask with the device component ``count``:
-    kernels/components.cu reads them at full resolution by index arithmetic (per-row valid
-    spans, corner, superpixel and consistency marks, the keep/renumber table in one block, the
-    final labels). Writes ``counts`` as
-    :func:`components_on_device` does."""
+    kernels/components.cu reads them at full resolution by index arithmetic (superpixel,
+    bump and consistency marks, the keep/renumber table in one block, the final labels).
+    Writes ``counts`` as :func:`components_on_device` does."""
     xp = backend.xp
     height, width = valid.shape
     small_height, small_width = small.shape
     i32 = np.int32
-    first = xp.empty(height, dtype=xp.int32)
-    last = xp.empty(height, dtype=xp.int32)
-    _kernel(backend, "row_extents")(
-        ((height + 7) // 8,), (256,),
-        (xp.ascontiguousarray(valid, dtype=xp.bool_), i32(height), i32(width), first, last))
     words = _words(n_superpixels)
     marks = xp.zeros((capacity + 1) * (3 + words), dtype=xp.int32)
     touched, held, flagged_held = (marks[k * (capacity + 1):(k + 1) * (capacity + 1)]
@@ -324,14 +355,13 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
     flagged, bumped = (xp.zeros(max(n_superpixels, 1), dtype=xp.bool_) if given is None
                        else xp.ascontiguousarray(given, dtype=xp.bool_)
                        for given in (inconsistent, bumps))
-    side = int(round(corner_fraction * min(height, width)))
     size = height * width
     grid = ((size + 255) // 256,)
     _kernel(backend, "component_marks")(
         grid, (256,),
         (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), flagged, bumped,
-         first, last, i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
-         i32(side), i32(words), i32(capacity), touched, held, flagged_held, present))
+         i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
+         i32(words), i32(capacity), touched, held, flagged_held, present))
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     _kernel(backend, "component_keep")(
         (1,), (1024,), (touched, held, flagged_held, count, i32(capacity),

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from ..backend import Backend, to_host
 from ..calibration import StereoCalibration
-from .components import relabel
+from .components import FarCorners, in_far_corner, relabel
 from .refine import SMOOTHING_PX
 from .road_model import ROAD_DEFINES, RoadModel, device_params, road_plane
 
@@ -143,11 +143,15 @@ def hidden_floor_depth(xp: Any, labels: Any, rows: Any, cols: Any, label: Any, d
 
 def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
             road: RoadModel | Any, calibration: StereoCalibration, sums: Any = None,
-            extremes: Any = None) -> tuple[Any, Any]:
+            extremes: Any = None, corners: FarCorners | None = None,
+            superpixel_labels: Any = None, significant: Any = None) -> tuple[Any, Any]:
     """The measure stage: per-label sums of labels 1..capacity of the int32 HxW ``labels``
     with the HxW float32 disparity D1 (px, NaN invalid), nothing read back: backend float64
     (capacity + 1, MEASURE_SUMS) pixels, area, valid area, floor area (:func:`surface_patches`),
-    depth x floor area, x, y, z x valid area and int32 (capacity + 1, MEASURE_EXTREMES)
+    depth x floor area, x, y, z x valid area, pixels in a far corner region (``corners``,
+    none where not given) and pixels of superpixels (int32 HxW ``superpixel_labels``) flagged
+    in the bool (n,) ``significant`` (none where not given), and int32 (capacity + 1,
+    MEASURE_EXTREMES)
     largest depth (order-preserving float32 bits), u min, v min, u max, v max; row 0 unused;
     written into ``sums`` and ``extremes`` where given. The mean depth is taken over the
     floor that the camera sees, each point weighted by the area it covers on the road, so
@@ -157,7 +161,8 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     kernels/measure.cu over the label image (per-warp sums, atomics per label)."""
     if backend.is_gpu:
         return _measure_on_device(backend, labels, capacity, disparity,
-                                  device_params(backend, road), calibration, sums, extremes)
+                                  device_params(backend, road), calibration, sums, extremes,
+                                  corners, superpixel_labels, significant)
     xp, ndimage = backend.xp, backend.ndimage
     sums = np.zeros((capacity + 1, MEASURE_SUMS)) if sums is None else sums
     extremes = np.zeros((capacity + 1, MEASURE_EXTREMES), np.int32) if extremes is None \
@@ -182,6 +187,10 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     def total(weights: Any) -> Any:
         return xp.bincount(label, weights=weights.astype(xp.float64), minlength=count + 1)[1:]
 
+    none = xp.zeros(rows.shape, dtype=bool)
+    cornered = none if corners is None else in_far_corner(corners, rows, cols)
+    flagged = none if significant is None else significant[superpixel_labels[rows, cols]]
+
     def extreme(function: Any, values: Any) -> Any:
         return xp.asarray(function(values, label, index)).reshape(count)
 
@@ -189,7 +198,7 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
         total(xp.ones_like(footprint)), total(footprint), total(xp.where(valid, footprint, 0)),
         total(floor), total(xp.where(valid, volume_depth, 0) * floor),
         total(xp.where(valid, x * footprint, 0)), total(xp.where(valid, y * footprint, 0)),
-        total(xp.where(valid, z * footprint, 0)),
+        total(xp.where(valid, z * footprint, 0)), total(cornered), total(flagged),
     ], axis=1)
     largest = extreme(ndimage.maximum, xp.where(valid, depth, -xp.inf)).astype(xp.float32)
     extremes[1:count + 1, 0] = _ordered_bits(largest.view(xp.int32))
@@ -242,7 +251,7 @@ def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
 
 
 # per-label float64 sums and int32 extremes of measure (kernels/measure.cu), its block size
-MEASURE_SUMS = 8
+MEASURE_SUMS = 10
 MEASURE_EXTREMES = 5
 MEASURE_THREADS = 256
 _MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
@@ -251,10 +260,18 @@ _MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
 
 def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
                        road_params: Any, calibration: StereoCalibration, sums: Any,
-                       extremes: Any) -> tuple[Any, Any]:
+                       extremes: Any, corners: FarCorners | None, superpixel_labels: Any,
+                       significant: Any) -> tuple[Any, Any]:
     """measure on the GPU (road_params: road_model.device_params)."""
     xp = backend.xp
     height, width = labels.shape
+    if corners is None:
+        spans = xp.zeros(1, dtype=xp.int32)
+        corners = FarCorners(spans, spans, 0)
+    has_significant = significant is not None
+    if not has_significant:
+        superpixel_labels = xp.zeros(1, dtype=xp.int32)
+        significant = xp.zeros(1, dtype=xp.bool_)
     if sums is None:
         sums = xp.empty((capacity + 1, MEASURE_SUMS), dtype=xp.float64)
     if extremes is None:
@@ -268,7 +285,10 @@ def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: 
         (xp.ascontiguousarray(labels, dtype=xp.int32),
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
          f64(calibration.f), f64(calibration.cx), f64(calibration.cy), f64(calibration.fb),
-         road_params, sums, extremes))
+         road_params, corners.first, corners.last, np.int32(corners.side),
+         xp.ascontiguousarray(superpixel_labels, dtype=xp.int32),
+         xp.ascontiguousarray(significant, dtype=xp.bool_),
+         np.int32(has_significant), sums, extremes))
     return sums, extremes
 
 
@@ -305,34 +325,27 @@ def reportable(sums: np.ndarray, min_area_m2: float, min_depth_m: float = 0.0,
     area positive) and a measured depth (floor area and depth x floor area positive) whose
     mean lies in [``min_depth_m``, ``max_depth_m``] and is at most its width (the square root
     of its area: a hole deeper than it is wide is a mismatch): a report with finite, positive,
-    possible numbers."""
+    possible numbers; and where it reaches into a far corner region (components.corner_mask),
+    more than half of its pixels lie on significant superpixels (where the road model is
+    extrapolated, a pothole needs more evidence: params' corner_significance)."""
     sums = np.asarray(sums)
     floor, depth_floor = sums[:, 3], sums[:, 4]
     return np.isfinite(sums).all(axis=1) & (sums[:, 1] >= min_area_m2) & (sums[:, 1] > 0) \
         & (sums[:, 2] > 0) & (floor > 0) & (depth_floor > 0) \
         & (depth_floor >= min_depth_m * floor) & (depth_floor <= max_depth_m * floor) \
-        & (depth_floor <= np.sqrt(np.maximum(sums[:, 1], 0.0)) * floor)
+        & (depth_floor <= np.sqrt(np.maximum(sums[:, 1], 0.0)) * floor) \
+        & ((sums[:, 8] == 0) | (2 * sums[:, 9] > sums[:, 0]))
 
 
-def keep_large(potholes: list[Pothole], min_area_m2: float, min_depth_m: float = 0.0,
-               max_depth_m: float = math.inf) -> tuple[list[Pothole], np.ndarray]:
-    """The potholes that make a report (:func:`reportable`: finite, positive area reaching
-    ``min_area_m2``, positive mean depth in [``min_depth_m``, ``max_depth_m``]), renumbered
-    1..m, and the bool (k+1,) keep table over labels 0..k (label 0 never kept)."""
-    keep = np.array([False] + [_reported(p, min_area_m2, min_depth_m, max_depth_m)
-                               for p in potholes])
-    kept = [replace(p, label=i)
-            for i, p in enumerate((p for p, k in zip(potholes, keep[1:]) if k), 1)]
-    return kept, keep
-
-
-def _reported(pothole: Pothole, min_area_m2: float, min_depth_m: float,
-              max_depth_m: float) -> bool:
-    """keep_large's test on a measured pothole: reportable's on the numbers it was made of."""
-    numbers = (pothole.area_m2, pothole.mean_depth_m, pothole.volume_m3, *pothole.centroid_cam_m)
-    return all(math.isfinite(n) for n in numbers) and pothole.area_m2 >= min_area_m2 \
-        and pothole.area_m2 > 0 and pothole.mean_depth_m > 0 \
-        and min_depth_m <= pothole.mean_depth_m <= min(max_depth_m, math.sqrt(pothole.area_m2))
+def keep_large(sums: np.ndarray, extremes: np.ndarray, min_area_m2: float,
+               min_depth_m: float = 0.0, max_depth_m: float = math.inf
+               ) -> tuple[list[Pothole], np.ndarray]:
+    """The potholes of host copies of rows 1..k of :func:`measure`'s sums (float64 (k,
+    MEASURE_SUMS)) and extremes (int32 (k, MEASURE_EXTREMES)) that make a report
+    (:func:`reportable`), renumbered 1..m, and the bool (k+1,) keep table over labels 0..k
+    (label 0 never kept): the rows :func:`area_filter` keeps."""
+    keep = np.concatenate([[False], reportable(sums, min_area_m2, min_depth_m, max_depth_m)])
+    return potholes_from_sums(sums[keep[1:]], extremes[keep[1:]]), keep
 
 
 def _kernel(backend: Backend, name: str) -> Any:
