@@ -189,6 +189,6 @@ def test_the_validation_drive_is_surveyed_and_scored():
     row = score_drive(folder, Config({"backend": "cpu"}))
     assert row["frames"] == 40 and row["seen"] == 2
     assert row["found"] + row["duplicates"] + row["false"] <= row["entries"]
-    assert 0 <= row["found"] <= row["seen"]
-    if row["found"]:
-        assert 0 <= row["error_median_m"] <= row["error_max_m"]
+    # the 2.8 cm pothole no frame shows alone is found by the views together (the map)
+    assert row["found"] == 2 and row["duplicates"] == 0 and row["false"] == 0
+    assert 0 <= row["error_median_m"] <= row["error_max_m"] <= 0.2

@@ -16,10 +16,13 @@ from conftest import SURVEY_ORIGIN_LATLON
 from pothole_detector.geodesy import enu_of, latlon_of
 from pothole_detector.survey.motion import Pose2
 from pothole_detector.params import Config
-from pothole_detector.survey.drive import (CSV_COLUMNS, FrameObservation, MotionSeries,
-                                           Sighting, assemble, chunk_spans, drive_topics,
-                                           severity, survey, track, utc_time, write_csv,
-                                           write_geojson)
+from pothole_detector.survey.drive import (CSV_COLUMNS, FrameCamera, FrameObservation,
+                                           MapFrame, MotionSeries, Sighting, assemble,
+                                           chunk_spans, drive_topics, map_only_entries,
+                                           severity, survey, survey_pothole, track, utc_time,
+                                           write_csv, write_geojson)
+from pothole_detector.survey.roadmap import MapPothole, RoadMap, RoadPatch, merged
+from pothole_detector.survey.tracking import Track
 
 
 def _sighting(stamp, forward, left, depth=0.03, area=0.02, observed=True):
@@ -343,3 +346,74 @@ def test_the_survey_on_the_gpu_gives_the_cpu_survey():
     on_cpu = survey([drive], Config({"backend": "cpu", "matcher": "census"}))[0]
     assert len(on_gpu.potholes) == 5
     assert_same_potholes(on_gpu, on_cpu)
+
+
+def _level_camera() -> FrameCamera:
+    """A level camera 1 m above the road looking along it (f 500 px, 640x480)."""
+    return FrameCamera((0.0, 1.0, 0.0), ((0.0, 0.0, 1.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0)),
+                       500.0, 319.5, 239.5, 640, 480)
+
+
+def test_a_frame_camera_projects_road_points_to_their_pixels():
+    points, pixels = _level_camera().project(np.array([[2.0, 0.0], [4.0, 1.0]]))
+    np.testing.assert_allclose(points, [[0.0, 1.0, 2.0], [-1.0, 1.0, 4.0]])
+    np.testing.assert_allclose(pixels, [[319.5, 489.5], [194.5, 364.5]])
+
+
+def test_pieces_of_a_map_depression_merge_into_one():
+    square = np.array([[0.0, 0.0], [0.1, 0.0], [0.1, 0.1], [0.0, 0.1]])
+    a = MapPothole((0.05, 0.05), square, 0.02, 0.01, 0.001, 0.03, 0.0003, 3, 5, 0.1)
+    b = MapPothole((0.35, 0.05), square + [0.3, 0.0], 0.03, 0.02, 0.002, 0.01, 0.0002, 1, 7, 0.1)
+    both = merged([a, b])
+    assert both.area_m2 == pytest.approx(0.04) and both.volume_m3 == pytest.approx(0.0005)
+    assert both.mean_depth_m == pytest.approx(0.0125) and both.max_depth_m == 0.03
+    assert both.max_depth_sigma_m == 0.002 and both.cells == 4 and both.views == 7
+    np.testing.assert_allclose(both.xy, (0.125, 0.05))
+    assert len(both.outline) == 4 and both.outline[:, 0].max() == pytest.approx(0.4)
+
+
+def test_a_pothole_only_the_views_together_show_gets_one_entry():
+    """A 1.5 cm dip that the detector reported in one frame only becomes one entry, seen by
+    every frame whose road samples reach it (that frame's sighting with its own measures: 11
+    of the 13 frames, the first two searched to 4.6 m ahead only), its best view
+    the nearest that shows it whole; a dip under an entry's pothole adds none, and none is
+    made from fewer views than min_sightings."""
+    overview = RoadMap(0.1, 0.5, 3.0, 0.004, 0.0005, 0.008)
+    xs, ys = np.meshgrid(np.arange(0.0, 8.0, 0.04), np.arange(-1.5, 1.5, 0.04))
+    xy = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    depth = np.where(np.hypot(xy[:, 0] - 5.0, xy[:, 1] - 0.3) < 0.2, 0.015, 0.0)
+    depth[np.hypot(xy[:, 0] - 2.0, xy[:, 1] + 0.5) < 0.2] = 0.02
+    for _ in range(6):
+        overview.add(xy, depth, np.full(len(xy), 0.002))
+    assert len(overview.potholes()) == 2
+    poses = [Pose2(x, 0.0, 0.0) for x in [0.25 * i for i in range(12)] + [2.9]]
+    forward, left = np.meshgrid(np.arange(10, 46), np.arange(-15, 15), indexing="ij")
+    searched = np.stack([forward.ravel(), left.ravel()], axis=1).astype(np.int16)
+    patch = RoadPatch(searched, 0.1, np.zeros(len(searched), np.float16),
+                      np.full(len(searched), 0.002, np.float16))  # 1.0-4.6 m ahead
+    frames = [FrameObservation(i, (), (1.0, 3.0), None, camera=_level_camera(),
+                               overview=patch) for i in range(13)]
+    entered = Track(1, [_sighting(0, 2.0, -0.5)], [np.array([2.0, -0.5])])
+    spare = Track(2, [_sighting(5, 3.77, 0.31, depth=0.014, observed=False)],
+                  [np.array([5.02, 0.31])])
+    place = MapFrame(None, np.array([[p.x, p.y] for p in poses]))
+    config = Config()
+    (made,) = map_only_entries(overview, [entered, spare], [([entered], entered, None)],
+                               frames, poses, place, config)
+    own, together, depression = made
+    assert own == [spare]
+    np.testing.assert_allclose(depression.xy, (5.0, 0.3), atol=0.05)
+    assert [s.stamp_ns for s in together.sightings] == list(range(2, 13))
+    assert together.sightings[3] is spare.sightings[0]
+    assert [s.observed for s in together.sightings] == [i >= 8 for i in range(2, 13)]
+    assert [s.whole for s in together.sightings] == [i < 12 for i in range(2, 13)]
+    best = together.best()
+    assert best.stamp_ns == 11 and best.road_xy == pytest.approx((2.25, 0.3), abs=0.05)
+    x0, y0, x1, y1 = best.bbox_px
+    assert 0 < x0 < 319.5 - 500 * 0.3 / 2.25 < x1 < 319.5 and 239.5 + 500 / 2.25 < y1 <= 479
+    row = survey_pothole(1, "drive", together, depression, place, config).row
+    assert row["sightings"] == 11 and row["best_stamp_ns"] == 11
+    assert row["max_depth_m"] == pytest.approx(0.015, abs=0.002)
+    assert row["odom_x_m"] == pytest.approx(5.0, abs=0.05)
+    assert map_only_entries(overview, [entered], [], frames, poses, place,
+                            config.replace(min_sightings=12)) == []

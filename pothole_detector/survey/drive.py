@@ -35,9 +35,10 @@ from ..recordings import bags, readahead
 from ..recordings.topics import StereoTopics, find_stereo_topics
 from ..stages.matching import to_gray8
 from ..params import Config
-from .roadmap import (MapPothole, RoadMap, RoadPatch, near_potholes, result_patch, road_map,
-                      sample_pixels)
-from .tracking import PotholeTracker, Sighting, Track, joined, merge_overlapping, sightings_of
+from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, result_patch,
+                      road_map, sample_pixels)
+from .tracking import (PotholeTracker, Sighting, Track, joined, linked_groups, merge_overlapping,
+                       sightings_of)
 
 ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -86,20 +87,53 @@ def utc_time(stamp_ns: int) -> str:
 
 
 @dataclass(frozen=True)
+class FrameCamera:
+    """How one frame's left camera saw the road: its road frame (motion.RoadFrame: ``origin``,
+    the road point below the camera, m, and ``axes``, rows forward, left, up, in the left
+    optical frame), focal length and principal point (px) and image size (px)."""
+
+    origin: tuple[float, float, float]
+    axes: tuple[tuple[float, float, float], ...]
+    f: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @classmethod
+    def of(cls, plane: RoadFrame, calibration: StereoCalibration, width: int,
+           height: int) -> "FrameCamera":
+        return cls(tuple(float(v) for v in plane.origin),  # type: ignore[arg-type]
+                   tuple(tuple(float(v) for v in row) for row in plane.axes),  # type: ignore
+                   calibration.f, calibration.cx, calibration.cy, width, height)
+
+    def project(self, road_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Road points (N, 2) (forward, left, m, on the road plane) as (N, 3) points of the left
+        optical frame (m) and (N, 2) pixels (u, v; NaN behind the camera)."""
+        axes = np.asarray(self.axes)
+        points = np.asarray(self.origin) + np.asarray(road_xy).reshape(-1, 2) @ axes[:2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.where(points[:, 2] > 0, points[:, 2], np.nan)
+            pixels = np.stack([self.f * points[:, 0] / depth + self.cx,
+                               self.f * points[:, 1] / depth + self.cy], axis=1)
+        return points, pixels
+
+
+@dataclass(frozen=True)
 class FrameObservation:
     """What the survey keeps of one stereo frame: its potholes, the observed range (near, far,
     m along the road; NaN when none), the visual-odometry step from the previous frame (None
-    on the first frame, when it failed or when the bag has odometry), its road frame's axes
-    (rows forward, left, up in the left optical frame; None when the frame failed), when
-    the frame failed, why, and its road samples for the maps (None without a map): at
-    map_cell_m around its potholes, at map_overview_cell_m over all its observed road."""
+    on the first frame, when it failed or when the bag has odometry), how its camera saw the
+    road (None when the frame failed), when the frame failed, why, and its road samples for
+    the maps (None without a map): at map_cell_m around its potholes, at map_overview_cell_m
+    over all its observed road."""
 
     stamp_ns: int
     sightings: tuple[Sighting, ...]
     observed_range_m: tuple[float, float]
     step: Pose2 | None
     failure: str = ""
-    axes: tuple[tuple[float, ...], ...] | None = None
+    camera: FrameCamera | None = None
     patch: RoadPatch | None = None
     overview: RoadPatch | None = None
 
@@ -188,7 +222,7 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                     frame.stamp, sightings_of(frame.stamp, outcome, plane, width, height,
                                               frame.calibration),
                     tuple(float(v) for v in outcome.observed_range_m), step,
-                    axes=tuple(tuple(float(v) for v in row) for row in plane.axes),
+                    camera=FrameCamera.of(plane, frame.calibration, width, height),
                     patch=patch, overview=overview))
     finally:
         reader.close()
@@ -332,8 +366,8 @@ def _heading_error(observations: Sequence[FrameObservation]) -> float:
     camera is fixed on the vehicle, so a frame's forward axis in the camera differs from the
     median by its road fit's error, and visual odometry would carry the first frame's into
     every position of the drive."""
-    frames = [np.asarray(o.axes) for o in observations if o.axes is not None]
-    if len(frames) < 3 or observations[0].axes is None:
+    frames = [np.asarray(o.camera.axes) for o in observations if o.camera is not None]
+    if len(frames) < 3 or observations[0].camera is None:
         return 0.0
     forward = np.median([f[0] for f in frames], axis=0)
     first = frames[0]
@@ -433,6 +467,9 @@ def assemble(bag: str | Path, observations: Sequence[FrameObservation], motion: 
     route = np.array([[p.x, p.y] for p in poses if p is not None]).reshape(-1, 2)
     place = MapFrame(fusion, route)
     entries = map_entries(tracked_all, roadmap, place, config)
+    entries = sorted(entries + map_only_entries(overview, tracked_all, entries, frames, poses,
+                                                place, config),
+                     key=lambda entry: entry[1].sightings[0].stamp_ns)
     rows = [survey_pothole(first_id + offset, bag, together, found, place, config)
             for offset, (_, together, found) in enumerate(entries)]
     start = frames[0].stamp_ns if frames else 0
@@ -550,6 +587,100 @@ def map_entries(tracks: Sequence[Track], roadmap: RoadMap | None, place: MapFram
     return sorted(entries, key=lambda entry: entry[1].sightings[0].stamp_ns)
 
 
+def map_only_entries(overview: RoadMap | None, tracks: Sequence[Track],
+                     entries: Sequence[tuple[list[Track], Track, MapPothole | None]],
+                     frames: Sequence[FrameObservation], poses: Sequence[Pose2 | None],
+                     place: MapFrame, config: Config) -> list[tuple[list[Track], Track,
+                                                                    MapPothole]]:
+    """Entries for the potholes that the views together show better than any one: the
+    depressions of the whole road's map (``overview``; each cell deeper than
+    threshold_noise_sigmas of the noise fused over every view that saw it) farther than
+    track_match_distance_m from every entry's tracks and depression, pieces within that
+    distance of each other joined (roadmap.merged), seen by at least min_sightings frames
+    (:func:`map_sightings`, with the sightings of the tracks too short for an entry of their
+    own that lie on it in place of their frames'), as (those tracks, a track of the views,
+    the depression)."""
+    if overview is None:
+        return []
+    reach = config.track_match_distance_m
+    entered = {id(t) for group, _, _ in entries for t in group}
+    spare = [t for t in tracks if id(t) not in entered and np.all(np.isfinite(t.position))]
+    taken = [place.of_motion(np.array([t.position for group, _, _ in entries for t in group
+                                       if np.all(np.isfinite(t.position))]).reshape(-1, 2))]
+    taken += [found.outline for _, _, found in entries if found is not None]
+    free = [d for d in overview.potholes()
+            if all(_gap(d.outline, points) > reach for points in taken if len(points))]
+    spare_xy = place.of_motion(np.array([t.position for t in spare]).reshape(-1, 2))
+    made = []
+    for group in linked_groups(len(free), lambda i, j: _gap(free[i].outline, free[j].outline)
+                               <= reach):
+        depression = merged([free[i] for i in group])
+        own = [t for t, xy in zip(spare, spare_xy) if _gap(depression.outline, xy) <= reach]
+        measured = {s.stamp_ns: s for t in own for s in t.sightings}
+        views = [measured.pop(s.stamp_ns, s)
+                 for s in map_sightings(depression, frames, poses, place)]
+        views = sorted(views + list(measured.values()), key=lambda s: s.stamp_ns)
+        if len(views) < config.min_sightings or depression.views < config.min_sightings:
+            continue
+        centre = place.to_motion(np.asarray(depression.xy)[None, :])[0]
+        outline = place.to_motion(depression.outline)
+        made.append((own, Track(0, views, [centre] * len(views), len(views),
+                                [outline] * len(views)), depression))
+    return made
+
+
+def map_sightings(depression: MapPothole, frames: Sequence[FrameObservation],
+                  poses: Sequence[Pose2 | None], place: MapFrame) -> list[Sighting]:
+    """The frames that saw a depression of the whole road's map: those whose road samples for
+    it (``overview``) hold a cell at its centroid; as sightings placed by the frame's pose and
+    camera (FrameCamera.project), ``observed`` inside the observed range, with the box of the
+    outline in the image (clipped to it; ``whole`` where the outline lies inside) and no
+    measures of their own (NaN: the map measures it)."""
+    centre = place.to_motion(np.asarray(depression.xy)[None, :])
+    outline = place.to_motion(depression.outline)
+    seen = []
+    for frame, pose in zip(frames, poses):
+        camera, patch = frame.camera, frame.overview
+        if pose is None or camera is None or patch is None or not len(patch):
+            continue
+        into_road = pose.inverse()
+        road_centre = into_road.apply(centre)[0]
+        cell = np.floor(road_centre / patch.cell_m)
+        if not (patch.cells == cell).all(axis=1).any():
+            continue
+        points, pixels = camera.project(np.vstack([road_centre[None, :],
+                                                   into_road.apply(outline)]))
+        size = np.array([camera.width - 1, camera.height - 1])
+        if not (np.isfinite(pixels).all() and (pixels[0] >= 0).all()
+                and (pixels[0] <= size).all()):
+            continue
+        low, high = pixels[1:].min(axis=0), pixels[1:].max(axis=0)
+        whole = bool((low >= 0).all() and (high <= size).all())
+        low, high = np.clip(np.floor(low), 0, size), np.clip(np.ceil(high), 0, size)
+        nan = math.nan
+        near, far = frame.observed_range_m
+        seen.append(Sighting(frame.stamp_ns, tuple(float(v) for v in points[0]),
+                             (float(road_centre[0]), float(road_centre[1])),
+                             bool(near <= road_centre[0] <= far), nan, nan, nan, nan,
+                             (int(low[0]), int(low[1]), int(high[0]), int(high[1])), whole))
+    return seen
+
+
+def _gap(outline: np.ndarray, points: np.ndarray) -> float:
+    """The distance (m) between a closed ``outline`` (N, 2) and ``points`` (M, 2; an outline
+    too): 0 where a point lies inside the outline or a vertex of it inside theirs (where they
+    are an outline of 3 or more), else the least distance between their vertices."""
+    outline = np.asarray(outline, dtype=np.float64).reshape(-1, 2)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    for shape, others in ((outline, points), (points, outline)):
+        if len(shape) >= 3:
+            contour = shape.astype(np.float32).reshape(-1, 1, 2)
+            if any(cv2.pointPolygonTest(contour, (float(x), float(y)), False) >= 0
+                   for x, y in others):
+                return 0.0
+    return float(cKDTree(outline).query(points)[0].min())
+
+
 def survey_pothole(pothole_id: int, bag: str | Path, together: Track,
                    found: MapPothole | None, place: MapFrame, config: Config) -> SurveyPothole:
     """One entry: times, sightings and the best view from its tracks ``together``; depth, area,
@@ -557,8 +688,10 @@ def survey_pothole(pothole_id: int, bag: str | Path, together: Track,
     saw it; its outline runs through its edge cells' centres, so its length and width are one
     cell more than the outline's), or from the best view where the map has none."""
     best = together.best()
-    depths = [s.max_depth_m for s in together.sightings]
-    areas = [s.area_m2 for s in together.sightings]
+    depths = [s.max_depth_m for s in together.sightings if math.isfinite(s.max_depth_m)] \
+        or [found.max_depth_m if found is not None else math.nan]
+    areas = [s.area_m2 for s in together.sightings if math.isfinite(s.area_m2)] \
+        or [found.area_m2 if found is not None else math.nan]
     first, last = together.sightings[0].stamp_ns, together.sightings[-1].stamp_ns
     if found is not None:
         xy_map = np.array(found.xy)
@@ -567,8 +700,8 @@ def survey_pothole(pothole_id: int, bag: str | Path, together: Track,
         outline = place.to_motion(outline_map)
         along = place.heading_at(xy_map)
         across = np.array([-along[1], along[0]])
-        length = float(np.ptp(outline_map @ along)) + config.map_cell_m
-        width = float(np.ptp(outline_map @ across)) + config.map_cell_m
+        length = float(np.ptp(outline_map @ along)) + found.cell_m
+        width = float(np.ptp(outline_map @ across)) + found.cell_m
         measures = (found.max_depth_m, found.mean_depth_m, found.area_m2, found.volume_m3,
                     length, width)
         views, sigma = found.views, found.max_depth_sigma_m

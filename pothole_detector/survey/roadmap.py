@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -179,7 +179,7 @@ class MapPothole:
     """A depression of the map: its centroid ``xy`` (m, map frame), its outline on the road
     (float64 (N, 2), m, map frame), its largest and mean depth below the local road level (m),
     the standard deviation of the largest (m), its area (m^2) and volume (m^3), the cells it
-    covers and the most views any of them had."""
+    covers, the most views any of them had and the map's cell size (m)."""
 
     xy: tuple[float, float]
     outline: np.ndarray
@@ -190,6 +190,24 @@ class MapPothole:
     volume_m3: float
     cells: int
     views: int
+    cell_m: float
+
+
+def merged(depressions: Sequence[MapPothole]) -> MapPothole:
+    """One depression of the map's ``depressions`` (pieces of one pothole): their cells
+    together, the outline of their outlines' convex hull, the centroid weighted by area, the
+    largest depth (and its sigma) of the deepest, the mean depth over the area."""
+    if len(depressions) == 1:
+        return depressions[0]
+    area = sum(d.area_m2 for d in depressions)
+    volume = sum(d.volume_m3 for d in depressions)
+    deepest = max(depressions, key=lambda d: d.max_depth_m)
+    xy = sum(np.asarray(d.xy) * d.area_m2 for d in depressions) / area
+    hull = cv2.convexHull(np.concatenate([d.outline for d in depressions]).astype(np.float32))
+    return MapPothole((float(xy[0]), float(xy[1])), hull.reshape(-1, 2).astype(np.float64),
+                      deepest.max_depth_m, volume / area, deepest.max_depth_sigma_m, area,
+                      volume, sum(d.cells for d in depressions),
+                      max(d.views for d in depressions), depressions[0].cell_m)
 
 
 @dataclass(frozen=True)
@@ -440,7 +458,8 @@ class RoadMap:
                     (origin[0] + (cx + 0.5) * self.cell_m, origin[1] + (cy + 0.5) * self.cell_m),
                     self._outline(mine, origin), float(deepest[index]),
                     float(sums[index] / cells), float(sigma[at]), cells * cell_area,
-                    float(sums[index] * cell_area), cells, int(views[mine].max())))
+                    float(sums[index] * cell_area), cells, int(views[mine].max()),
+                    self.cell_m))
                 kept[index] = len(potholes)
         return kept[labels], potholes
 

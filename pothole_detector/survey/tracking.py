@@ -157,10 +157,10 @@ def pieces(sightings: Sequence[Sighting]) -> list[list[int]]:
         a, b = sightings[i], sightings[j]
         return math.dist(a.road_xy, b.road_xy) <= radius_of(a.area_m2) + radius_of(b.area_m2)
 
-    return _groups(len(sightings), touch)
+    return linked_groups(len(sightings), touch)
 
 
-def _groups(count: int, joined: Callable[[int, int], bool]) -> list[list[int]]:
+def linked_groups(count: int, joined: Callable[[int, int], bool]) -> list[list[int]]:
     """Indices 0..``count`` - 1 grouped where ``joined(i, j)`` (i < j) links them, links
     chaining (union-find); each group's indices in order, the groups by their first."""
     parent = list(range(count))
@@ -367,7 +367,8 @@ def merge_overlapping(tracks: Sequence[Track]) -> list[Track]:
         return finite[i] and finite[j] and float(
             np.linalg.norm(positions[i] - positions[j])) < radii[i] + radii[j]
 
-    merged = [joined([tracks[i] for i in indices]) for indices in _groups(len(tracks), overlap)]
+    merged = [joined([tracks[i] for i in indices])
+              for indices in linked_groups(len(tracks), overlap)]
     return sorted(merged, key=lambda t: (t.sightings[0].stamp_ns, t.id))
 
 
