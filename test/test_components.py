@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.components import (components_found, corner_mask, far_corners,
+from pothole_detector.stages.components import (components_found, far_corners, in_far_corner,
                                                 join_pieces, relabel)
 
 
@@ -24,10 +24,14 @@ def test_filters_single_superpixel_and_keeps_diagonal_neighbours():
     assert labels[65, 65] == 1 and labels[75, 75] == 1 and labels[45, 45] == 0
 
 
+def corner_mask(valid, fraction):
+    return in_far_corner(far_corners(CPU, valid, fraction), *np.indices(valid.shape))
+
+
 def test_corner_regions_follow_the_valid_area():
     valid = np.ones((50, 100), bool)
     valid[:, :30] = False
-    mask = corner_mask(np, valid, 0.2)
+    mask = corner_mask(valid, 0.2)
     assert mask[0, 30:40].all() and not mask[0, 40:50].any()
     assert mask[0, 90:100].all() and not mask[20, 35]
     corners = far_corners(CPU, valid, 0.2)
@@ -37,7 +41,7 @@ def test_corner_regions_follow_the_valid_area():
 def test_only_the_top_corners_are_far():
     """The top corners are where the road is farthest; a pothole in a near (bottom) corner
     is seen best."""
-    mask = corner_mask(np, np.ones((100, 100), bool), 0.1)
+    mask = corner_mask(np.ones((100, 100), bool), 0.1)
     assert mask[:10, :10].all() and mask[:10, 90:].all() and not mask[10:].any()
     assert mask.sum() == 200
 

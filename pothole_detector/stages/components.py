@@ -16,9 +16,15 @@ EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 @dataclass(frozen=True)
 class FarCorners:
-    """The far corner regions of the area that has disparities (:func:`corner_mask`): int32
-    (H,) ``first`` and ``last`` column with a disparity in each row (0 and W - 1 in a row
-    without any) and the regions' ``side`` (px, 0: no regions)."""
+    """The far corner regions of the area that has disparities: int32 (H,) ``first`` and
+    ``last`` column with a disparity in each row (0 and W - 1 in a row without any) and the
+    regions' ``side`` (px, 0: no regions). In the top ``side`` rows, the first and last
+    ``side`` columns of each row's valid span are corner (a disparity map's left border is
+    never valid, so the image corner itself is not where the data ends). Only the top
+    corners: the road's disparity grows down the image (the seed pass accepts no other
+    road), so they are where the road is farthest, seen at the most grazing angle and
+    departs most from its model, while a pothole in a near corner is seen best. Potholes
+    that reach into them need more evidence (measure.reportable)."""
 
     first: Any
     last: Any
@@ -58,23 +64,6 @@ def in_far_corner(corners: FarCorners, rows: Any, cols: Any) -> Any:
     side = corners.side
     first, last = corners.first[rows], corners.last[rows]
     return (rows < side) & ((cols < first + side) | (cols > last - side))
-
-
-def corner_mask(xp: Any, valid: Any, fraction: float) -> Any:
-    """HxW bool: the far corner regions of the area that has disparities.
-
-    Side = ``fraction`` x the short image side. In the top ``side`` rows, the first and last
-    ``side`` columns of each row's valid span are corner (a disparity map's left border is
-    never valid, so the image corner itself is not where the data ends). Only the top
-    corners: the road's disparity grows down the image (the seed pass accepts no other
-    road), so they are where the road is farthest, seen at the most grazing angle and
-    departs most from its model, while a pothole in a near corner is seen best. Potholes
-    that reach into them need more evidence (measure.reportable).
-    """
-    height, width = valid.shape
-    corners = _far_corners(xp, valid, int(round(fraction * min(height, width))))
-    rows, cols = xp.indices((height, width))
-    return in_far_corner(corners, rows, cols)
 
 
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,

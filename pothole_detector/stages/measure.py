@@ -325,7 +325,7 @@ def reportable(sums: np.ndarray, min_area_m2: float, min_depth_m: float = 0.0,
     area positive) and a measured depth (floor area and depth x floor area positive) whose
     mean lies in [``min_depth_m``, ``max_depth_m``] and is at most its width (the square root
     of its area: a hole deeper than it is wide is a mismatch): a report with finite, positive,
-    possible numbers; and where it reaches into a far corner region (components.corner_mask),
+    possible numbers; and where it reaches into a far corner region (components.FarCorners),
     more than half of its pixels lie on significant superpixels (where the road model is
     extrapolated, a pothole needs more evidence: params' corner_significance)."""
     sums = np.asarray(sums)
