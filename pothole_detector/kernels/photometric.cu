@@ -11,7 +11,7 @@
 //   GAIN (mode 0): gain = sum left / max(sum right, 1), rounded to float; SPREAD (mode 1):
 //   limit = trim x the mean |left - gain x right|, gain_before = gain.
 // photometric_difference: |left - gain x right|, NaN where the right mean is.
-// Defined by the launcher: WINDOW, SUMS (4) and the state layout (STATE_GAIN,
+// Defined by the launcher: WINDOW, SUMS (4), BATCH and the state layout (STATE_GAIN,
 // STATE_GAIN_BEFORE, STATE_LIMIT).
 
 #define SUM_LEFT 0
@@ -60,16 +60,28 @@ extern "C" __global__ void photometric_sums(const float* left_mean, const float*
     const float gain_before = (float)state[STATE_GAIN_BEFORE];
     const double limit = state[STATE_LIMIT];
     double sums[SUMS] = {0.0, 0.0, 0.0, 0.0};
-    for (long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x; i < size;
-         i += (long long)gridDim.x * blockDim.x) {
-        const float r = right_mean[i];
-        if (!isfinite(r)) continue;
-        const float l = left_mean[i];
-        if (limit >= 0.0 && (double)difference(l, r, gain_before) > limit) continue;
-        sums[SUM_LEFT] += l;
-        sums[SUM_RIGHT] += r;
-        sums[SUM_DIFFERENCE] += difference(l, r, gain);
-        sums[SUM_COUNT] += 1.0;
+    const long long stride = (long long)gridDim.x * blockDim.x;
+    // BATCH strided pixels' loads in flight at once, added in the order of a plain
+    // grid-stride loop
+    for (long long first = blockIdx.x * (long long)blockDim.x + threadIdx.x; first < size;
+         first += BATCH * stride) {
+        float lefts[BATCH], rights[BATCH];
+#pragma unroll
+        for (int k = 0; k < BATCH; ++k) {
+            const long long i = first + k * stride;
+            rights[k] = i < size ? right_mean[i] : __int_as_float(0x7fc00000);
+            lefts[k] = i < size ? left_mean[i] : 0.0f;
+        }
+#pragma unroll
+        for (int k = 0; k < BATCH; ++k) {
+            const float r = rights[k], l = lefts[k];
+            if (!isfinite(r)) continue;
+            if (limit >= 0.0 && (double)difference(l, r, gain_before) > limit) continue;
+            sums[SUM_LEFT] += l;
+            sums[SUM_RIGHT] += r;
+            sums[SUM_DIFFERENCE] += difference(l, r, gain);
+            sums[SUM_COUNT] += 1.0;
+        }
     }
     __shared__ double warp_sums[32][SUMS];
     __shared__ bool last;

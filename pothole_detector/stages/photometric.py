@@ -28,12 +28,14 @@ BRIGHTNESS_WINDOW_PX = 5
 GAIN_TRIM = 3.0
 GAIN_ROUNDS = 3
 # kernels/photometric.cu: the sums of a pass (left, right, disagreement, count), the blocks
-# and threads of a pass, and the layout of the device state between the passes
+# and threads of a pass, the pixels whose loads a thread of a pass keeps in flight, and the
+# layout of the device state between the passes
 _SUMS = 4
 _SUM_BLOCKS = 512
 _THREADS = 256
+_SUM_BATCH = 4
 _STATE = {"STATE_GAIN": 0, "STATE_GAIN_BEFORE": 1, "STATE_LIMIT": 2}
-_DEFINES = {"WINDOW": BRIGHTNESS_WINDOW_PX, "SUMS": _SUMS, **_STATE}
+_DEFINES = {"WINDOW": BRIGHTNESS_WINDOW_PX, "SUMS": _SUMS, "BATCH": _SUM_BATCH, **_STATE}
 _GAIN, _SPREAD = 0, 1
 
 
