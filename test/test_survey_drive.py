@@ -376,16 +376,19 @@ def test_a_pothole_only_the_views_together_show_gets_one_entry():
     """A 1.5 cm dip that the detector reported in one frame only becomes one entry, seen by
     every frame whose road samples reach it (that frame's sighting with its own measures: 11
     of the 13 frames, the first two searched to 4.6 m ahead only), its best view
-    the nearest that shows it whole; a dip under an entry's pothole adds none, and none is
-    made from fewer views than min_sightings."""
+    the nearest that shows it whole; a dip under an entry's pothole adds none, nor does one at
+    the edge of the seen road (it may be the road falling away), and none is made from fewer
+    views than min_sightings."""
     overview = RoadMap(0.1, 0.5, 3.0, 0.004, 0.0005, 0.008)
     xs, ys = np.meshgrid(np.arange(0.0, 8.0, 0.04), np.arange(-1.5, 1.5, 0.04))
     xy = np.stack([xs.ravel(), ys.ravel()], axis=1)
     depth = np.where(np.hypot(xy[:, 0] - 5.0, xy[:, 1] - 0.3) < 0.2, 0.015, 0.0)
     depth[np.hypot(xy[:, 0] - 2.0, xy[:, 1] + 0.5) < 0.2] = 0.02
+    depth[np.hypot(xy[:, 0] - 5.0, xy[:, 1] + 1.5) < 0.2] = 0.02  # at the seen road's edge
     for _ in range(6):
         overview.add(xy, depth, np.full(len(xy), 0.002))
-    assert len(overview.potholes()) == 2
+    assert sorted((p.xy[1] > -1, p.enclosed) for p in overview.potholes()) == [
+        (False, False), (True, True), (True, True)]
     poses = [Pose2(x, 0.0, 0.0) for x in [0.25 * i for i in range(12)] + [2.9]]
     forward, left = np.meshgrid(np.arange(10, 46), np.arange(-15, 15), indexing="ij")
     searched = np.stack([forward.ravel(), left.ravel()], axis=1).astype(np.int16)

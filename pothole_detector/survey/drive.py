@@ -596,7 +596,8 @@ def map_only_entries(overview: RoadMap | None, tracks: Sequence[Track],
     depressions of the whole road's map (``overview``; each cell deeper than
     threshold_noise_sigmas of the noise fused over every view that saw it) farther than
     track_match_distance_m from every entry's tracks and depression, pieces within that
-    distance of each other joined (roadmap.merged), seen by at least min_sightings frames
+    distance of each other joined (roadmap.merged), with seen road all around (MapPothole
+    .enclosed), seen by at least min_sightings frames
     (:func:`map_sightings`, with the sightings of the tracks too short for an entry of their
     own that lie on it in place of their frames'), as (those tracks, a track of the views,
     the depression)."""
@@ -615,6 +616,8 @@ def map_only_entries(overview: RoadMap | None, tracks: Sequence[Track],
     for group in linked_groups(len(free), lambda i, j: _gap(free[i].outline, free[j].outline)
                                <= reach):
         depression = merged([free[i] for i in group])
+        if not depression.enclosed:
+            continue
         own = [t for t, xy in zip(spare, spare_xy) if _gap(depression.outline, xy) <= reach]
         measured = {s.stamp_ns: s for t in own for s in t.sightings}
         views = [measured.pop(s.stamp_ns, s)

@@ -179,7 +179,9 @@ class MapPothole:
     """A depression of the map: its centroid ``xy`` (m, map frame), its outline on the road
     (float64 (N, 2), m, map frame), its largest and mean depth below the local road level (m),
     the standard deviation of the largest (m), its area (m^2) and volume (m^3), the cells it
-    covers, the most views any of them had and the map's cell size (m)."""
+    covers, the most views any of them had, the map's cell size (m) and whether seen road
+    surrounds it (every cell beside it was seen: a depression at the edge of the seen road may
+    be the road falling away, a shoulder or a gutter whose far side no view reached)."""
 
     xy: tuple[float, float]
     outline: np.ndarray
@@ -191,12 +193,14 @@ class MapPothole:
     cells: int
     views: int
     cell_m: float
+    enclosed: bool = True
 
 
 def merged(depressions: Sequence[MapPothole]) -> MapPothole:
     """One depression of the map's ``depressions`` (pieces of one pothole): their cells
     together, the outline of their outlines' convex hull, the centroid weighted by area, the
-    largest depth (and its sigma) of the deepest, the mean depth over the area."""
+    largest depth (and its sigma) of the deepest, the mean depth over the area, enclosed
+    where each is."""
     if len(depressions) == 1:
         return depressions[0]
     area = sum(d.area_m2 for d in depressions)
@@ -207,7 +211,8 @@ def merged(depressions: Sequence[MapPothole]) -> MapPothole:
     return MapPothole((float(xy[0]), float(xy[1])), hull.reshape(-1, 2).astype(np.float64),
                       deepest.max_depth_m, volume / area, deepest.max_depth_sigma_m, area,
                       volume, sum(d.cells for d in depressions),
-                      max(d.views for d in depressions), depressions[0].cell_m)
+                      max(d.views for d in depressions), depressions[0].cell_m,
+                      all(d.enclosed for d in depressions))
 
 
 @dataclass(frozen=True)
@@ -453,13 +458,14 @@ class RoadMap:
                         or sums[index] / cells < self.min_depth_m):
                     continue
                 mine = labels == index
+                beside = cv2.dilate(mine.astype(np.uint8), np.ones((3, 3), np.uint8)) > mine
                 at = np.unravel_index(np.argmax(np.where(mine, depth, -np.inf)), depth.shape)
                 potholes.append(MapPothole(
                     (origin[0] + (cx + 0.5) * self.cell_m, origin[1] + (cy + 0.5) * self.cell_m),
                     self._outline(mine, origin), float(deepest[index]),
                     float(sums[index] / cells), float(sigma[at]), cells * cell_area,
                     float(sums[index] * cell_area), cells, int(views[mine].max()),
-                    self.cell_m))
+                    self.cell_m, bool(np.isfinite(depth[beside]).all())))
                 kept[index] = len(potholes)
         return kept[labels], potholes
 
