@@ -397,12 +397,16 @@ def test_a_pothole_only_the_views_together_show_gets_one_entry():
     frames = [FrameObservation(i, (), (1.0, 3.0), None, camera=_level_camera(),
                                overview=patch) for i in range(13)]
     entered = Track(1, [_sighting(0, 2.0, -0.5)], [np.array([2.0, -0.5])])
+    # entries far from the dip on either side of it: positions, not an outline around it
+    others = [Track(3 + k, [_sighting(0, x, y)], [np.array([x, y])])
+              for k, (x, y) in enumerate([(7.5, -1.2), (7.5, 1.4)])]
     spare = Track(2, [_sighting(5, 3.77, 0.31, depth=0.014, observed=False)],
                   [np.array([5.02, 0.31])])
     place = MapFrame(None, np.array([[p.x, p.y] for p in poses]))
     config = Config()
-    (made,) = map_only_entries(overview, [entered, spare], [([entered], entered, None)],
-                               frames, poses, place, config)
+    (made,) = map_only_entries(overview, [entered, spare, *others],
+                               [([t], t, None) for t in [entered, *others]], frames, poses,
+                               place, config)
     own, together, depression = made
     assert own == [spare]
     np.testing.assert_allclose(depression.xy, (5.0, 0.3), atol=0.05)

@@ -573,9 +573,7 @@ def map_entries(tracks: Sequence[Track], roadmap: RoadMap | None, place: MapFram
     near = cKDTree(centres).query_ball_point(positions, reach) if len(found) else \
         [[] for _ in usable]
     for tracked, xy, candidates in zip(usable, positions, near):
-        gaps = {i: max(0.0, -cv2.pointPolygonTest(
-            found[i].outline.astype(np.float32).reshape(-1, 1, 2), (float(xy[0]), float(xy[1])),
-            True)) for i in sorted(candidates)}
+        gaps = {i: _gap(found[i].outline, xy) for i in sorted(candidates)}
         nearest = min(gaps, key=gaps.__getitem__) if gaps else -1
         if nearest >= 0 and gaps[nearest] <= config.track_match_distance_m:
             on[nearest].append(tracked)
@@ -606,11 +604,11 @@ def map_only_entries(overview: RoadMap | None, tracks: Sequence[Track],
     reach = config.track_match_distance_m
     entered = {id(t) for group, _, _ in entries for t in group}
     spare = [t for t in tracks if id(t) not in entered and np.all(np.isfinite(t.position))]
-    taken = [place.of_motion(np.array([t.position for group, _, _ in entries for t in group
-                                       if np.all(np.isfinite(t.position))]).reshape(-1, 2))]
-    taken += [found.outline for _, _, found in entries if found is not None]
-    free = [d for d in overview.potholes()
-            if all(_gap(d.outline, points) > reach for points in taken if len(points))]
+    entered_xy = place.of_motion(np.array([t.position for group, _, _ in entries for t in group
+                                           if np.all(np.isfinite(t.position))]).reshape(-1, 2))
+    taken = list(entered_xy) + [found.outline for _, _, found in entries if found is not None]
+    free = [d for d in overview.potholes() if all(_gap(d.outline, shape) > reach
+                                                  for shape in taken)]
     spare_xy = place.of_motion(np.array([t.position for t in spare]).reshape(-1, 2))
     made = []
     for group in linked_groups(len(free), lambda i, j: _gap(free[i].outline, free[j].outline)
@@ -627,8 +625,8 @@ def map_only_entries(overview: RoadMap | None, tracks: Sequence[Track],
             continue
         centre = place.to_motion(np.asarray(depression.xy)[None, :])[0]
         outline = place.to_motion(depression.outline)
-        made.append((own, Track(0, views, [centre] * len(views), len(views),
-                                [outline] * len(views)), depression))
+        made.append((own, Track(0, views, [centre] * len(views),
+                                outlines=[outline] * len(views)), depression))
     return made
 
 
@@ -669,19 +667,18 @@ def map_sightings(depression: MapPothole, frames: Sequence[FrameObservation],
     return seen
 
 
-def _gap(outline: np.ndarray, points: np.ndarray) -> float:
-    """The distance (m) between a closed ``outline`` (N, 2) and ``points`` (M, 2; an outline
-    too): 0 where a point lies inside the outline or a vertex of it inside theirs (where they
-    are an outline of 3 or more), else the least distance between their vertices."""
-    outline = np.asarray(outline, dtype=np.float64).reshape(-1, 2)
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    for shape, others in ((outline, points), (points, outline)):
-        if len(shape) >= 3:
-            contour = shape.astype(np.float32).reshape(-1, 1, 2)
-            if any(cv2.pointPolygonTest(contour, (float(x), float(y)), False) >= 0
-                   for x, y in others):
-                return 0.0
-    return float(cKDTree(outline).query(points)[0].min())
+def _gap(outline: np.ndarray, other: np.ndarray) -> float:
+    """The distance (m) between a closed ``outline`` (N, 2) and ``other``: a point (2,) or
+    another closed outline (M, 2); 0 where they overlap. Between two outlines it is the least
+    distance from a vertex of one to the other (cv2.pointPolygonTest), where the least distance
+    between two polygons lies."""
+    other = np.asarray(other, dtype=np.float64)
+    pairs = [(outline, other.reshape(-1, 2))]
+    if other.ndim == 2:
+        pairs.append((other, np.asarray(outline, dtype=np.float64).reshape(-1, 2)))
+    return min(max(0.0, -cv2.pointPolygonTest(
+        np.asarray(shape, dtype=np.float32).reshape(-1, 1, 2), (float(x), float(y)), True))
+        for shape, points in pairs for x, y in points)
 
 
 def survey_pothole(pothole_id: int, bag: str | Path, together: Track,
