@@ -384,7 +384,8 @@ def score_scene(tally: "RigTally", result: Any, truth: np.ndarray, meta: dict) -
     visible pixels "don't care" (a detection matched to one counts neither way); recall
     also of the potholes whose centre lies in the observed range (m ahead along the road:
     world y from the left camera's); relative errors of largest depth, area and volume of
-    the matched ones; reports that no road can give (not finite, not positive, deeper than
+    the matched ones (area also of those the frame's edge does not cut: the truth's area is
+    the whole pothole's); reports that no road can give (not finite, not positive, deeper than
     max_pothole_depth_m)."""
     labels = result.host("labels")
     tally.scenes += 1
@@ -409,6 +410,9 @@ def score_scene(tally: "RigTally", result: Any, truth: np.ndarray, meta: dict) -
     tally.matched += len(pairs)
     tally.false_on_clean += len(detections) - len(pairs)
     by_label = {p.label: p for p in result.potholes}
+    edge = np.zeros(truth.shape, dtype=bool)
+    edge[[0, -1], :] = edge[:, [0, -1]] = True
+    cut = set(np.unique(truth[edge]).tolist())
     for d, t in pairs:
         found, truth_pothole = by_label.get(d), scored[t]
         if found is None:
@@ -417,6 +421,8 @@ def score_scene(tally: "RigTally", result: Any, truth: np.ndarray, meta: dict) -
                                      (tally.area_errors, found.area_m2, "area_m2"),
                                      (tally.volume_errors, found.volume_m3, "volume_m3")):
             errors.append(abs(ours - truth_pothole[theirs]) / truth_pothole[theirs])
+        if t not in cut:
+            tally.whole_area_errors.append(tally.area_errors[-1])
     for found in result.potholes:
         numbers = (found.area_m2, found.max_depth_m, found.mean_depth_m, found.volume_m3)
         tally.bad_reports += not all(math.isfinite(x) and x > 0 for x in numbers)
@@ -478,8 +484,9 @@ def validation_markdown(tallies: dict[str, "RigTally"]) -> str:
     no scored pothole (and to no "don't care" one), per frame."""
     lines = ["| group | scenes | pixel P / R / F | pothole P / R / F (all >= "
              f"{MIN_SCORED_PIXELS} px) | pothole R (observed range) | false per frame | "
-             "depth / area / volume error median | bad reports | failed |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "depth / area / volume error median | area error median (in full view) | "
+             "bad reports | failed |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     rows = dict(tallies)
     if len(rows) > 1:
         rows["**all**"] = pooled(tallies.values())
@@ -495,8 +502,9 @@ def validation_markdown(tallies: dict[str, "RigTally"]) -> str:
             f"| {name} | {t.scenes} | {every.precision:.2f} / {every.recall:.2f} / "
             f"{every.f_score:.2f} | {p:.2f} / {r:.2f} / {f:.2f} | {r_observed:.2f} | "
             f"{t.false_on_clean / max(t.scenes, 1):.2f} | {median(t.depth_errors)} / "
-            f"{median(t.area_errors)} / {median(t.volume_errors)} | {t.bad_reports} | "
-            f"{t.failed} |")
+            f"{median(t.area_errors)} / {median(t.volume_errors)} | "
+            f"{median(t.whole_area_errors)} ({len(t.whole_area_errors)} of "
+            f"{len(t.area_errors)}) | {t.bad_reports} | {t.failed} |")
     return "\n".join(lines) + "\n"
 
 
@@ -553,6 +561,7 @@ class RigTally:
     roll_errors_deg: list[float] = field(default_factory=list)
     depth_errors: list[float] = field(default_factory=list)
     area_errors: list[float] = field(default_factory=list)
+    whole_area_errors: list[float] = field(default_factory=list)
     volume_errors: list[float] = field(default_factory=list)
     bad_reports: int = 0
     failed: int = 0

@@ -128,7 +128,8 @@ def _box(shape, top, left, height, width, value=1):
 def test_a_validation_scene_is_scored_as_we_are_judged():
     """Four truths (one too small to count) and four detections: one matches a scored
     pothole, one matches the small one (counted neither way), one is false; a scored pothole
-    outside the observed range is missed; errors of the matched one."""
+    outside the observed range is missed; errors of the matched one, its area's also among
+    those of potholes in full view until the frame's edge cuts it."""
     from types import SimpleNamespace
 
     from pothole_detector.evaluation import RigTally, score_scene, validation_markdown
@@ -161,8 +162,14 @@ def test_a_validation_scene_is_scored_as_we_are_judged():
     precision, recall, f = tally.pothole_scores(False)
     assert (precision, recall) == (0.5, 1 / 3) and f == pytest.approx(0.4)
     assert tally.depth_errors == [pytest.approx(0.25)] and tally.area_errors == \
-        [pytest.approx(0.2)]
+        tally.whole_area_errors == [pytest.approx(0.2)]
     assert tally.pixels_all.tp == 9 * 10 + 25
+    cut_off = RigTally()
+    rolled = {"labels": np.roll(labels, -6, axis=0), "observed": observed}
+    score_scene(cut_off, SimpleNamespace(host=rolled.__getitem__, potholes=potholes,
+                                         observed_range_m=(1.0, 5.0)),
+                np.roll(truth, -6, axis=0), meta)
+    assert cut_off.area_errors == [pytest.approx(0.2)] and cut_off.whole_area_errors == []
     table = validation_markdown({"vehicle": tally})
     assert "| vehicle | 1 | " in table and "| 0.50 / 0.33 / 0.40 |" in table
     assert "| 1.00 |" in table  # one false pothole in one frame

@@ -847,6 +847,28 @@ def test_components_on_the_gpu_flag_overflow_and_matches_below_capacity(gpu):
             np.testing.assert_array_equal(to_host(labels), labels_cpu)
 
 
+def test_the_largest_depth_under_the_opening_on_the_gpu_matches_the_cpu(gpu):
+    """A bowl 3 m ahead whose 4 farthest rows are matched 20 % short (points far beyond the
+    far rim), also cut through by the image's right edge: the same extremes on both."""
+    from pothole_detector.stages import road_model
+    from pothole_detector.synthetic import PotholeShape, Scene
+    sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
+                          camera_height_m=1.0, pitch_deg=15.0,
+                          potholes=(PotholeShape(0.1, 3.0, 0.4, 0.3, 0.08, 15.0),)))
+    labels = sample.labels.astype(np.int32)
+    disparity = sample.disparity.astype(np.float32)
+    road = fit_road(np, np.where(labels > 0, np.nan, disparity), rounds=2)
+    rows = np.nonzero(labels)[0]
+    disparity[labels > 0] *= np.where(rows < rows.min() + 4, 0.8, 1.0).astype(np.float32)
+    cut = int(np.nonzero(labels.any(axis=0))[0].mean())
+    for image, depth in ((labels, disparity), (labels[:, :cut].copy(), disparity[:, :cut].copy())):
+        _, cpu_extremes = measure.measure(CPU, image, 1, depth, road, sample.calibration)
+        _, gpu_extremes = measure.measure(gpu, gpu.upload(image), 1, gpu.upload(depth),
+                                          road_model.device_params(gpu, road),
+                                          sample.calibration)
+        np.testing.assert_array_equal(to_host(gpu_extremes), cpu_extremes)
+
+
 def test_area_filter_on_the_gpu_keeps_the_rows_keep_large_keeps(gpu, demo_sample):
     from pothole_detector.stages import road_model
     disparity = demo_sample.disparity.astype(np.float32)

@@ -7,7 +7,7 @@ from pothole_detector.backend import CPU
 from pothole_detector.stages.components import far_corners
 from pothole_detector.stages.measure import (MEASURE_SUMS, depth_below_road, keep_large,
                                              measure, measure_potholes, potholes_from_sums,
-                                             reportable, road_normal)
+                                             reportable, road_normal, under_opening)
 from pothole_detector.stages.road_model import fit_road
 
 
@@ -120,6 +120,34 @@ def test_a_pothole_seen_at_a_grazing_angle_measures_like_its_shape():
     assert pothole.max_depth_m == pytest.approx(hole.depth_m, rel=0.05)
     assert pothole.volume_m3 == pytest.approx(hole.volume_m3, rel=0.15)
     np.testing.assert_allclose(pothole.centroid_cam_m, sample.centroid_cam_m(0), atol=0.12)
+
+
+def test_only_points_under_the_opening_make_the_largest_depth():
+    """The bowl 3 m ahead: with exact disparities all but its rim pixels' points lie under its
+    opening, also where the image is cut through it; its 4 farthest rows matched 20 % short
+    put their points far beyond the far rim, deeper than the bowl, and those are left out."""
+    hole, sample, disparity, labels, road = _grazing(15.0, 3.0)
+    calibration, normal = sample.calibration, road_normal(road, sample.calibration)
+
+    def opening(labels: np.ndarray, disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rows, cols = np.nonzero(labels)
+        depth, _ = depth_below_road(np, cols, rows, disparity[rows, cols], road, calibration)
+        return rows, under_opening(np, labels, rows, cols, labels[rows, cols], depth,
+                                   disparity, normal, calibration)
+
+    rows, exact = opening(labels, disparity)
+    assert exact.mean() > 0.99
+    far = rows < rows.min() + 4
+    mismatched = disparity.copy()
+    mismatched[labels > 0] = np.where(far, 0.8, 1.0) * disparity[labels > 0]
+    _, wrong = opening(labels, mismatched)
+    assert not wrong[far].any() and wrong[~far].mean() > 0.99
+    (pothole,) = measure_potholes(CPU, labels, 1, mismatched, road, calibration)
+    assert pothole.max_depth_m == pytest.approx(hole.depth_m, rel=0.02)
+    columns = np.nonzero(labels.any(axis=0))[0]
+    cut = (columns.min() + columns.max()) // 2 + 1
+    _, half = opening(labels[:, :cut].copy(), disparity[:, :cut].copy())
+    assert half.mean() > 0.99
 
 
 def test_a_far_pothole_whose_bottom_is_hidden_still_makes_a_sane_report():

@@ -1,10 +1,10 @@
-// Per-pothole sums in one pass over the label image. Reference: stages/measure.py
-// (measure, depth_below_road, surface_patches, hidden_floor_depth). sums: float64
+// Per-pothole sums in one pass over the label image. Reference: stages/measure.py (measure,
+// depth_below_road, surface_patches, hidden_floor_depth, under_opening). sums: float64
 // [count + 1][10] = pixels, footprint area, valid area, floor area, depth x floor area (the
 // depth hidden_floor_depth estimates), x, y, z x area (valid pixels), pixels in a far corner
-// region, pixels of significant superpixels; extremes: int32
-// [count + 1][5] = largest depth (order-preserving float bits), u min, v min, u max, v max.
-// Warps whose labelled pixels share one label add once per warp.
+// region, pixels of significant superpixels; extremes: int32 [count + 1][5] = largest depth
+// (order-preserving float bits; of points under the pothole's opening), u min, v min, u max,
+// v max. Warps whose labelled pixels share one label add once per warp.
 // Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS, HIDDEN_FLOOR_*
 // (measure.HIDDEN_FLOOR_CONSTANTS) and the road parameters' layout and constants (ROAD_*,
 // stages/road_model.ROAD_DEFINES).
@@ -95,6 +95,30 @@ __device__ float hidden_floor_depth(const int* labels, const float* disparity, i
                           : depth;
 }
 
+// measure.under_opening of pixel (u, v) of pothole label with disparity d and finite depth:
+// whether the road point right above its surface point (along the road's unit normal) lies in
+// the pothole's outline; where it falls off the image, the pixel where the step towards it
+// leaves the image stands for it. Rounded as NumPy does, without fused multiply-adds.
+__device__ bool under_opening(const int* labels, int u, int v, int height, int width, int label,
+                              float d, float depth, double f, double cx, double cy, double fb,
+                              const double* normal) {
+    const double z0 = fb / (double)d, lift = depth;
+    const double x = __dsub_rn((u - cx) * z0 / f, __dmul_rn(lift, normal[0]));
+    const double y = __dsub_rn((v - cy) * z0 / f, __dmul_rn(lift, normal[1]));
+    const double z = __dsub_rn(z0, __dmul_rn(lift, normal[2]));
+    const double du = f * x / z + cx - u, dv = f * y / z + cy - v;
+    if (!(z > 0.0 && isfinite(du) && isfinite(dv))) return true;
+    double reach = INFINITY;
+    if (du > 0.0) reach = fmin(reach, (width - 1 - u) / du);
+    if (du < 0.0) reach = fmin(reach, -u / du);
+    if (dv > 0.0) reach = fmin(reach, (height - 1 - v) / dv);
+    if (dv < 0.0) reach = fmin(reach, -v / dv);
+    const double step = fmin(fmax(reach, 0.0), 1.0);
+    const int at_u = min(max((int)rint(__dadd_rn(u, __dmul_rn(step, du))), 0), width - 1);
+    const int at_v = min(max((int)rint(__dadd_rn(v, __dmul_rn(step, dv))), 0), height - 1);
+    return labels[(long long)at_v * width + at_u] == label;
+}
+
 extern "C" __global__ void measure_reset(double* sums, int* extremes, int count) {
     const int label = blockIdx.x * blockDim.x + threadIdx.x;
     if (label > count) return;
@@ -148,7 +172,9 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
             values[5] = (uu - cx) * z / f * footprint;
             values[6] = (vv - cy) * z / f * footprint;
             values[7] = z * footprint;
-            depth_value = depth;
+            if (under_opening(labels, u, v, height, width, label, disparity[index], depth, f,
+                              cx, cy, fb, normal))
+                depth_value = depth;
         }
     }
     const int lane = threadIdx.x & 31;

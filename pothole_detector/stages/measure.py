@@ -141,6 +141,35 @@ def hidden_floor_depth(xp: Any, labels: Any, rows: Any, cols: Any, label: Any, d
     return out
 
 
+def under_opening(xp: Any, labels: Any, rows: Any, cols: Any, label: Any, depth: Any,
+                  disparity: Any, normal: np.ndarray, calibration: StereoCalibration) -> Any:
+    """Whether the surface points of labelled pixels ``rows``, ``cols`` of label ``label``
+    with ``depth`` (depth_below_road, m) lie under their pothole's opening: the camera sees a
+    point below the road only through the opening, so the road point right above it (along
+    the road's unit ``normal``) lies inside the pothole's outline: its pixel is labelled
+    ``label``. Where that pixel lies off the image, the pixel where the image step from
+    the point's pixel towards it leaves the image stands for it: the pothole must reach the
+    image's edge there. A point deeper than the opening allows is a mismatch. Bool array of
+    the shape of ``rows``; NaN depths give True. ``labels`` int32 HxW, ``disparity`` float32
+    HxW px."""
+    height, width = labels.shape
+    u0, v0 = cols.astype(xp.float64), rows.astype(xp.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y, z = calibration.back_project(u0, v0, disparity[rows, cols].astype(xp.float64))
+        lift = xp.nan_to_num(depth.astype(xp.float64))
+        x, y, z = x - lift * normal[0], y - lift * normal[1], z - lift * normal[2]
+        du = calibration.f * x / z + calibration.cx - u0
+        dv = calibration.f * y / z + calibration.cy - v0
+        reach = xp.minimum(
+            xp.where(du > 0, (width - 1 - u0) / du, xp.where(du < 0, -u0 / du, xp.inf)),
+            xp.where(dv > 0, (height - 1 - v0) / dv, xp.where(dv < 0, -v0 / dv, xp.inf)))
+        step = xp.clip(reach, 0.0, 1.0)
+    known = xp.isfinite(depth) & (z > 0) & xp.isfinite(du) & xp.isfinite(dv)
+    at_u = xp.clip(xp.rint(u0 + xp.where(known, step * du, 0)), 0, width - 1).astype(xp.int64)
+    at_v = xp.clip(xp.rint(v0 + xp.where(known, step * dv, 0)), 0, height - 1).astype(xp.int64)
+    return ~known | (labels[at_v, at_u] == label)
+
+
 def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
             road: RoadModel | Any, calibration: StereoCalibration, sums: Any = None,
             extremes: Any = None, corners: FarCorners | None = None,
@@ -200,7 +229,10 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
         total(xp.where(valid, x * footprint, 0)), total(xp.where(valid, y * footprint, 0)),
         total(xp.where(valid, z * footprint, 0)), total(cornered), total(flagged),
     ], axis=1)
-    largest = extreme(ndimage.maximum, xp.where(valid, depth, -xp.inf)).astype(xp.float32)
+    opening = under_opening(xp, labels, rows, cols, label, depth, disparity,
+                            road_normal(road, calibration), calibration)
+    largest = extreme(ndimage.maximum, xp.where(valid & opening, depth, -xp.inf)
+                      ).astype(xp.float32)
     extremes[1:count + 1, 0] = _ordered_bits(largest.view(xp.int32))
     extremes[1:count + 1, 1:] = xp.stack([
         extreme(ndimage.minimum, cols), extreme(ndimage.minimum, rows),
