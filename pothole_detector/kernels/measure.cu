@@ -108,12 +108,12 @@ __device__ bool under_opening(const int* labels, int u, int v, int height, int w
     const double z = __dsub_rn(z0, __dmul_rn(lift, normal[2]));
     const double du = f * x / z + cx - u, dv = f * y / z + cy - v;
     if (!(z > 0.0 && isfinite(du) && isfinite(dv))) return true;
-    double reach = INFINITY;
+    double reach = 1.0;
     if (du > 0.0) reach = fmin(reach, (width - 1 - u) / du);
     if (du < 0.0) reach = fmin(reach, -u / du);
     if (dv > 0.0) reach = fmin(reach, (height - 1 - v) / dv);
     if (dv < 0.0) reach = fmin(reach, -v / dv);
-    const double step = fmin(fmax(reach, 0.0), 1.0);
+    const double step = fmax(reach, 0.0);
     const int at_u = min(max((int)rint(__dadd_rn(u, __dmul_rn(step, du))), 0), width - 1);
     const int at_v = min(max((int)rint(__dadd_rn(v, __dmul_rn(step, dv))), 0), height - 1);
     return labels[(long long)at_v * width + at_u] == label;
