@@ -849,7 +849,9 @@ def test_components_on_the_gpu_flag_overflow_and_matches_below_capacity(gpu):
 
 def test_the_largest_depth_under_the_opening_on_the_gpu_matches_the_cpu(gpu):
     """A bowl 3 m ahead whose 4 farthest rows are matched 20 % short (points far beyond the
-    far rim), also cut through by the image's right edge: the same extremes on both."""
+    far rim): the bowl's depth; cut through by the image's right edge, where those points'
+    road points fall off the image beside the pothole's edge and so count: deeper. The same
+    largest depth and box on both backends."""
     from pothole_detector.stages import road_model
     from pothole_detector.synthetic import PotholeShape, Scene
     sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
@@ -861,12 +863,17 @@ def test_the_largest_depth_under_the_opening_on_the_gpu_matches_the_cpu(gpu):
     rows = np.nonzero(labels)[0]
     disparity[labels > 0] *= np.where(rows < rows.min() + 4, 0.8, 1.0).astype(np.float32)
     cut = int(np.nonzero(labels.any(axis=0))[0].mean())
+    (whole,) = measure.measure_potholes(CPU, labels, 1, disparity, road, sample.calibration)
+    assert whole.max_depth_m == pytest.approx(0.08, rel=0.02)
     for image, depth in ((labels, disparity), (labels[:, :cut].copy(), disparity[:, :cut].copy())):
-        _, cpu_extremes = measure.measure(CPU, image, 1, depth, road, sample.calibration)
-        _, gpu_extremes = measure.measure(gpu, gpu.upload(image), 1, gpu.upload(depth),
-                                          road_model.device_params(gpu, road),
-                                          sample.calibration)
-        np.testing.assert_array_equal(to_host(gpu_extremes), cpu_extremes)
+        (expected,) = measure.measure_potholes(CPU, image, 1, depth, road, sample.calibration)
+        sums, extremes = measure.measure(gpu, gpu.upload(image), 1, gpu.upload(depth),
+                                         road_model.device_params(gpu, road),
+                                         sample.calibration)
+        (found,) = measure.potholes_from_sums(to_host(sums)[1:], to_host(extremes)[1:])
+        assert found.bbox_px == expected.bbox_px
+        assert found.max_depth_m == pytest.approx(expected.max_depth_m, rel=1e-5)
+    assert found.max_depth_m > 0.1
 
 
 def test_area_filter_on_the_gpu_keeps_the_rows_keep_large_keeps(gpu, demo_sample):
@@ -1223,17 +1230,25 @@ def test_a_raw_drive_gives_the_same_labels_on_both_backends(gpu):
         assert len(got.potholes) == len(expected.potholes)
 
 
-def test_local_road_matches_the_cpu(gpu):
+@pytest.mark.parametrize("tables_in_shared", [9, 4, 0])
+def test_local_road_matches_the_cpu(gpu, monkeypatch, tables_in_shared):
+    """The local road with all nine summed-area tables in shared memory at once, four at a
+    time, and none (global memory), on a 40 x 54 grid (lines longer than a warp)."""
     import test_local_road as reference
     from pothole_detector.stages import local_road
     calibration, params = reference.flat_road()
-    count = superpixels.grid_count(reference.SHAPE, reference.REGION, reference.DOWNSAMPLE)
+    region = 6
+    count = superpixels.grid_count(reference.SHAPE, region, reference.DOWNSAMPLE)
+    rows, cols = superpixels.grid_shape(reference.SHAPE, region, reference.DOWNSAMPLE)
+    assert (rows, cols) == (40, 54)
+    monkeypatch.setattr(local_road, "_SHARED_TABLE_BYTES",
+                        tables_in_shared * (rows + 1) * (cols + 1) * 8)
     rng = np.random.default_rng(11)
     means = (reference.DELTA - rng.normal(0.0, 0.3, count)).astype(np.float32)
     means[rng.random(count) < 0.05] = np.nan
     usable = rng.random(count) < 0.9
     drops = np.full(count, 0.6)
-    args = (reference.SHAPE, reference.REGION, reference.DOWNSAMPLE)
+    args = (reference.SHAPE, region, reference.DOWNSAMPLE)
     fit = reference.fit_report()
     cpu, cpu_noise = local_road.offsets(CPU, means, usable, drops, *args, params, calibration,
                                         reference.DELTA, 1.5, fit)

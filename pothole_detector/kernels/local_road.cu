@@ -1,56 +1,106 @@
 // The local road reference (stages/local_road.py) in one block: the window of each cell of the
 // SLIC grid from the geometry, then ROUNDS robust rounds of a weighted plane fitted over each
-// cell's window through summed-area tables of the nine weighted moments, then the noise of the
-// road's cells about the surface over each window. Defines: ROUNDS, MIN_PLANE_SUPPORT
-// (stages/local_road.py), the fit report's layout and the road model's (road_disparity.cuh).
+// cell's window through summed-area tables of the nine weighted moments (in shared memory),
+// then the noise of the road's cells about the surface
+// over each window. Defines: ROUNDS, MIN_PLANE_SUPPORT, MOMENTS (stages/local_road.py), the
+// fit report's layout and the road model's (road_disparity.cuh).
 #include "road_disparity.cuh"
 
-#define MOMENTS 9
 
-// Summed-area tables in place: each of `moments` tables (rows + 1) x (cols + 1), its first row
-// and column 0 and cell (i + 1, j + 1) holding the value of cell (i, j), becomes its running sum
-// along rows, then along columns. The whole block takes part; ends synchronized.
-__device__ void summed_areas(double* table, int moments, int rows, int cols) {
-    const int stride = (rows + 1) * (cols + 1);
-    for (int e = threadIdx.x; e < moments * rows; e += blockDim.x) {
-        double* line = table + (e / rows) * stride + (e % rows + 1) * (cols + 1);
-        double running = line[1];
-#pragma unroll 8
-        for (int j = 2; j <= cols; ++j) {
-            running += line[j];
-            line[j] = running;
-        }
+// Moment m of a cell at column x, row y with weight w and value v, in the order the fit reads
+// them: w, w v, w x, w y, w x x, w y y, w x y, w x v, w y v (the noise uses the first two).
+__device__ __forceinline__ double moment(int m, double w, double x, double y, double v) {
+    switch (m) {
+        case 0: return w;
+        case 1: return w * v;
+        case 2: return w * x;
+        case 3: return w * y;
+        case 4: return w * x * x;
+        case 5: return w * y * y;
+        case 6: return w * x * y;
+        case 7: return w * x * v;
+        default: return w * y * v;
     }
-    __syncthreads();
-    for (int e = threadIdx.x; e < moments * cols; e += blockDim.x) {
-        double* column = table + (e / cols) * stride + e % cols + 1;
-        double running = column[cols + 1];
-#pragma unroll 8
-        for (int i = 2; i <= rows; ++i) {
-            running += column[i * (cols + 1)];
-            column[i * (cols + 1)] = running;
-        }
-    }
-    __syncthreads();
 }
 
-// table[m] is (rows + 1) x (cols + 1), its first row and column 0: the summed-area table of
-// moment m; the sum of the cells top <= i < bottom, left <= j < right.
-__device__ __forceinline__ double window_sum(const double* table, int cols, int top, int bottom,
-                                             int left, int right) {
-    const int stride = cols + 1;
-    return table[bottom * stride + right] - table[top * stride + right]
-           - table[bottom * stride + left] + table[top * stride + left];
+// table is (rows + 1) x pitch, its first row and column 0: the summed-area table of a moment;
+// the sum of the cells top <= i < bottom, left <= j < right.
+__device__ __forceinline__ double window_sum(const double* table, int pitch, int top,
+                                             int bottom, int left, int right) {
+    return table[bottom * pitch + right] - table[top * pitch + right]
+           - table[bottom * pitch + left] + table[top * pitch + left];
 }
 
+// The tables are (rows + 1) x pitch, pitch > cols. sums[m * cells + k] = the sum of moment m
+// (m < moments) of the grid's cells over cell k's window (half sizes half[k] across,
+// half[cells + k] along), the cells' weights and values given: `group` summed-area tables at
+// a time in `tables` (shared memory, or global where one does not fit; their first row and
+// column 0), a thread's running sum along each row, then each column. Synchronizes the block
+// after.
+__device__ void window_moments(double* tables, int group, int moments, const double* weight,
+                               const double* value, const int* half, int rows, int cols,
+                               int pitch, double* sums) {
+    const int cells = rows * cols, stride = (rows + 1) * pitch;
+    for (int first = 0; first < moments; first += group) {
+        const int count = min(group, moments - first);
+        for (int k = threadIdx.x; k < cells; k += blockDim.x) {
+            const int i = k / cols, j = k - i * cols;
+            const double w = weight[k], v = value[k];
+            double* cell = tables + (i + 1) * pitch + j + 1;
+            for (int m = 0; m < count; ++m) cell[m * stride] = moment(first + m, w, j, i, v);
+        }
+        __syncthreads();
+        for (int line = threadIdx.x; line < count * rows; line += blockDim.x) {
+            double* row = tables + (line / rows) * stride + (line % rows + 1) * pitch + 1;
+            double running = 0.0;
+#pragma unroll 8
+            for (int j = 0; j < cols; ++j) {
+                running += row[j];
+                row[j] = running;
+            }
+        }
+        __syncthreads();
+        for (int line = threadIdx.x; line < count * cols; line += blockDim.x) {
+            double* column = tables + (line / cols) * stride + pitch + line % cols + 1;
+            double running = 0.0;
+#pragma unroll 8
+            for (int i = 0; i < rows; ++i) {
+                running += column[i * pitch];
+                column[i * pitch] = running;
+            }
+        }
+        __syncthreads();
+        for (int k = threadIdx.x; k < cells; k += blockDim.x) {
+            const int i = k / cols, j = k - i * cols;
+            const int along = half[cells + k];
+            const int top = max(i - along, 0), bottom = min(i + along + 1, rows);
+            const int left = max(j - half[k], 0), right = min(j + half[k] + 1, cols);
+            for (int m = 0; m < count; ++m)
+                sums[(first + m) * cells + k] =
+                    window_sum(tables + m * stride, pitch, top, bottom, left, right);
+        }
+        __syncthreads();
+    }
+}
+
+// The summed-area tables are (rows + 1) x pitch doubles (pitch > cols, odd: threads running
+// along consecutive rows read different shared-memory banks); group: how many of the MOMENTS
+// tables fit the dynamic shared memory at once; 0: none does, and `table` (global, MOMENTS of
+// them) holds them.
 extern "C" __global__ void local_road_fit(
         const float* means, const bool* usable_in, const double* drops, const double* road,
         const double* fit, int rows, int cols, int step, int width, int height, int downsample,
         double f, double cx, double cy, double baseline, double road_level, double radius_m,
-        int* half, double* residual, unsigned char* usable, double* table, double* reference,
-        double* noise) {
-    const int cells = rows * cols;
-    const int stride = (rows + 1) * (cols + 1);
+        int pitch, int group, int* half, double* residual, unsigned char* usable, double* weight,
+        double* sums, double* table, double* reference, double* noise) {
+    extern __shared__ double shared_tables[];
+    double* tables = group > 0 ? shared_tables : table;
+    group = group > 0 ? group : MOMENTS;
+    const int cells = rows * cols, stride = (rows + 1) * pitch;
+    for (int e = threadIdx.x; e < group * (pitch + rows); e += blockDim.x) {
+        const int at = e % (pitch + rows);
+        tables[(e / (pitch + rows)) * stride + (at < pitch ? at : (at - pitch + 1) * pitch)] = 0.0;
+    }
     for (int k = threadIdx.x; k < cells; k += blockDim.x) {
         const int i = k / cols, j = k % cols;
         const double u = fmin((j + 0.5) * step, width - 0.5) * downsample;
@@ -72,39 +122,22 @@ extern "C" __global__ void local_road_fit(
         residual[k] = use ? road_level - (double)means[k] : 0.0;
         reference[k] = 0.0;
     }
-    for (int e = threadIdx.x; e < MOMENTS * (rows + 1); e += blockDim.x)
-        table[(e / (rows + 1)) * stride + (e % (rows + 1)) * (cols + 1)] = 0.0;
-    for (int e = threadIdx.x; e < MOMENTS * cols; e += blockDim.x)
-        table[(e / cols) * stride + 1 + e % cols] = 0.0;
     __syncthreads();
     for (int round = 0; round < ROUNDS; ++round) {
-        for (int k = threadIdx.x; k < cells; k += blockDim.x) {
-            const int i = k / cols, j = k % cols;
-            const double w = usable[k] && fabs(residual[k] - reference[k]) <= drops[k] ? 1.0
-                                                                                     : 0.0;
-            const double x = j, y = i, value = residual[k];
-            const double moment[MOMENTS] = {w, w * x, w * y, w * x * x, w * y * y, w * x * y,
-                                            w * value, w * x * value, w * y * value};
-            const int at = (i + 1) * (cols + 1) + j + 1;
-            for (int m = 0; m < MOMENTS; ++m) table[m * stride + at] = moment[m];
-        }
+        for (int k = threadIdx.x; k < cells; k += blockDim.x)
+            weight[k] = usable[k] && fabs(residual[k] - reference[k]) <= drops[k] ? 1.0 : 0.0;
         __syncthreads();
-        summed_areas(table, MOMENTS, rows, cols);
+        window_moments(tables, group, MOMENTS, weight, residual, half, rows, cols, pitch, sums);
         for (int k = threadIdx.x; k < cells; k += blockDim.x) {
             const int i = k / cols, j = k % cols;
-            const int along = half[cells + k];
-            const int top = max(i - along, 0), bottom = min(i + along + 1, rows);
-            const int left = max(j - half[k], 0), right = min(j + half[k] + 1, cols);
-            double sums[MOMENTS];
-            for (int m = 0; m < MOMENTS; ++m)
-                sums[m] = window_sum(table + m * stride, cols, top, bottom, left, right);
-            const double n = sums[0], safe = fmax(n, 1e-12);
-            const double mean = sums[6] / safe;
-            const double cxx = sums[3] - sums[1] * sums[1] / safe;
-            const double cyy = sums[4] - sums[2] * sums[2] / safe;
-            const double cxy = sums[5] - sums[1] * sums[2] / safe;
-            const double cxv = sums[7] - sums[1] * sums[6] / safe;
-            const double cyv = sums[8] - sums[2] * sums[6] / safe;
+            const double n = sums[k], safe = fmax(n, 1e-12);
+            const double sv = sums[cells + k], sx = sums[2 * cells + k], sy = sums[3 * cells + k];
+            const double mean = sv / safe;
+            const double cxx = sums[4 * cells + k] - sx * sx / safe;
+            const double cyy = sums[5 * cells + k] - sy * sy / safe;
+            const double cxy = sums[6 * cells + k] - sx * sy / safe;
+            const double cxv = sums[7 * cells + k] - sx * sv / safe;
+            const double cyv = sums[8 * cells + k] - sy * sv / safe;
             const double det = cxx * cyy - cxy * cxy;
             const double scale = fmax(cxx * cyy, 1e-12);
             const bool solvable = n >= MIN_PLANE_SUPPORT && det > 1e-6 * scale;
@@ -112,7 +145,7 @@ extern "C" __global__ void local_road_fit(
             if (solvable) {
                 const double slope_x = (cxv * cyy - cyv * cxy) / det;
                 const double slope_y = (cyv * cxx - cxv * cxy) / det;
-                fitted = mean + slope_x * (j - sums[1] / safe) + slope_y * (i - sums[2] / safe);
+                fitted = mean + slope_x * (j - sx / safe) + slope_y * (i - sy / safe);
             }
             residual[cells + k] = fitted;
         }
@@ -123,22 +156,15 @@ extern "C" __global__ void local_road_fit(
     const double sigma = road[ROAD_CURVED] != 0.0 ? fit[FIT_QUADRATIC_SIGMA]
                                                   : fit[FIT_PLANAR_SIGMA];
     for (int k = threadIdx.x; k < cells; k += blockDim.x) {
-        const int at = (k / cols + 1) * (cols + 1) + k % cols + 1;
         const double off = residual[k] - reference[k];
-        const double w = usable[k] && fabs(off) <= drops[k] ? 1.0 : 0.0;
-        table[at] = w;
-        table[stride + at] = w * off * off;
+        weight[k] = usable[k] && fabs(off) <= drops[k] ? 1.0 : 0.0;
+        residual[cells + k] = off * off;
     }
     __syncthreads();
-    summed_areas(table, 2, rows, cols);
+    window_moments(tables, group, 2, weight, residual + cells, half, rows, cols, pitch,
+                   sums);
     for (int k = threadIdx.x; k < cells; k += blockDim.x) {
-        const int i = k / cols, j = k % cols;
-        const int along = half[cells + k];
-        const int top = max(i - along, 0), bottom = min(i + along + 1, rows);
-        const int left = max(j - half[k], 0), right = min(j + half[k] + 1, cols);
-        const double support = window_sum(table, cols, top, bottom, left, right);
-        const double spread = fmax(window_sum(table + stride, cols, top, bottom, left, right),
-                                   0.0);
+        const double support = sums[k], spread = fmax(sums[cells + k], 0.0);
         noise[k] = support >= MIN_PLANE_SUPPORT ? sqrt(spread / fmax(support - 3.0, 1.0))
                                                 : sigma;
     }

@@ -26,11 +26,14 @@ from . import road_model, superpixels
 ROUNDS = 4
 # fewest inlier superpixels a window needs for a plane; with fewer, their mean; with none, 0
 MIN_PLANE_SUPPORT = 6
-# kernels/local_road.cu: one block of this many threads; the moments its tables hold
+# kernels/local_road.cu: one block of this many threads; the moments its tables hold; the
+# shared memory its summed-area tables may take (bytes; where one table does not fit, they lie
+# in global memory)
 _THREADS = 1024
 _MOMENTS = 9
-_DEFINES = {"ROUNDS": ROUNDS, "MIN_PLANE_SUPPORT": MIN_PLANE_SUPPORT, **road_model.FIT_LAYOUT,
-            **road_model.ROAD_DEFINES}
+_SHARED_TABLE_BYTES = 200 * 1024
+_DEFINES = {"ROUNDS": ROUNDS, "MIN_PLANE_SUPPORT": MIN_PLANE_SUPPORT, "MOMENTS": _MOMENTS,
+            **road_model.FIT_LAYOUT, **road_model.ROAD_DEFINES}
 
 
 def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[int, int],
@@ -53,16 +56,22 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     window about superpixel k reaches ``radius_m`` along and across the road: B / d m per
     pixel across at road disparity d, B / (d cos i) along it, i the angle between the pixel's
     ray and the road's normal. On the GPU one single-block kernel (kernels/local_road.cu)
-    holds every round and the noise."""
+    holds every round and the noise, its summed-area tables in shared memory."""
     xp = backend.xp
     height, width = shape[0] // downsample, shape[1] // downsample
     step = superpixels.grid_step(region_size_px, downsample)
     cells_y, cells_x = superpixels.grid_shape(shape, region_size_px, downsample)
     if backend.is_gpu:
         cells = cells_y * cells_x
+        pitch = (cells_x + 1) | 1
+        table_bytes = (cells_y + 1) * pitch * 8
+        group = min(_MOMENTS, _SHARED_TABLE_BYTES // table_bytes)
         reference = xp.empty(cells, dtype=xp.float64)
         noise = xp.empty(cells, dtype=xp.float64)
-        backend.kernel("local_road.cu", "local_road_fit", _DEFINES)(
+        kernel = backend.kernel("local_road.cu", "local_road_fit", _DEFINES)
+        if group * table_bytes > 48 * 1024:
+            kernel.max_dynamic_shared_size_bytes = group * table_bytes
+        kernel(
             (1,), (_THREADS,),
             (xp.ascontiguousarray(means, dtype=xp.float32),
              xp.ascontiguousarray(usable, dtype=xp.bool_),
@@ -71,11 +80,12 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
              np.int32(cells_x), np.int32(step), np.int32(width), np.int32(height),
              np.int32(downsample), np.float64(calibration.f), np.float64(calibration.cx),
              np.float64(calibration.cy), np.float64(calibration.baseline),
-             np.float64(road_level), np.float64(radius_m),
+             np.float64(road_level), np.float64(radius_m), np.int32(pitch), np.int32(group),
              xp.empty(2 * cells, dtype=xp.int32), xp.empty(2 * cells, dtype=xp.float64),
-             xp.empty(cells, dtype=xp.uint8),
-             xp.empty(_MOMENTS * (cells_y + 1) * (cells_x + 1), dtype=xp.float64), reference,
-             noise))
+             xp.empty(cells, dtype=xp.uint8), xp.empty(cells, dtype=xp.float64),
+             xp.empty(_MOMENTS * cells, dtype=xp.float64),
+             xp.empty(_MOMENTS * table_bytes // 8 if group == 0 else 1, dtype=xp.float64),
+             reference, noise), shared_mem=group * table_bytes)
         return reference, noise
     u, v = superpixels.cell_centres(xp, shape, region_size_px, downsample)
     road = road_model.params_at(xp, road_params, u, v)
