@@ -108,8 +108,8 @@ class FrameArrays:
     superpixel, how far (px) the road around it lies below the road model
     (stages/local_road.py); ``inconsistent``: bool per superpixel, where the two views
     disagree on its brightness (stages/photometric.py); ``bumps``: bool per superpixel, where
-    the road stands significantly above the local road (local_road.bumps); ``searched``: bool
-    per superpixel, where potholes are looked for (PipelineResult); ``depressed``: with the
+    the road stands significantly above the local road (local_road.LocalTests); ``searched``:
+    bool per superpixel, where potholes are looked for (PipelineResult); ``depressed``: with the
     local road reference, bool per superpixel, the searched ones that lie below the local road
     by more than refine_depth_fraction of their threshold (components.join_pieces);
     ``significant``: bool per superpixel, the searched ones deeper below the road around them
@@ -354,15 +354,12 @@ class Method:
                         superpixel_noise = noise * texture.deficit(
                             backend, left, valid, found.labels, found.count, ahead)
                     searched, drop = observe(noise_px=superpixel_noise)
-                depressed = searched & (found.means < xp.float32(config.delta_dt_px) - local
-                                        - config.refine_depth_fraction * drop)
-                if config.corner_significance > 0:
-                    significant = searched & (found.means < xp.float32(config.delta_dt_px)
-                                              - local - config.corner_significance * drop)
-                drop = drop + local
-                if config.bump_noise_sigmas > 0:
-                    bumps = local_road.bumps(backend, found.means, local, noise, searched,
-                                             config.delta_dt_px, config.bump_noise_sigmas)
+                tests = local_road.local_tests(
+                    backend, found.means, local, noise, drop, searched, config.delta_dt_px,
+                    config.refine_depth_fraction, config.corner_significance,
+                    config.bump_noise_sigmas)
+                drop, depressed = tests.drop, tests.depressed
+                significant, bumps = tests.significant, tests.bumps
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 thresholding.reference_for(config.threshold_reference, config.threshold_mode),

@@ -1260,11 +1260,20 @@ def test_local_road_matches_the_cpu(gpu, monkeypatch, tables_in_shared):
     np.testing.assert_allclose(
         to_host(local_road.pixel_offsets(gpu, device, *args)),
         local_road.pixel_offsets(CPU, cpu, *args), atol=1e-6)
-    observed = rng.random(count) < 0.8
-    np.testing.assert_array_equal(
-        to_host(local_road.bumps(gpu, gpu.upload(means), device, device_noise,
-                                 gpu.upload(observed), reference.DELTA, 1.0)),
-        local_road.bumps(CPU, means, cpu, cpu_noise, observed, reference.DELTA, 1.0))
+    searched = rng.random(count) < 0.8
+    drops = rng.uniform(0.2, 0.8, count)
+    for drop in (drops, 0.5):
+        expected = local_road.local_tests(CPU, means, cpu, cpu_noise, drop, searched,
+                                          reference.DELTA, 0.25, 2.0, 1.0)
+        found = local_road.local_tests(gpu, gpu.upload(means), gpu.upload(cpu),
+                                       gpu.upload(cpu_noise),
+                                       drop if np.isscalar(drop) else gpu.upload(drop),
+                                       gpu.upload(searched), reference.DELTA, 0.25, 2.0, 1.0)
+        for name in ("depressed", "significant", "bumps"):
+            np.testing.assert_array_equal(to_host(getattr(found, name)),
+                                          getattr(expected, name))
+            assert getattr(expected, name).any()
+        np.testing.assert_array_equal(to_host(found.drop), expected.drop)
 
 
 

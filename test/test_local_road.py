@@ -102,16 +102,28 @@ def test_the_noise_is_the_spread_of_the_road_about_its_local_surface():
     np.testing.assert_array_equal(none, FIT_SIGMA)
 
 
-def test_bumps_stand_above_the_local_road_by_more_than_their_noise():
-    means = np.array([DELTA, DELTA + 0.5, DELTA + 0.5, DELTA - 0.5, DELTA + 0.5, np.nan],
-                     dtype=np.float32)
-    reference = np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0])
-    noise = np.full(6, 0.1)
-    observed = np.array([True, True, True, True, False, True])
-    found = local_road.bumps(CPU, means, reference, noise, observed, DELTA, 4.0)
-    # 0.5 px above the road is 5 sigmas; where the local road itself lies 0.3 px higher,
-    # 0.2 px above it is 2; a dip is no bump; unobserved and NaN means neither
-    np.testing.assert_array_equal(found, [False, True, False, False, False, False])
+def test_local_tests_measure_each_superpixel_from_the_road_around_it():
+    """Threshold drop 0.4 px, noise 0.1 px. Bumps (4 sigmas): 0.5 px above the road is one;
+    where the local road itself lies 0.3 px higher, 0.2 px above it is not; a dip is not.
+    Depressed (a quarter of the drop, 0.1 px, below the local road) and significant (twice
+    the drop): 0.5 px below is depressed only; 1.2 px below where the local road lies 0.2
+    px lower is both; 0.95 px below it is depressed only. Unsearched and NaN means are
+    none."""
+    means = DELTA + np.array([0.0, 0.5, 0.5, -0.5, 0.5, np.nan, -1.2, -0.95], np.float32)
+    reference = np.array([0.0, 0.0, -0.3, 0.0, 0.0, 0.0, 0.2, 0.2])
+    noise = np.full(8, 0.1)
+    drop = np.full(8, 0.4)
+    searched = np.array([True, True, True, True, False, True, True, True])
+    found = local_road.local_tests(CPU, means, reference, noise, drop, searched, DELTA, 0.25,
+                                   2.0, 4.0)
+    np.testing.assert_array_equal(found.bumps, [0, 1, 0, 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(found.depressed, [0, 0, 0, 1, 0, 0, 1, 1])
+    np.testing.assert_array_equal(found.significant, [0, 0, 0, 0, 0, 0, 1, 0])
+    np.testing.assert_allclose(found.drop, drop + reference)
+    plain = local_road.local_tests(CPU, means, reference, noise, 0.4, searched, DELTA, 0.25,
+                                   0.0, 0.0)
+    assert plain.significant is None and plain.bumps is None
+    np.testing.assert_array_equal(plain.depressed, found.depressed)
 
 
 def test_pixel_offsets_interpolate_between_cell_centres():

@@ -170,6 +170,28 @@ extern "C" __global__ void local_road_fit(
     }
 }
 
+// local_tests (stages/local_road.py, whose array code is the reference), one thread per
+// superpixel k: drop[k] + reference[k] into total; flags[0], [1], [2] (count each): depressed,
+// significant, bumps. Rounded as NumPy does, without fused multiply-adds.
+extern "C" __global__ void local_tests(const float* means, const double* reference,
+                                       const double* noise, const double* drop,
+                                       const bool* searched, int count, double road_level,
+                                       double refine_fraction, double corner_significance,
+                                       double noise_sigmas, double* total, bool* flags) {
+    const int k = blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= count) return;
+    const double mean = means[k], offset = reference[k], threshold = drop[k];
+    const double level = __dsub_rn((double)(float)road_level, offset);
+    const bool search = searched[k];
+    total[k] = __dadd_rn(threshold, offset);
+    flags[k] = search && mean < __dsub_rn(level, __dmul_rn(refine_fraction, threshold));
+    flags[count + k] = search && mean < __dsub_rn(level, __dmul_rn(corner_significance,
+                                                                   threshold));
+    const double below = __dsub_rn(__dsub_rn(road_level, mean), offset);
+    flags[2 * count + k] = search && isfinite(below)
+                           && below < __dmul_rn(-noise_sigmas, noise[k]);
+}
+
 // local_pixel_offsets (stages/local_road.py, pixel_offsets, whose array code is the reference):
 // one thread per full-resolution pixel, the cells' offsets bilinear between the cells' centres
 // (cell_px apart, centres at (k + 0.5) cell_px), constant past the outer centres, in float.

@@ -14,6 +14,7 @@ holds what one plane cannot follow.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -117,16 +118,62 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     return reference.ravel(), noise.ravel()
 
 
-def bumps(backend: Backend, means: Any, reference: Any, noise: Any, observed: Any,
-          road_level: float, noise_sigmas: float) -> Any:
-    """Bool (count,): the observed superpixels whose mean D2 (``means``, float32 (count,))
-    lies above the local road (``reference``, from :func:`offsets`, with its ``noise``) by
-    more than ``noise_sigmas`` times the noise: where a matcher that moved an edge (a lane
-    marking's) reads one side as a dip, the other reads as a bump, which a road does not
-    make next to a pothole. Nothing read back."""
+@dataclass(frozen=True)
+class LocalTests:
+    """Per superpixel (count,), its mean D2 against the local road: ``drop``, float64 px, the
+    threshold drop below the global road's level D2 = delta_DT with the local road's offset
+    added (what a pothole's mean must lie under); ``depressed``, bool, searched and deeper
+    than ``refine_fraction`` of its threshold drop below the local road (where the pixel
+    refinement may grow); ``significant``, bool or None, searched and deeper than
+    ``corner_significance`` times it (None where that is 0); ``bumps``, bool or None, searched
+    and above the local road by more than ``noise_sigmas`` times the road's noise there: where
+    a matcher that moved an edge (a lane marking's) reads one side as a dip, the other reads
+    as a bump, which a road does not make next to a pothole (None where ``noise_sigmas`` is
+    0)."""
+
+    drop: Any
+    depressed: Any
+    significant: Any
+    bumps: Any
+
+
+def local_tests(backend: Backend, means: Any, reference: Any, noise: Any, drop: Any,
+                searched: Any, road_level: float, refine_fraction: float,
+                corner_significance: float, noise_sigmas: float) -> LocalTests:
+    """The :class:`LocalTests` of superpixels of mean D2 ``means`` (float32 (count,) px), the
+    local road's offset ``reference`` and ``noise`` (float64 (count,) px, :func:`offsets`),
+    their threshold drops ``drop`` (float64 (count,) px, or one float for all) and the bool
+    (count,) ``searched`` ones; ``road_level``: delta_DT (px). Nothing read back; on the GPU
+    one kernel (kernels/local_road.cu)."""
     xp = backend.xp
-    below = road_level - means.astype(xp.float64) - reference
-    return observed & xp.isfinite(below) & (below < -noise_sigmas * noise)
+    count = int(means.shape[0])
+    if backend.is_gpu:
+        drops = xp.full(count, drop, dtype=xp.float64) if np.isscalar(drop) \
+            else xp.ascontiguousarray(drop, dtype=xp.float64)
+        total = xp.empty(count, dtype=xp.float64)
+        flags = xp.empty((3, count), dtype=xp.bool_)
+        threads = 256
+        backend.kernel("local_road.cu", "local_tests", _DEFINES)(
+            (-(-count // threads),), (threads,),
+            (xp.ascontiguousarray(means, dtype=xp.float32),
+             xp.ascontiguousarray(reference, dtype=xp.float64),
+             xp.ascontiguousarray(noise, dtype=xp.float64), drops,
+             xp.ascontiguousarray(searched, dtype=xp.bool_), np.int32(count),
+             np.float64(road_level), np.float64(refine_fraction),
+             np.float64(corner_significance), np.float64(noise_sigmas), total, flags))
+        return LocalTests(total, flags[0], flags[1] if corner_significance > 0 else None,
+                          flags[2] if noise_sigmas > 0 else None)
+    level = xp.float32(road_level)
+    significant = None
+    if corner_significance > 0:
+        significant = searched & (means < level - reference - corner_significance * drop)
+    bumps = None
+    if noise_sigmas > 0:
+        below = road_level - means.astype(xp.float64) - reference
+        bumps = searched & xp.isfinite(below) & (below < -noise_sigmas * noise)
+    return LocalTests(drop + reference,
+                      searched & (means < level - reference - refine_fraction * drop),
+                      significant, bumps)
 
 
 class _Windows:
