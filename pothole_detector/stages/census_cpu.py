@@ -160,29 +160,35 @@ def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
 
 @numba.njit(parallel=True, cache=True)
 def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> np.ndarray:
-    """select_disparities' kernel: rows on the threads, each with its right view's winners."""
+    """select_disparities' kernel: rows on the threads. The right view's winner of column x
+    is updated from each left pixel u = x + d in turn (d ascending for each x, so ties keep
+    the lowest d); minima are branch-free reductions, the winner the first level at the
+    minimum."""
     height, width, levels = total.shape
     raw = np.empty((height, width), dtype=np.float32)
     for v in numba.prange(height):
-        right_best = np.empty(width, dtype=np.int64)
-        for x in range(width):
-            least, best = _OUTSIDE, 0
-            for d in range(min(levels, width - x)):
-                if total[v, x + d, d] < least:
-                    least, best = np.int64(total[v, x + d, d]), d
-            right_best[x] = best
+        right_least = np.full(width, _OUTSIDE, dtype=np.int32)
+        right_best = np.zeros(width, dtype=np.int32)
         for u in range(width):
             sums = total[v, u]
-            best, least = 0, np.int64(sums[0])
-            for d in range(1, levels):
-                if sums[d] < least:
-                    best, least = d, np.int64(sums[d])
-            second = _OUTSIDE
+            for d in range(min(levels, u + 1)):
+                cost = np.int32(sums[d])
+                better = cost < right_least[u - d]
+                right_best[u - d] = d if better else right_best[u - d]
+                right_least[u - d] = cost if better else right_least[u - d]
+        for u in range(width):
+            sums = total[v, u]
+            least = np.int32(_OUTSIDE)
             for d in range(levels):
-                if abs(d - best) > 1 and sums[d] < second:
-                    second = np.int64(sums[d])
+                least = min(least, np.int32(sums[d]))
+            best = 0
+            while sums[best] != least:
+                best += 1
+            second = np.int32(_OUTSIDE)
+            for d in range(levels):
+                second = min(second, np.int32(sums[d]) if abs(d - best) > 1 else _OUTSIDE)
             valid = uniqueness_percent == 0 or second == _OUTSIDE \
-                or 100 * least < (100 - uniqueness_percent) * second
+                or 100 * np.int64(least) < (100 - uniqueness_percent) * np.int64(second)
             target = u - best
             valid = valid and target >= 0
             if valid and lr_max_diff_px >= 0:
@@ -191,7 +197,7 @@ def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> 
                 raw[v, u] = -1.0
             elif 0 < best < levels - 1:
                 below, above = np.int64(sums[best - 1]), np.int64(sums[best + 1])
-                denominator = max(below + above - 2 * least, 1)
+                denominator = max(below + above - 2 * np.int64(least), 1)
                 raw[v, u] = np.float32(best) + np.float32(below - above) / (
                     np.float32(2) * np.float32(denominator))
             else:
