@@ -121,7 +121,8 @@ extern "C" __global__ void slic_start(const float* filled, const unsigned char* 
 }
 
 // Per-superpixel count, valid count and sum of valid values of an HxW float32 map (NaN
-// invalid), float64 sums[n][3]; each warp adds once per distinct label among its pixels.
+// invalid), float64 sums[n][3]; each warp adds once per distinct label among its pixels (the
+// counts from its ballots, the sum by shuffles).
 extern "C" __global__ void superpixel_sums(const float* image, const int* labels, long long size,
                                            double* sums) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
@@ -135,22 +136,17 @@ extern "C" __global__ void superpixel_sums(const float* image, const int* labels
         const int leader = __ffs(remaining) - 1;
         const int target = __shfl_sync(0xffffffffu, label, leader);
         const bool mine = inside && label == target;
-        remaining &= ~__ballot_sync(0xffffffffu, mine);
-        double count = mine ? 1.0 : 0.0;
-        double count_valid = mine && valid ? 1.0 : 0.0;
+        const unsigned group = __ballot_sync(0xffffffffu, mine);
+        const unsigned group_valid = __ballot_sync(0xffffffffu, mine && valid);
+        remaining &= ~group;
         double total = mine && valid ? (double)value : 0.0;
 #pragma unroll
-        for (int offset = 16; offset > 0; offset >>= 1) {
-            count += __shfl_down_sync(0xffffffffu, count, offset);
-            count_valid += __shfl_down_sync(0xffffffffu, count_valid, offset);
+        for (int offset = 16; offset > 0; offset >>= 1)
             total += __shfl_down_sync(0xffffffffu, total, offset);
-        }
-        const double group_count = __shfl_sync(0xffffffffu, count, 0);
-        const double group_valid = __shfl_sync(0xffffffffu, count_valid, 0);
         const double group_total = __shfl_sync(0xffffffffu, total, 0);
         if (lane == leader) {
-            atomicAdd(&sums[target * 3], group_count);
-            atomicAdd(&sums[target * 3 + 1], group_valid);
+            atomicAdd(&sums[target * 3], (double)__popc(group));
+            atomicAdd(&sums[target * 3 + 1], (double)__popc(group_valid));
             atomicAdd(&sums[target * 3 + 2], group_total);
         }
     }
