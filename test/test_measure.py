@@ -5,9 +5,10 @@ import pytest
 
 from pothole_detector.backend import CPU
 from pothole_detector.stages.components import far_corners
-from pothole_detector.stages.measure import (MEASURE_SUMS, depth_below_road, keep_large,
-                                             measure, measure_potholes, potholes_from_sums,
-                                             reportable, road_normal, under_opening)
+from pothole_detector.stages.measure import (MEASURE_SUMS, Extreme, Sum, depth_below_road,
+                                             keep_large, measure, measure_potholes,
+                                             potholes_from_sums, reportable, road_normal,
+                                             under_opening)
 from pothole_detector.stages.road_model import fit_road
 
 
@@ -78,25 +79,34 @@ def test_a_pothole_in_a_far_corner_stays_only_on_mostly_significant_superpixels(
     sums, extremes = measure(CPU, labels, 4, disparity, road, demo_sample.calibration,
                              corners=corners, superpixel_labels=superpixels,
                              significant=significant)
-    assert list(sums[1:, 0]) == [256] * 4
-    assert list(sums[1:, 8]) == [256, 256, 256, 0]
-    assert list(sums[1:, 9]) == [192, 128, 0, 0]
+    assert list(sums[1:, Sum.PIXELS]) == [256] * 4
+    assert list(sums[1:, Sum.CORNER]) == [256, 256, 256, 0]
+    assert list(sums[1:, Sum.SIGNIFICANT]) == [192, 128, 0, 0]
     deep = np.ones((4, MEASURE_SUMS))     # otherwise a possible report
-    deep[:, [0, 8, 9]] = sums[1:, [0, 8, 9]]
+    counts = [Sum.PIXELS, Sum.CORNER, Sum.SIGNIFICANT]
+    deep[:, counts] = sums[1:, counts]
     assert list(reportable(deep, 0.0)) == [True, False, False, True]
 
 
 def test_potholes_from_sums_decode_the_device_table():
-    sums = np.array([[10.0, 0.02, 0.01, 0.008, 0.0004, 0.1, 0.2, 1.5]])
+    sums = np.zeros((1, MEASURE_SUMS))
+    for column, value in ((Sum.PIXELS, 10.0), (Sum.AREA, 0.02), (Sum.VALID_AREA, 0.01),
+                          (Sum.FLOOR, 0.008), (Sum.DEPTH_FLOOR, 0.0004), (Sum.X, 0.1),
+                          (Sum.Y, 0.2), (Sum.Z, 1.5)):
+        sums[0, column] = value
     depth_bits = np.array([0.07], np.float32).view(np.int32)
-    extremes = np.array([[depth_bits[0], 3, 4, 9, 12]], np.int32)
+    extremes = np.zeros((1, len(Extreme)), np.int32)
+    for column, value in ((Extreme.LARGEST_DEPTH, depth_bits[0]), (Extreme.U_MIN, 3),
+                          (Extreme.V_MIN, 4), (Extreme.U_MAX, 9), (Extreme.V_MAX, 12)):
+        extremes[0, column] = value
     (pothole,) = potholes_from_sums(sums, extremes)
     assert pothole.pixels == 10 and pothole.bbox_px == (3, 4, 9, 12)
     assert np.isclose(pothole.max_depth_m, 0.07) and np.isclose(pothole.mean_depth_m, 0.05)
     assert np.isclose(pothole.volume_m3, 0.05 * 0.02)
     np.testing.assert_allclose(pothole.centroid_cam_m, (10.0, 20.0, 150.0))
     negative = np.array([-0.5], np.float32).view(np.int32) ^ np.int32(0x7FFFFFFF)
-    (flat,) = potholes_from_sums(sums, np.array([[negative[0], 0, 0, 1, 1]], np.int32))
+    extremes[0, Extreme.LARGEST_DEPTH] = negative[0]
+    (flat,) = potholes_from_sums(sums, extremes)
     assert np.isclose(flat.max_depth_m, -0.5)
 
 
@@ -177,17 +187,17 @@ def test_depths_above_the_road_count_as_zero_and_reports_need_finite_positive_nu
     raised_sums, raised_extremes = measure(CPU, labels, 1, raised, road, sample.calibration)
     assert keep_large(raised_sums[1:], raised_extremes[1:], 0.0)[0] == []
     sums = np.ones((4, MEASURE_SUMS))
-    sums[1, 4] = 0.0          # no depth below the road
-    sums[2, 5] = np.inf       # a non-finite sum
-    sums[3, 1] = 1e-5         # smaller than the area asked for
+    sums[1, Sum.DEPTH_FLOOR] = 0.0     # no depth below the road
+    sums[2, Sum.X] = np.inf            # a non-finite sum
+    sums[3, Sum.AREA] = 1e-5           # smaller than the area asked for
     assert list(reportable(sums, 1e-4)) == [True, False, False, False]
 
 
 def test_reports_need_a_depth_between_the_bounds_and_no_deeper_than_wide():
     sums = np.ones((5, MEASURE_SUMS))
-    sums[:, 1] = 0.04          # 20 cm wide
-    sums[:, 3] = 0.04          # floor area
-    sums[:, 4] = sums[:, 3] * np.array([0.05, 0.005, 0.15, 0.25, 0.6])  # mean depths (m)
+    sums[:, Sum.AREA] = 0.04           # 20 cm wide
+    sums[:, Sum.FLOOR] = 0.04
+    sums[:, Sum.DEPTH_FLOOR] = sums[:, Sum.FLOOR] * np.array([0.05, 0.005, 0.15, 0.25, 0.6])
     assert list(reportable(sums, 1e-4, 0.008, 0.5)) == [True, False, True, False, False]
 
 

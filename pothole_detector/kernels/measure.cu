@@ -1,13 +1,14 @@
 // Per-pothole sums in one pass over the label image. Reference: stages/measure.py (measure,
 // depth_below_road, surface_patches, hidden_floor_depth, under_opening). sums: float64
-// [count + 1][10] = pixels, footprint area, valid area, floor area, depth x floor area (the
-// depth hidden_floor_depth estimates), x, y, z x area (valid pixels), pixels in a far corner
-// region, pixels of significant superpixels; extremes: int32 [count + 1][5] = largest depth
-// (order-preserving float bits; of points under the pothole's opening), u min, v min, u max,
-// v max. Warps whose labelled pixels share one label add once per warp.
-// Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, THREADS, HIDDEN_FLOOR_*
-// (measure.HIDDEN_FLOOR_CONSTANTS) and the road parameters' layout and constants (ROAD_*,
-// stages/road_model.ROAD_DEFINES).
+// [count + 1][SUMS], columns SUM_* (measure.Sum: pixels, footprint area, valid area, floor
+// area, depth x floor area (the depth hidden_floor_depth estimates), x, y, z x area (valid
+// pixels), pixels in a far corner region, pixels of significant superpixels); extremes:
+// int32 [count + 1][EXTREMES], columns EXTREME_* (measure.Extreme: largest depth as
+// order-preserving float bits, of points under the pothole's opening; u min, v min, u max,
+// v max). Warps whose labelled pixels share one label add once per warp.
+// Defined by the launcher (stages/measure.py, _kernel): SUMS, EXTREMES, SUM_*, EXTREME_*,
+// THREADS, HIDDEN_FLOOR_* (measure.HIDDEN_FLOOR_CONSTANTS) and the road parameters' layout and
+// constants (ROAD_*, stages/road_model.ROAD_DEFINES).
 
 #include "road_disparity.cuh"
 
@@ -124,9 +125,9 @@ extern "C" __global__ void measure_reset(double* sums, int* extremes, int count)
     if (label > count) return;
     for (int k = 0; k < SUMS; ++k) sums[label * SUMS + k] = 0.0;
     int* row = extremes + label * EXTREMES;
-    row[0] = ordered_bits(__int_as_float(0xff800000));
-    row[1] = row[2] = 0x7fffffff;
-    row[3] = row[4] = -1;
+    row[EXTREME_LARGEST_DEPTH] = ordered_bits(__int_as_float(0xff800000));
+    row[EXTREME_U_MIN] = row[EXTREME_V_MIN] = 0x7fffffff;
+    row[EXTREME_U_MAX] = row[EXTREME_V_MAX] = -1;
 }
 
 // road: a0, a1, cos(phi), sin(phi), c0..c5, curved (stages/road_model.RoadModel
@@ -153,10 +154,12 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         double footprint;
         const float depth = depth_below(road, normal, u, v, disparity[index], f, cx, cy, fb,
                                         &footprint);
-        values[0] = 1.0;
-        values[1] = footprint;
-        values[8] = v < side && (u < first[v] + side || u > last[v] - side) ? 1.0 : 0.0;
-        values[9] = has_significant && significant[superpixels[index]] ? 1.0 : 0.0;
+        values[SUM_PIXELS] = 1.0;
+        values[SUM_AREA] = footprint;
+        values[SUM_CORNER] = v < side && (u < first[v] + side || u > last[v] - side) ? 1.0
+                                                                                     : 0.0;
+        values[SUM_SIGNIFICANT] = has_significant && significant[superpixels[index]] ? 1.0
+                                                                                     : 0.0;
         if (finite(depth)) {
             const double uu = u, vv = v, z = fb / (double)disparity[index];
             bool edge_on;
@@ -166,12 +169,12 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
                 edge_on ? hidden_floor_depth(labels, disparity, u, v, width, label, depth, f, cx,
                                              cy, fb, road, normal)
                         : depth;
-            values[2] = footprint;
-            values[3] = floor;
-            values[4] = (double)volume_depth * floor;
-            values[5] = (uu - cx) * z / f * footprint;
-            values[6] = (vv - cy) * z / f * footprint;
-            values[7] = z * footprint;
+            values[SUM_VALID_AREA] = footprint;
+            values[SUM_FLOOR] = floor;
+            values[SUM_DEPTH_FLOOR] = (double)volume_depth * floor;
+            values[SUM_X] = (uu - cx) * z / f * footprint;
+            values[SUM_Y] = (vv - cy) * z / f * footprint;
+            values[SUM_Z] = z * footprint;
             if (under_opening(labels, u, v, height, width, label, disparity[index], depth, f,
                               cx, cy, fb, normal))
                 depth_value = depth;
@@ -197,20 +200,20 @@ measure_potholes(const int* labels, const float* disparity, int height, int widt
         if (lane == 0) {
             for (int k = 0; k < SUMS; ++k) atomicAdd(&sums[leader_label * SUMS + k], values[k]);
             int* row = extremes + leader_label * EXTREMES;
-            atomicMax(&row[0], depth_bits);
-            atomicMin(&row[1], u_min);
-            atomicMin(&row[2], v_min);
-            atomicMax(&row[3], u_max);
-            atomicMax(&row[4], v_max);
+            atomicMax(&row[EXTREME_LARGEST_DEPTH], depth_bits);
+            atomicMin(&row[EXTREME_U_MIN], u_min);
+            atomicMin(&row[EXTREME_V_MIN], v_min);
+            atomicMax(&row[EXTREME_U_MAX], u_max);
+            atomicMax(&row[EXTREME_V_MAX], v_max);
         }
     } else if (label > 0) {
         for (int k = 0; k < SUMS; ++k) atomicAdd(&sums[label * SUMS + k], values[k]);
         int* row = extremes + label * EXTREMES;
-        atomicMax(&row[0], ordered_bits(depth_value));
-        atomicMin(&row[1], u);
-        atomicMin(&row[2], v);
-        atomicMax(&row[3], u);
-        atomicMax(&row[4], v);
+        atomicMax(&row[EXTREME_LARGEST_DEPTH], ordered_bits(depth_value));
+        atomicMin(&row[EXTREME_U_MIN], u);
+        atomicMin(&row[EXTREME_V_MIN], v);
+        atomicMax(&row[EXTREME_U_MAX], u);
+        atomicMax(&row[EXTREME_V_MAX], v);
     }
 }
 
@@ -225,11 +228,12 @@ __device__ bool reportable(const double* row, double min_area, double min_depth,
                            double max_depth) {
     for (int k = 0; k < SUMS; ++k)
         if (!isfinite(row[k])) return false;
-    const double floor = row[3], depth_floor = row[4];
-    return row[1] >= min_area && row[1] > 0.0 && row[2] > 0.0 && floor > 0.0
+    const double floor = row[SUM_FLOOR], depth_floor = row[SUM_DEPTH_FLOOR];
+    const double area = row[SUM_AREA];
+    return area >= min_area && area > 0.0 && row[SUM_VALID_AREA] > 0.0 && floor > 0.0
            && depth_floor > 0.0 && depth_floor >= min_depth * floor
-           && depth_floor <= max_depth * floor && depth_floor <= sqrt(row[1]) * floor
-           && (row[8] == 0.0 || 2.0 * row[9] > row[0]);
+           && depth_floor <= max_depth * floor && depth_floor <= sqrt(area) * floor
+           && (row[SUM_CORNER] == 0.0 || 2.0 * row[SUM_SIGNIFICANT] > row[SUM_PIXELS]);
 }
 
 extern "C" __global__ void measure_keep(const double* sums, const int* kept, int capacity,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import IntEnum
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,36 @@ HIDDEN_FLOOR_CONSTANTS = {"HIDDEN_FLOOR_GRAZING_PERCENT": 50, "HIDDEN_FLOOR_BLEN
 HIDDEN_FLOOR_GRAZING = HIDDEN_FLOOR_CONSTANTS["HIDDEN_FLOOR_GRAZING_PERCENT"] / 100.0
 HIDDEN_FLOOR_BLEND = HIDDEN_FLOOR_CONSTANTS["HIDDEN_FLOOR_BLEND_PERCENT"] / 100.0
 HIDDEN_FLOOR_ROWS = HIDDEN_FLOOR_CONSTANTS["HIDDEN_FLOOR_ROWS"]
+
+
+class Sum(IntEnum):
+    """The columns of :func:`measure`'s per-label float64 sums (kernels/measure.cu reads them
+    as SUM_<name>): pixels, footprint area, valid area (pixels with a depth), floor area
+    (:func:`surface_patches`), depth x floor area, x, y, z x valid area, pixels in a far
+    corner region, pixels of significant superpixels."""
+
+    PIXELS = 0
+    AREA = 1
+    VALID_AREA = 2
+    FLOOR = 3
+    DEPTH_FLOOR = 4
+    X = 5
+    Y = 6
+    Z = 7
+    CORNER = 8
+    SIGNIFICANT = 9
+
+
+class Extreme(IntEnum):
+    """The columns of :func:`measure`'s per-label int32 extremes (kernels/measure.cu:
+    EXTREME_<name>): largest depth (order-preserving float32 bits), u min, v min, u max, v
+    max."""
+
+    LARGEST_DEPTH = 0
+    U_MIN = 1
+    V_MIN = 2
+    U_MAX = 3
+    V_MAX = 4
 
 
 @dataclass(frozen=True)
@@ -176,13 +207,12 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
             superpixel_labels: Any = None, significant: Any = None) -> tuple[Any, Any]:
     """The measure stage: per-label sums of labels 1..capacity of the int32 HxW ``labels``
     with the HxW float32 disparity D1 (px, NaN invalid), nothing read back: backend float64
-    (capacity + 1, MEASURE_SUMS) pixels, area, valid area, floor area (:func:`surface_patches`),
-    depth x floor area, x, y, z x valid area, pixels in a far corner region (``corners``,
-    none where not given) and pixels of superpixels (int32 HxW ``superpixel_labels``) flagged
-    in the bool (n,) ``significant`` (none where not given), and int32 (capacity + 1,
-    MEASURE_EXTREMES)
-    largest depth (order-preserving float32 bits), u min, v min, u max, v max; row 0 unused;
-    written into ``sums`` and ``extremes`` where given. The mean depth is taken over the
+    (capacity + 1, MEASURE_SUMS) sums (columns :class:`Sum`; pixels in a far corner region of
+    ``corners``, none where not given; pixels of superpixels (int32 HxW
+    ``superpixel_labels``) flagged in the bool (n,) ``significant``, none where not given) and
+    int32 (capacity + 1, MEASURE_EXTREMES) extremes (columns :class:`Extreme`; the largest
+    depth of the points under the opening, :func:`under_opening`); row 0 unused; written into
+    ``sums`` and ``extremes`` where given. The mean depth is taken over the
     floor that the camera sees, each point weighted by the area it covers on the road, so
     that a far wall seen at grazing angles does not make a pothole shallow; where the near rim
     hides the floor, at the depth :func:`hidden_floor_depth` estimates. ``road``: a
@@ -223,20 +253,24 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     def extreme(function: Any, values: Any) -> Any:
         return xp.asarray(function(values, label, index)).reshape(count)
 
-    sums[1:count + 1] = xp.stack([
-        total(xp.ones_like(footprint)), total(footprint), total(xp.where(valid, footprint, 0)),
-        total(floor), total(xp.where(valid, volume_depth, 0) * floor),
-        total(xp.where(valid, x * footprint, 0)), total(xp.where(valid, y * footprint, 0)),
-        total(xp.where(valid, z * footprint, 0)), total(cornered), total(flagged),
-    ], axis=1)
+    columns = {
+        Sum.PIXELS: xp.ones_like(footprint), Sum.AREA: footprint,
+        Sum.VALID_AREA: xp.where(valid, footprint, 0),
+        Sum.FLOOR: floor, Sum.DEPTH_FLOOR: xp.where(valid, volume_depth, 0) * floor,
+        Sum.X: xp.where(valid, x * footprint, 0), Sum.Y: xp.where(valid, y * footprint, 0),
+        Sum.Z: xp.where(valid, z * footprint, 0), Sum.CORNER: cornered,
+        Sum.SIGNIFICANT: flagged}
+    sums[1:count + 1] = xp.stack([total(columns[column]) for column in Sum], axis=1)
     opening = under_opening(xp, labels, rows, cols, label, depth, disparity,
                             road_normal(road, calibration), calibration)
     largest = extreme(ndimage.maximum, xp.where(valid & opening, depth, -xp.inf)
                       ).astype(xp.float32)
-    extremes[1:count + 1, 0] = _ordered_bits(largest.view(xp.int32))
-    extremes[1:count + 1, 1:] = xp.stack([
-        extreme(ndimage.minimum, cols), extreme(ndimage.minimum, rows),
-        extreme(ndimage.maximum, cols), extreme(ndimage.maximum, rows)], axis=1)
+    extremes[1:count + 1, Extreme.LARGEST_DEPTH] = _ordered_bits(largest.view(xp.int32))
+    for column, function, values in ((Extreme.U_MIN, ndimage.minimum, cols),
+                                     (Extreme.V_MIN, ndimage.minimum, rows),
+                                     (Extreme.U_MAX, ndimage.maximum, cols),
+                                     (Extreme.V_MAX, ndimage.maximum, rows)):
+        extremes[1:count + 1, column] = extreme(function, values)
     return sums, extremes
 
 
@@ -276,18 +310,22 @@ def _potholes_from_table(table: np.ndarray) -> list[Pothole]:
 def potholes_from_sums(sums: np.ndarray, extremes: np.ndarray) -> list[Pothole]:
     """Potholes 1..k from host copies of rows 1..k of :func:`measure`'s sums
     (float64 (k, MEASURE_SUMS)) and extremes (int32 (k, MEASURE_EXTREMES))."""
-    largest = _ordered_bits(extremes[:, 0]).astype(np.int32).view(np.float32)
+    largest = _ordered_bits(extremes[:, Extreme.LARGEST_DEPTH]).astype(np.int32).view(np.float32)
     return _potholes_from_table(np.column_stack(
-        [sums[:, :5], largest.astype(np.float64), sums[:, 5:8],
-         extremes[:, 1:].astype(np.float64)]))
+        [sums[:, [Sum.PIXELS, Sum.AREA, Sum.VALID_AREA, Sum.FLOOR, Sum.DEPTH_FLOOR]],
+         largest.astype(np.float64), sums[:, [Sum.X, Sum.Y, Sum.Z]],
+         extremes[:, [Extreme.U_MIN, Extreme.V_MIN, Extreme.U_MAX, Extreme.V_MAX]]
+         .astype(np.float64)]))
 
 
 # per-label float64 sums and int32 extremes of measure (kernels/measure.cu), its block size
-MEASURE_SUMS = 10
-MEASURE_EXTREMES = 5
+MEASURE_SUMS = len(Sum)
+MEASURE_EXTREMES = len(Extreme)
 MEASURE_THREADS = 256
 _MEASURE_DEFINES = {"SUMS": MEASURE_SUMS, "EXTREMES": MEASURE_EXTREMES,
-                    "THREADS": MEASURE_THREADS, **HIDDEN_FLOOR_CONSTANTS, **ROAD_DEFINES}
+                    "THREADS": MEASURE_THREADS, **{f"SUM_{c.name}": int(c) for c in Sum},
+                    **{f"EXTREME_{c.name}": int(c) for c in Extreme},
+                    **HIDDEN_FLOOR_CONSTANTS, **ROAD_DEFINES}
 
 
 def _measure_on_device(backend: Backend, labels: Any, capacity: int, disparity: Any,
@@ -361,12 +399,12 @@ def reportable(sums: np.ndarray, min_area_m2: float, min_depth_m: float = 0.0,
     more than half of its pixels lie on significant superpixels (where the road model is
     extrapolated, a pothole needs more evidence: params' corner_significance)."""
     sums = np.asarray(sums)
-    floor, depth_floor = sums[:, 3], sums[:, 4]
-    return np.isfinite(sums).all(axis=1) & (sums[:, 1] >= min_area_m2) & (sums[:, 1] > 0) \
-        & (sums[:, 2] > 0) & (floor > 0) & (depth_floor > 0) \
+    floor, depth_floor, area = sums[:, Sum.FLOOR], sums[:, Sum.DEPTH_FLOOR], sums[:, Sum.AREA]
+    return np.isfinite(sums).all(axis=1) & (area >= min_area_m2) & (area > 0) \
+        & (sums[:, Sum.VALID_AREA] > 0) & (floor > 0) & (depth_floor > 0) \
         & (depth_floor >= min_depth_m * floor) & (depth_floor <= max_depth_m * floor) \
-        & (depth_floor <= np.sqrt(np.maximum(sums[:, 1], 0.0)) * floor) \
-        & ((sums[:, 8] == 0) | (2 * sums[:, 9] > sums[:, 0]))
+        & (depth_floor <= np.sqrt(np.maximum(area, 0.0)) * floor) \
+        & ((sums[:, Sum.CORNER] == 0) | (2 * sums[:, Sum.SIGNIFICANT] > sums[:, Sum.PIXELS]))
 
 
 def keep_large(sums: np.ndarray, extremes: np.ndarray, min_area_m2: float,
