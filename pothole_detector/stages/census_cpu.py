@@ -160,22 +160,22 @@ def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
 
 @numba.njit(parallel=True, cache=True)
 def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> np.ndarray:
-    """select_disparities' kernel: rows on the threads. The right view's winner of column x
-    is updated from each left pixel u = x + d in turn (d ascending for each x, so ties keep
-    the lowest d); minima are branch-free reductions, the winner the first level at the
-    minimum."""
+    """select_disparities' kernel: rows on the threads, each with its right view's winners.
+    Minima are branch-free reductions, a winner the first level at its minimum (the lowest d
+    of ties)."""
     height, width, levels = total.shape
     raw = np.empty((height, width), dtype=np.float32)
     for v in numba.prange(height):
-        right_least = np.full(width, _OUTSIDE, dtype=np.int32)
-        right_best = np.zeros(width, dtype=np.int32)
-        for u in range(width):
-            sums = total[v, u]
-            for d in range(min(levels, u + 1)):
-                cost = np.int32(sums[d])
-                better = cost < right_least[u - d]
-                right_best[u - d] = d if better else right_best[u - d]
-                right_least[u - d] = cost if better else right_least[u - d]
+        row = total[v]
+        right_best = np.empty(width, dtype=np.int32)
+        for x in range(width):
+            right_least = np.int32(_OUTSIDE)
+            for d in range(min(levels, width - x)):
+                right_least = min(right_least, np.int32(row[x + d, d]))
+            best = 0
+            while row[x + best, best] != right_least:
+                best += 1
+            right_best[x] = best
         for u in range(width):
             sums = total[v, u]
             least = np.int32(_OUTSIDE)
