@@ -339,8 +339,8 @@ class Method:
             searched, local, bumps, depressed = observed, None, None, None
             significant = None
             if config.road_reference != "local" and config.corner_significance > 0:
-                significant = observed & (found.means < xp.float32(config.delta_dt_px)
-                                          - config.corner_significance * drop)
+                significant = local_road.deeper(observed, found.means, config.delta_dt_px,
+                                                0.0, drop, config.corner_significance)
             if config.road_reference == "local":
                 ahead, ahead_drops = observe(max_depth_m=math.inf)
                 usable = ahead & (found.valid_fraction > config.superpixel_min_valid_fraction)

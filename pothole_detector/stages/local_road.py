@@ -163,17 +163,26 @@ def local_tests(backend: Backend, means: Any, reference: Any, noise: Any, drop: 
              np.float64(corner_significance), np.float64(noise_sigmas), total, flags))
         return LocalTests(total, flags[0], flags[1] if corner_significance > 0 else None,
                           flags[2] if noise_sigmas > 0 else None)
-    level = xp.float32(road_level)
     significant = None
     if corner_significance > 0:
-        significant = searched & (means < level - reference - corner_significance * drop)
+        significant = deeper(searched, means, road_level, reference, drop, corner_significance)
     bumps = None
     if noise_sigmas > 0:
         below = road_level - means.astype(xp.float64) - reference
         bumps = searched & xp.isfinite(below) & (below < -noise_sigmas * noise)
     return LocalTests(drop + reference,
-                      searched & (means < level - reference - refine_fraction * drop),
+                      deeper(searched, means, road_level, reference, drop, refine_fraction),
                       significant, bumps)
+
+
+def deeper(searched: Any, means: Any, road_level: float, reference: Any, drop: Any,
+           factor: float) -> Any:
+    """Bool (count,): the ``searched`` superpixels whose mean D2 (``means``, float32 (count,)
+    px) lies below the road's level ``road_level`` (delta_DT, px) less ``reference`` (the local
+    road's offset, float64 (count,) px, or 0 for the road model) by more than ``factor`` times
+    their threshold ``drop`` (float64 (count,) px, or one float for all). Array code, either
+    backend."""
+    return searched & (means < np.float32(road_level) - reference - factor * drop)
 
 
 class _Windows:
