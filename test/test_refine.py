@@ -7,8 +7,8 @@ import pytest
 import scipy.ndimage
 
 from pothole_detector.backend import CPU
-from pothole_detector.stages.refine import (SMOOTHING_PX, extend_occluded, radius,
-                                            refine_labels, smooth)
+from pothole_detector.stages.refine import (RIM_REACH_PX, SMOOTHING_PX, extend_occluded,
+                                            radius, refine_labels, smooth)
 from pothole_detector.stages.road_model import RoadModel
 from pothole_detector.stages.transform import transform_disparity
 
@@ -17,11 +17,13 @@ FLAT = RoadModel(np.float64(32.0), np.float64(0.0), 0.0)
 
 
 def _scene():
-    """Two superpixels (left half 0, right half 1) of a 20x40 map; pothole 1 covers columns
-    8-11 of rows 5-14; the road (32 px) dips 1 px at columns 12-17 beside it and at 28-33."""
+    """Two superpixels (left half 0, right half 1) of a 20x40 map; pothole 1 is labelled at
+    columns 8-11 of rows 5-14 of a depression 2 px deep at columns 4-11 of rows 3-16; the road
+    (32 px) dips 1 px at columns 12-17 beside it and at 28-33."""
     disparity = np.full((20, 40), 32.0, np.float32)
     disparity[:, 12:18] = 31.0
     disparity[:, 28:34] = 31.0
+    disparity[3:17, 4:12] = 30.0
     labels = np.zeros((20, 40), np.int32)
     labels[5:15, 8:12] = 1
     superpixel_labels = np.zeros((20, 40), np.int32)
@@ -42,8 +44,9 @@ def test_pixels_below_the_road_within_the_radius_join_the_pothole():
     assert np.array_equal(refined[labels > 0], labels[labels > 0])
     grown = (refined == 1) & (labels == 0)
     # within 4 px of the pothole, where the smoothed disparity lies 0.5 px (a quarter of 2) below
+    # the road: the rest of the depression left of it, the dip right of it
     rows, cols = np.nonzero(grown)
-    assert grown.any() and cols.min() >= 12 and cols.max() <= 15
+    assert grown[6:14, 4:8].all() and cols.min() == 4 and cols.max() == 15
     assert rows.min() >= 1 and rows.max() <= 18
     assert not refined[:, 28:34].any()  # the dip far from the pothole stays road
 
@@ -59,6 +62,43 @@ def test_refinement_keeps_to_observed_road_and_deep_enough_pixels():
                         np.array([2.0, 2.0]), np.array([True, True]), 4, 0.0)
     assert off is labels
     assert radius(32) == 16 and radius(10) == 5
+
+
+def test_road_level_pixels_of_a_potholes_superpixels_leave_it():
+    """A square pothole 2 px deep (rows and columns 10-19 of a 30x30 road at 32 px) whose label
+    reaches 4 px past its rim, as a superpixel that straddles the rim would: along its straight
+    edges the outline lies within two pixels of the rim (the 7x7 mean one pixel out has come
+    3 of 7 of the way down, more than half of the 5 of 7 two pixels further in; three pixels
+    out 1 of 7, less than half of 3 of 7); its corners, where the mean takes in more road,
+    come out rounded; the rest of the label leaves. A pixel with no valid disparity within the
+    square keeps its label."""
+    disparity = np.full((30, 30), 32.0, np.float32)
+    disparity[10:20, 10:20] = 30.0
+    disparity[0:7, 0:7] = np.nan
+    labels = np.zeros((30, 30), np.int32)
+    labels[6:24, 6:24] = 1
+    labels[2, 2] = 2
+    refined = _refine(labels, disparity, np.zeros((30, 30), np.int32), [0.4], [True])
+    assert (refined[12:18, 12:18] == 1).all() and refined[2, 2] == 2
+    assert (refined[15, 9:21] == 1).all() and (refined[9:21, 15] == 1).all()
+    assert refined[15, 7] == refined[15, 22] == refined[7, 15] == refined[22, 15] == 0
+    assert refined[10, 10] == refined[19, 19] == 0
+    assert not (refined[3:] == 1)[:, :8].any() and not refined[:, 22:].any()
+    assert not refined[3:8].any() and not refined[22:].any()
+
+
+def test_a_rim_that_slopes_down_loses_at_most_its_outer_reach():
+    """A bowl whose rim falls 0.25 px a column over 8 columns, then a 2 px deep floor: the
+    labels take the whole slope; at most its outer RIM_REACH_PX columns, less than half as deep
+    as the rim that far inside, leave; the rest stays."""
+    depth = np.clip(0.25 * (np.arange(40) - 9.5), 0.0, 2.0)
+    disparity = np.tile((32.0 - np.minimum(depth, depth[::-1])).astype(np.float32), (30, 1))
+    labels = np.zeros((30, 40), np.int32)
+    labels[:, 10:30] = 1
+    refined = _refine(labels, disparity, np.zeros((30, 40), np.int32), [0.4], [True])
+    kept = np.flatnonzero(refined[15] == 1)
+    assert 10 < kept.min() <= 10 + RIM_REACH_PX and 29 - RIM_REACH_PX <= kept.max() < 29
+    assert (refined[:, 10 + RIM_REACH_PX:30 - RIM_REACH_PX] == 1).all()
 
 
 def test_smooth_averages_the_valid_neighbours():
@@ -150,10 +190,14 @@ def refine_labels_reference(labels, filled, road, road_level, superpixel_labels,
                             observed, radius_px, fraction):
     """The array form refine_labels' bounding-box pass replaced: the whole map."""
     below = np.float32(road_level) - transform_disparity(CPU, filled, road, road_level)
+    deepest = scipy.ndimage.maximum_filter(np.where(np.isnan(below), -np.inf, below),
+                                           size=2 * RIM_REACH_PX + 1, mode="nearest")
+    off_step = below < np.float32(0.5) * deepest
     deep = (below > fraction * np.take(drops, superpixel_labels)) \
-        & np.take(observed, superpixel_labels)
+        & np.take(observed, superpixel_labels) & ~off_step
     near = scipy.ndimage.maximum_filter(labels, size=2 * radius_px + 1, mode="constant")
-    return np.where(labels > 0, labels, np.where(deep, near, 0)).astype(np.int32)
+    return np.where(labels > 0, np.where(off_step, 0, labels),
+                    np.where(deep, near, 0)).astype(np.int32)
 
 
 @pytest.mark.parametrize("box", [(slice(0, 0), slice(0, 0)), (slice(20, 30), slice(40, 55)),

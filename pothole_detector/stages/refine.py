@@ -1,8 +1,8 @@
 """Pixel-level refinement of the pothole labels: superpixels decide where potholes are; the
 pixels around them that lie below the road join them, so that rims which straddle a
 superpixel's edge are not cut off, and so does the strip beside a right rim that only the
-left camera sees. Works on the disparity averaged over a small square (:func:`smooth`), which
-measuring uses too."""
+left camera sees; the pixels of their superpixels that lie on the road leave them. Works on
+the disparity averaged over a small square (:func:`smooth`), which measuring uses too."""
 
 from __future__ import annotations
 
@@ -18,10 +18,14 @@ from .transform import transform_on_host
 
 # side (px) of the square over which a pixel's disparity is averaged
 SMOOTHING_PX = 7
+# how far inside (px) a pixel finds the depth it must reach half of to belong to a pothole:
+# short of the SMOOTHING_PX // 2 by which the mean over the square spreads a rim's step, so
+# that a step's outline stays within two pixels and a rim that slopes down keeps its slope
+RIM_REACH_PX = 2
 # kernels/refine.cu: the block of one thread per pixel
 _BLOCK = (32, 8)
-_REFINE_DEFINES = {"SMOOTHING": SMOOTHING_PX, "BLOCK_X": _BLOCK[0], "BLOCK_Y": _BLOCK[1],
-                   **ROAD_DEFINES}
+_REFINE_DEFINES = {"SMOOTHING": SMOOTHING_PX, "RIM_REACH": RIM_REACH_PX, "BLOCK_X": _BLOCK[0],
+                   "BLOCK_Y": _BLOCK[1], **ROAD_DEFINES}
 
 
 def smooth(backend: Backend, disparity: Any, offsets: Any = None) -> tuple[Any, Any]:
@@ -62,7 +66,13 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
     pixel within ``radius_px`` (a square) of pothole k whose superpixel is observed and whose
     transformed ``filled`` disparity (of :func:`smooth`, transformed with ``road`` and
     ``road_level`` = delta_DT) lies more than ``fraction`` x its superpixel's threshold drop
-    below ``road_level`` is labelled k (the largest label where two are that close).
+    below ``road_level`` is labelled k (the largest label where two are that close); and where
+    a pixel, labelled or joining, lies less than half as deep below ``road_level`` as the
+    deepest pixel within RIM_REACH_PX of it (a square, clipped), it is 0. The mean over
+    SMOOTHING_PX spreads a rim's step in depth half the square's side into the road, and the
+    step lies where the mean has come half way down: the road beside a rim, and the road-level
+    pixels of the superpixels that straddle it, leave; a rim that slopes down loses at most its
+    outer RIM_REACH_PX. A pixel whose ``filled`` is NaN keeps its label.
     ``labels``, ``superpixel_labels`` int32 HxW; ``drops`` float64 and ``observed`` bool per
     superpixel (threshold.observation); ``road`` a RoadModel, or on the GPU also its device
     parameters. ``fraction`` <= 0 returns ``labels``. On the GPU one kernel
@@ -90,14 +100,32 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
         return out
     cols = xp.flatnonzero(labelled[rows[0]:rows[-1] + 1].any(axis=0))
     height, width = labels.shape
-    box = (slice(max(rows[0] - radius_px, 0), min(rows[-1] + radius_px + 1, height)),
-           slice(max(cols[0] - radius_px, 0), min(cols[-1] + radius_px + 1, width)))
-    below = xp.float32(road_level) - transform_on_host(filled, road, road_level, box)
+    box = _around(rows[0], rows[-1], cols[0], cols[-1], radius_px, height, width)
+    # the depths within the step's spread of the box, for its deepest ones
+    reach = _around(box[0].start, box[0].stop - 1, box[1].start, box[1].stop - 1,
+                    RIM_REACH_PX, height, width)
+    below_reach = xp.float32(road_level) - transform_on_host(filled, road, road_level, reach)
+    deepest = ndimage.maximum_filter(
+        xp.where(xp.isfinite(below_reach), below_reach, -xp.inf), size=2 * RIM_REACH_PX + 1,
+        mode="nearest")
+    within = (slice(box[0].start - reach[0].start, box[0].stop - reach[0].start),
+              slice(box[1].start - reach[1].start, box[1].stop - reach[1].start))
+    below = below_reach[within]
+    off_step = below < xp.float32(0.5) * deepest[within]
     inside = superpixel_labels[box]
-    deep = (below > fraction * xp.take(drops, inside)) & xp.take(observed, inside)
+    deep = (below > fraction * xp.take(drops, inside)) & xp.take(observed, inside) & ~off_step
     near = ndimage.maximum_filter(out[box], size=2 * radius_px + 1, mode="constant")
-    out[box] = xp.where(labelled[box], out[box], xp.where(deep, near, 0))
+    out[box] = xp.where(labelled[box], xp.where(off_step, 0, out[box]),
+                        xp.where(deep, near, 0))
     return out
+
+
+def _around(top: int, bottom: int, left: int, right: int, margin: int, height: int,
+            width: int) -> tuple[slice, slice]:
+    """Rows ``top``..``bottom`` and columns ``left``..``right`` (inclusive) widened by
+    ``margin`` px each way, clipped to an HxW image: (rows, columns) slices."""
+    return (slice(max(int(top) - margin, 0), min(int(bottom) + margin + 1, height)),
+            slice(max(int(left) - margin, 0), min(int(right) + margin + 1, width)))
 
 
 def extend_occluded(backend: Backend, labels: Any, filled: Any, smoothed: Any,
