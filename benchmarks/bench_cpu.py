@@ -28,7 +28,7 @@ from pothole_detector.pipeline import Pipeline  # noqa: E402
 from pothole_detector.stages.matching import Matcher, set_host_threads, to_gray8  # noqa: E402
 from pothole_detector.stages.perspective import no_shifts  # noqa: E402
 from pothole_detector.stages.transform import road_grid  # noqa: E402
-from pothole_detector.synthetic import demo_scene, render  # noqa: E402
+from pothole_detector.evaluation.synthetic import demo_scene, render  # noqa: E402
 
 STAGES = ("seed", "gpt", "sgm", "road", "dt", "slic", "threshold", "components", "refine",
           "measure", "total")

@@ -33,7 +33,7 @@ from pothole_detector.pipeline import Pipeline  # noqa: E402
 from pothole_detector.stages import census_sgm  # noqa: E402
 from pothole_detector.stages.matching import sgm_disparity, to_gray8  # noqa: E402
 from pothole_detector.stages.perspective import round_up_levels  # noqa: E402
-from pothole_detector.synthetic import demo_scene, render  # noqa: E402
+from pothole_detector.evaluation.synthetic import demo_scene, render  # noqa: E402
 
 STAGES = ("gpt", "sgm", "road", "dt", "slic", "threshold", "components", "refine", "measure",
           "graph", "readback")

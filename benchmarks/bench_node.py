@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from pothole_detector_msgs.msg import PotholeArray  # noqa: E402
 
 from pothole_detector import conversions  # noqa: E402
-from pothole_detector.synthetic import demo_scene, raw_camera, render, render_raw  # noqa
+from pothole_detector.evaluation.synthetic import demo_scene, raw_camera, render, render_raw  # noqa
 from pothole_detector.transport import large_image_transport  # noqa: E402
 from rosgraph import NodeProcess, Probe, header_at, isolate_ros_graph, stamp_ns  # noqa: E402
 

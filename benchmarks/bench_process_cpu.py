@@ -30,7 +30,7 @@ from pothole_detector.bagtools import process, write_drive_bag  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.stages.matching import (set_host_threads, sgm_disparity,  # noqa: E402
                                                to_gray8)
-from pothole_detector.synthetic import render, survey_drive  # noqa: E402
+from pothole_detector.evaluation.synthetic import render, survey_drive  # noqa: E402
 
 SGBM_LEVELS = 128
 

@@ -43,8 +43,8 @@ from pothole_detector.survey.fleet import ray_chunks  # noqa: E402
 from pothole_detector.params import PARAMETER_BY_NAME, Config  # noqa: E402
 from pothole_detector.survey.report import write_report  # noqa: E402
 from pothole_detector.survey.drive import best_view_picture, survey, write_csv  # noqa: E402
-from pothole_detector.synthetic import (raw_camera, render, render_raw,  # noqa: E402
-                                        survey_drive)
+from pothole_detector.evaluation.synthetic import (raw_camera, render, render_raw,  # noqa: E402
+                                                   survey_drive)
 
 try:
     import ray

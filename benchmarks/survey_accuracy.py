@@ -24,7 +24,7 @@ from pothole_detector import bagtools  # noqa: E402
 from pothole_detector.geodesy import enu_of  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.survey.drive import severity, survey  # noqa: E402
-from pothole_detector.synthetic import render, survey_drive  # noqa: E402
+from pothole_detector.evaluation.synthetic import render, survey_drive  # noqa: E402
 
 ORIGIN = (48.137, 11.575)
 

@@ -17,13 +17,13 @@ from . import __version__
 from .backend import BACKEND_CHOICES, get_backend
 from .calibration import StereoCalibration, load_stereo_camera_info
 from .errors import ConfigError, InputError, PotholeError
-from .evaluation import draw_progress, evaluate, evaluate_synthetic, synthetic_markdown
+from .evaluation.scores import draw_progress, evaluate, evaluate_synthetic, synthetic_markdown
 from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
 from .method import PipelineResult
 from .pipeline import Pipeline
 from .recordings.camera import RECTIFY_CHOICES, pipeline_inputs
-from .rig_matrix import RIG_CLASS_NAMES
+from .evaluation.rig_matrix import RIG_CLASS_NAMES
 from .stages.rectify import Rectification
 
 

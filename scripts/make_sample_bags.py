@@ -8,7 +8,7 @@ from pathlib import Path
 from pothole_detector.bagtools import write_stereo_bag
 from pothole_detector.calibration import load_stereo_camera_info
 from pothole_detector.imageio import read_image
-from pothole_detector.synthetic import drive_scenes, render
+from pothole_detector.evaluation.synthetic import drive_scenes, render
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 START_NS = 1_700_000_000_000_000_000

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pothole_detector.synthetic import PotholeShape, Scene, demo_scene, render
+from pothole_detector.evaluation.synthetic import PotholeShape, Scene, demo_scene, render
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -75,7 +75,7 @@ def survey_drive_bags(tmp_path_factory):
     from dataclasses import replace
 
     from pothole_detector import bagtools
-    from pothole_detector.synthetic import survey_drive
+    from pothole_detector.evaluation.synthetic import survey_drive
 
     scenes = [replace(s, supersample=1) for s in survey_drive(width=480, height=270)]
     samples = [render(s) for s in scenes]

@@ -22,7 +22,7 @@ from pothole_detector.imageio import read_image  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.method import PipelineResult  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from pothole_detector.synthetic import demo_scene, drive_scenes, render  # noqa: E402
+from pothole_detector.evaluation.synthetic import demo_scene, drive_scenes, render  # noqa: E402
 
 
 def _digest(array: Any) -> str:

@@ -17,7 +17,7 @@ from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from pothole_detector.synthetic import drive_scenes, render  # noqa: E402
+from pothole_detector.evaluation.synthetic import drive_scenes, render  # noqa: E402
 
 from conftest import REPO, rewrite_bag  # noqa: E402
 
@@ -219,7 +219,7 @@ def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_
     """A vehicle rig (1 m up, pitched 15 deg, 0.12 m baseline) at 640x480, half a metre a frame:
     the shipped parameter file processes every frame, none refused."""
     from pothole_detector.params import load_yaml
-    from pothole_detector.synthetic import vehicle_scene
+    from pothole_detector.evaluation.synthetic import vehicle_scene
     frames = [(START + i * 100_000_000, render(vehicle_scene(640, 480, camera_y_m=0.5 * i)))
               for i in range(6)]
     assert bagtools.write_stereo_bag(tmp_path / "vehicle", frames, namespace="/cam") == 6

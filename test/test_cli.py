@@ -150,7 +150,7 @@ def drive_without_baseline(tmp_path_factory):
     from dataclasses import replace
 
     from pothole_detector.bagtools import RecordingForm, write_stereo_bag
-    from pothole_detector.synthetic import drive_scenes, render
+    from pothole_detector.evaluation.synthetic import drive_scenes, render
 
     samples = [render(replace(s, supersample=1)) for s in drive_scenes(frames=3)]
     bag = tmp_path_factory.mktemp("tx0") / "drive"
@@ -205,7 +205,7 @@ def test_detect_rectifies_raw_images_and_takes_a_missing_baseline(tmp_path):
     rectified pair, the overlay in the rectified frame."""
     import yaml
 
-    from pothole_detector.synthetic import demo_scene, raw_camera, render, render_raw
+    from pothole_detector.evaluation.synthetic import demo_scene, raw_camera, render, render_raw
 
     scene = demo_scene(640, 360)
     sample = render(scene)

@@ -23,7 +23,7 @@ from pothole_detector.stages.road_model import fit_road
 from pothole_detector.stages.transform import transform_disparity
 from pothole_detector.recordings.camera import pipeline_inputs, rectification
 from pothole_detector.stages import rectify
-from pothole_detector.synthetic import drive_scenes, raw_camera, render, render_raw
+from pothole_detector.evaluation.synthetic import drive_scenes, raw_camera, render, render_raw
 
 import census_reference
 
@@ -862,7 +862,7 @@ def test_the_largest_depth_under_the_opening_on_the_gpu_matches_the_cpu(gpu):
     road points fall off the image beside the pothole's edge and so count: deeper. The same
     largest depth and box on both backends."""
     from pothole_detector.stages import road_model
-    from pothole_detector.synthetic import PotholeShape, Scene
+    from pothole_detector.evaluation.synthetic import PotholeShape, Scene
     sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
                           camera_height_m=1.0, pitch_deg=15.0,
                           potholes=(PotholeShape(0.1, 3.0, 0.4, 0.3, 0.08, 15.0),)))
@@ -1105,7 +1105,7 @@ def test_observation_on_the_gpu_matches_the_reference(gpu, pitch_deg):
     """The single-block observation kernel against the NumPy reference: the same observed
     superpixels (up to rounding at the resolvable depth's edge) and the same range."""
     from pothole_detector.stages import road_model
-    from pothole_detector.synthetic import vehicle_scene
+    from pothole_detector.evaluation.synthetic import vehicle_scene
     sample = render(replace(vehicle_scene(pitch_deg=pitch_deg), potholes=()))
     report, params = road_model.fit(CPU, sample.disparity.astype(np.float32), stride=2,
                                     kind="auto")

@@ -111,7 +111,7 @@ def test_potholes_from_sums_decode_the_device_table():
 
 
 def _grazing(pitch_deg: float, ahead_m: float):
-    from pothole_detector.synthetic import PotholeShape, Scene, render
+    from pothole_detector.evaluation.synthetic import PotholeShape, Scene, render
     hole = PotholeShape(0.1, ahead_m, 0.4, 0.3, 0.08, 15.0)
     sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
                           camera_height_m=1.0, pitch_deg=pitch_deg, potholes=(hole,)))
@@ -226,7 +226,7 @@ def test_a_flat_floored_pothole_at_a_grazing_angle_has_its_floor_depth():
     """Steep walls, 5 m ahead of a camera 1 m up pitched 12 deg: the far wall is seen face on
     and the near part of the floor is hidden, yet the mean depth over the floor the camera
     sees, and so the volume, come out within 5 % of the shape's."""
-    from pothole_detector.synthetic import PotholeShape, Scene, render
+    from pothole_detector.evaluation.synthetic import PotholeShape, Scene, render
     hole = PotholeShape(0.1, 5.0, 0.4, 0.3, 0.08, 15.0, wall_power=12.0)
     sample = render(Scene(width=640, height=480, focal_px=500.0, baseline_m=0.12,
                           camera_height_m=1.0, pitch_deg=12.0, potholes=(hole,)))

@@ -28,7 +28,7 @@ from pothole_detector.recordings.images import decode_raw  # noqa: E402
 from pothole_detector.backend import gpu_available  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from pothole_detector.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
+from pothole_detector.evaluation.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
 from rosgraph import (SAMPLE_DRIVE, NodeProcess, Probe, header_at,  # noqa: E402
                       isolate_ros_graph, labels_of, sample_frames, stamp_ns)
 
@@ -575,7 +575,7 @@ def test_the_shipped_parameters_take_every_frame_of_a_640x480_vehicle_drive(node
                                                                             probe):
     """A vehicle rig (1 m up, pitched 15 deg, 0.12 m baseline) at 640x480, half a metre a frame,
     into the node with the shipped parameter file: every frame processed, none failed."""
-    from pothole_detector.synthetic import render, vehicle_scene
+    from pothole_detector.evaluation.synthetic import render, vehicle_scene
     node_factory()
     p = probe(outputs=("potholes",))
     p.wait_connected()

@@ -13,7 +13,7 @@ from pothole_detector.stages import road_model
 from pothole_detector.stages.superpixels import cell_centres, grid_count
 from pothole_detector.stages.threshold import observation
 from pothole_detector.stages import perspective
-from pothole_detector.synthetic import demo_scene, drive_scenes, render
+from pothole_detector.evaluation.synthetic import demo_scene, drive_scenes, render
 
 BACKENDS = ["cpu", pytest.param("gpu", marks=[
     pytest.mark.gpu,
@@ -245,7 +245,7 @@ def test_a_640x480_vehicle_rig_drive_is_processed_frame_by_frame():
     """A vehicle rig 1 m above the road looking 15 deg down at 640x480: its small disparities
     (up to 45 px) leave the seed's full-range left-right check almost nothing to keep, so the
     seed tries again without it; every frame of the drive gets a road with the true roll."""
-    from pothole_detector.synthetic import vehicle_scene
+    from pothole_detector.evaluation.synthetic import vehicle_scene
     samples = [render(vehicle_scene(camera_y_m=0.5 * index)) for index in range(3)]
     pipeline = Pipeline(Config(), samples[0].calibration)
     outcomes = list(pipeline.run_stream((s.left, s.right) for s in samples))
@@ -263,7 +263,7 @@ def test_the_road_too_far_to_show_a_pothole_is_not_observed_and_searched_by_supe
     only near the camera: the far road is not observed and the observed range matches the
     geometry; the superpixel means, less noisy, are searched farther, and what they find
     there is the pothole 5 m ahead, nothing else; the demo rig sees all of its road."""
-    from pothole_detector.synthetic import vehicle_scene
+    from pothole_detector.evaluation.synthetic import vehicle_scene
     sample = render(vehicle_scene(pitch_deg=15.0))
     config = Config({"threshold_mode": "metres"})
     result = Pipeline(config, sample.calibration).run(sample.left, sample.right)
@@ -296,7 +296,7 @@ def test_superpixels_shrink_for_a_road_seen_at_a_grazing_angle(demo_sample):
     """The SLIC grid step follows the seeded road: a vehicle rig looking 15 deg down (rows
     foreshorten its road about four times) gets the smallest step, the demo rig (55 deg) the
     whole width / 64, and a step stays until the next seed."""
-    from pothole_detector.synthetic import vehicle_scene
+    from pothole_detector.evaluation.synthetic import vehicle_scene
     sample = render(vehicle_scene(width=1280, height=720, pitch_deg=15.0))
     pipeline = Pipeline(Config(), sample.calibration)
     assert pipeline.region_size(1280) == 20

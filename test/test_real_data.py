@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import CPU
-from pothole_detector.evaluation import evaluate, pooled
+from pothole_detector.evaluation.scores import evaluate, pooled
 from pothole_detector.params import Config
 from conftest import shared_data
 
@@ -65,7 +65,7 @@ def test_kitti_road_frames_have_no_pothole_and_the_lidar_roll():
     import cv2
 
     from pothole_detector.calibration import StereoCalibration
-    from pothole_detector.evaluation import discover
+    from pothole_detector.evaluation.scores import discover
     from pothole_detector.pipeline import Pipeline
     samples = [s for s in discover(shared_data("kitti")) if s.disparity_format == "kitti"]
     assert len(samples) == 4
@@ -130,7 +130,7 @@ def test_a_shallow_pothole_stands_out_of_the_noise_of_the_superpixel_means():
     under three of one pixel's noise sigmas (0.27 px) but far over three of the noise of the
     road's superpixel means about the local road; it is found with the local noise and missed
     with the road fit's (road_reference: global)."""
-    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.evaluation.scores import match_potholes
     from pothole_detector.pipeline import Pipeline
 
     calibration, truth, pair, potholes = _vehicle_scene(7002)
@@ -147,7 +147,7 @@ def test_the_pieces_of_a_shallow_wide_pothole_are_one_pothole(monkeypatch):
     """Validation vehicle scene 7010: a 2.8 cm pothole 0.56 m across, 2.2 m ahead, shows as
     three pieces, its shallowest parts under the threshold; joined, it is one pothole that
     matches it, and no piece counts as a false one."""
-    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.evaluation.scores import match_potholes
     from pothole_detector.pipeline import Pipeline
     from pothole_detector.stages import components
 
@@ -175,7 +175,7 @@ def test_smooth_patches_are_too_poorly_textured_to_read_as_potholes():
     one beside the groove of a smooth round cover. With the road's noise alone the cover's is
     a false pothole; the noise scaled by how little texture they have puts them in it, and
     every pothole reported is a true one."""
-    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.evaluation.scores import match_potholes
     from pothole_detector.pipeline import Pipeline
 
     calibration, truth, pair, _ = _vehicle_scene(7014)

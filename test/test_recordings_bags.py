@@ -22,7 +22,7 @@ from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode_raw  # noqa
 from pothole_detector.recordings.topics import StereoTopics  # noqa: E402
-from pothole_detector.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
+from pothole_detector.evaluation.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
 
 from conftest import rewrite_bag  # noqa: E402
 

@@ -14,7 +14,7 @@ from pothole_detector.calibration import StereoCalibration
 from pothole_detector.errors import CalibrationError
 from pothole_detector.recordings.camera import (pipeline_inputs, rectifies, rectification,
                                                 stereo_camera)
-from pothole_detector.synthetic import LENS_DISTORTION, raw_camera
+from pothole_detector.evaluation.synthetic import LENS_DISTORTION, raw_camera
 
 HEADER = msgtypes.header_at(0, "cam")
 CAL = StereoCalibration(700.0, 0.12, 320.5, 180.25)

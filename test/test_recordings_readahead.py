@@ -17,7 +17,7 @@ from pothole_detector import bagtools  # noqa: E402
 from pothole_detector.recordings import bags, readahead  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
-from pothole_detector.synthetic import drive_scenes, render  # noqa: E402
+from pothole_detector.evaluation.synthetic import drive_scenes, render  # noqa: E402
 
 from conftest import rewrite_bag  # noqa: E402
 

@@ -8,7 +8,7 @@ import pytest
 from pothole_detector.errors import NoRoadError
 from pothole_detector.stages.road_model import (ROAD_PARAMS, ROAD_REPORT, RoadModel, fit_road,
                                                  model_from_report, moments, solve_roll)
-from pothole_detector.synthetic import Scene, render
+from pothole_detector.evaluation.synthetic import Scene, render
 
 
 def plane(height=120, width=200, a0=40.0, a1=0.3, roll_deg=2.5):

@@ -185,7 +185,7 @@ def test_the_map_measures_depth_better_than_the_best_single_view(survey_drive_ba
     from dataclasses import replace
 
     from pothole_detector import bagtools
-    from pothole_detector.synthetic import render
+    from pothole_detector.evaluation.synthetic import render
 
     bags, scenes, _ = survey_drive_bags
     mirrored = [replace(s, texture_seed=21, potholes=tuple(

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .calibration import CameraModel, StereoCalibration, StereoCamera
+from ..calibration import CameraModel, StereoCalibration, StereoCamera
 
 
 def _ellipse_frame(shape: "PotholeShape | BumpShape | Paint", x: np.ndarray,

@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from pothole_detector.rig_matrix import (RIG_CLASSES, DISTRACTORS, half_width_m, sample_scene,
-                                         visible_range_m)
-from pothole_detector.synthetic import BumpShape, Scene
+from pothole_detector.evaluation.rig_matrix import (RIG_CLASSES, DISTRACTORS, half_width_m,
+                                                    sample_scene, visible_range_m)
+from pothole_detector.evaluation.synthetic import BumpShape, Scene
 
 
 def test_visible_range_of_a_known_view():

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from pothole_detector.synthetic import BumpShape, Paint, PotholeShape, Scene, render
+from pothole_detector.evaluation.synthetic import BumpShape, Paint, PotholeShape, Scene, render
 
 
 def test_flat_road_disparity_is_the_analytic_plane():

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.evaluation import (ObjectCounts, PixelCounts, discover, disparity_errors,
-                                         road_region)
+from pothole_detector.evaluation.scores import (ObjectCounts, PixelCounts, discover,
+                                                disparity_errors, road_region)
 from conftest import shared_data
 
 
@@ -55,7 +55,7 @@ def test_discover_finds_the_shared_sets():
 
 
 def test_match_potholes_pairs_by_iou_one_to_one():
-    from pothole_detector.evaluation import match_potholes
+    from pothole_detector.evaluation.scores import match_potholes
     truth = np.zeros((10, 20), np.int64)
     truth[1:5, 1:5], truth[1:5, 10:14] = 1, 2
     labels = np.zeros_like(truth)
@@ -69,9 +69,9 @@ def test_match_potholes_pairs_by_iou_one_to_one():
 def test_truth_roll_is_the_fitted_roll_of_the_rendered_road():
     from dataclasses import replace
 
-    from pothole_detector.evaluation import truth_roll_deg
+    from pothole_detector.evaluation.scores import truth_roll_deg
     from pothole_detector.stages.road_model import fit_road
-    from pothole_detector.synthetic import demo_scene, render
+    from pothole_detector.evaluation.synthetic import demo_scene, render
     sample = render(replace(demo_scene(320, 180, roll_deg=3.0), potholes=(), supersample=1))
     assert truth_roll_deg(sample) == pytest.approx(
         fit_road(np, sample.disparity).roll_deg, abs=0.02)
@@ -79,7 +79,7 @@ def test_truth_roll_is_the_fitted_roll_of_the_rendered_road():
 
 def test_synthetic_evaluation_scores_a_rendered_scene(tmp_path):
     from pothole_detector.backend import CPU
-    from pothole_detector.evaluation import evaluate_synthetic, synthetic_markdown
+    from pothole_detector.evaluation.scores import evaluate_synthetic, synthetic_markdown
     from pothole_detector.params import Config
     tallies = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1,
                                  cache=tmp_path)
@@ -93,7 +93,7 @@ def test_synthetic_evaluation_scores_a_rendered_scene(tmp_path):
 
 def test_synthetic_evaluation_renders_in_worker_processes_with_the_same_result():
     from pothole_detector.backend import CPU
-    from pothole_detector.evaluation import evaluate_synthetic, synthetic_markdown
+    from pothole_detector.evaluation.scores import evaluate_synthetic, synthetic_markdown
     from pothole_detector.params import Config
     alone = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1)
     pooled = evaluate_synthetic(Config(), CPU, ["robot"], scenes=1, clean_scenes=1, jobs=2)
@@ -102,7 +102,8 @@ def test_synthetic_evaluation_renders_in_worker_processes_with_the_same_result()
 
 
 def test_the_classes_pooled_sum_their_counts_and_keep_every_error():
-    from pothole_detector.evaluation import PixelCounts, RigTally, pooled, synthetic_markdown
+    from pothole_detector.evaluation.scores import (PixelCounts, RigTally, pooled,
+                                                    synthetic_markdown)
     small = RigTally(scenes=2, pixels_observed=PixelCounts(tp=10, fp=0, fn=10, tn=80),
                      detections=2, matched=2, truths_observed=2, matched_observed=2,
                      depth_errors=[0.1])
@@ -132,7 +133,7 @@ def test_a_validation_scene_is_scored_as_we_are_judged():
     those of potholes in full view until the frame's edge cuts it."""
     from types import SimpleNamespace
 
-    from pothole_detector.evaluation import RigTally, score_scene, validation_markdown
+    from pothole_detector.evaluation.scores import RigTally, score_scene, validation_markdown
     from pothole_detector.stages.measure import Pothole
 
     shape = (60, 80)
@@ -177,7 +178,7 @@ def test_a_validation_scene_is_scored_as_we_are_judged():
 
 def test_evaluate_reads_the_validation_scenes():
     from pothole_detector.backend import CPU
-    from pothole_detector.evaluation import evaluate
+    from pothole_detector.evaluation.scores import evaluate
     from pothole_detector.params import Config
 
     root = shared_data("validation", "robot_640x480")
@@ -189,7 +190,7 @@ def test_evaluate_reads_the_validation_scenes():
 
 
 def test_the_validation_drive_is_surveyed_and_scored():
-    from pothole_detector.evaluation import score_drive
+    from pothole_detector.evaluation.scores import score_drive
     from pothole_detector.params import Config
 
     folder = shared_data("validation", "drive_640x480")

@@ -17,15 +17,17 @@ import cv2
 import numpy as np
 import yaml
 
-from .backend import Backend
-from .calibration import StereoCalibration
-from .errors import InputError, PotholeError
-from .imageio import read_image
-from .params import Config
-from .pipeline import Pipeline
-from .stages import matching, perspective
-from .stages.road_model import fit_road
-from .survey.drive import survey
+from ..backend import Backend
+from ..calibration import StereoCalibration
+from ..errors import InputError, PotholeError
+from ..imageio import read_image
+from ..params import Config
+from ..pipeline import Pipeline
+from ..stages import matching, perspective
+from ..stages.road_model import fit_road
+from ..survey.drive import survey
+from .rig_matrix import RIG_CLASS_BY_NAME, RIG_CLASSES, sample_scene
+from .synthetic import render
 
 # validation scenes: potholes with fewer visible pixels are "don't care"
 MIN_SCORED_PIXELS = 100
@@ -663,11 +665,10 @@ def _score_scene(tally: RigTally, sample: Any, result: Any) -> None:
 def _rendered(scene: Any, cache: Path | None) -> Any:
     """The scene rendered, from ``cache`` (a folder of .pkl files keyed by the scene) when
     it holds it."""
-    from .synthetic import render
-
     if cache is None:
         return render(scene)
-    path = cache / f"{hashlib.sha1(repr(scene).encode()).hexdigest()[:16]}.pkl"
+    key = f"{type(scene).__module__}.{scene!r}"
+    path = cache / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.pkl"
     if path.is_file():
         return pickle.loads(path.read_bytes())
     sample = render(scene)
@@ -684,7 +685,6 @@ def evaluate_synthetic(config: Config, backend: Backend, classes: Iterable[str] 
     distractors only per rig class (rig_matrix.RIG_CLASSES, or those named), run the pipeline
     on each (a fresh pipeline per scene, so each is seeded) and tally them per class. With
     ``jobs`` > 1 the scenes are rendered ahead in that many worker processes."""
-    from .rig_matrix import RIG_CLASS_BY_NAME, RIG_CLASSES, sample_scene
 
     rigs = [RIG_CLASS_BY_NAME[name] for name in classes] if classes else list(RIG_CLASSES)
     jobs_list = [(rig, index, index >= scenes) for rig in rigs
