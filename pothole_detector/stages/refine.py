@@ -101,7 +101,7 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
     cols = xp.flatnonzero(labelled[rows[0]:rows[-1] + 1].any(axis=0))
     height, width = labels.shape
     box = _around(rows[0], rows[-1], cols[0], cols[-1], radius_px, height, width)
-    # the depths within the step's spread of the box, for its deepest ones
+    # the depths within RIM_REACH_PX of the box, for the deepest near each of its pixels
     reach = _around(box[0].start, box[0].stop - 1, box[1].start, box[1].stop - 1,
                     RIM_REACH_PX, height, width)
     below_reach = xp.float32(road_level) - transform_on_host(filled, road, road_level, reach)
