@@ -85,11 +85,11 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
     return medians
 
 
-def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
-                count: int, shift: str) -> str:
+def sgm_kernel_times(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
+                     count: int, shift: str) -> tuple[int, int, dict[str, float]]:
     """The census matcher kernel by kernel on the GPT band of a frame (``shift``: the
-    gpt_shift mode): median ms of census (with the GPT's gather of the right census words),
-    paths (two launches), select and finish over ``count`` calls."""
+    gpt_shift mode): its level count, lanes and median ms of census (with the GPT's gather of
+    the right census words), paths (two launches), select and finish over ``count`` calls."""
     backend = get_backend("gpu")
     config = Config({"gpt_shift": shift})
     pipeline = Pipeline(config, calibration, backend)
@@ -106,7 +106,13 @@ def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibrat
         if index >= 5:
             runs.append(clock.timings())
     parts = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
-    lanes = matcher.lanes(left.shape[0], left.shape[1], levels)
+    return levels, matcher.lanes(left.shape[0], left.shape[1], levels), parts
+
+
+def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
+                count: int, shift: str) -> str:
+    """:func:`sgm_kernel_times` as a line of text."""
+    levels, lanes, parts = sgm_kernel_times(left, right, calibration, count, shift)
     return (f"{shift} shifts, {levels} levels, {lanes} lanes: "
             + ", ".join(f"{key} {value:.3f} ms" for key, value in parts.items())
             + f", sum {sum(parts.values()):.3f} ms")
