@@ -108,8 +108,7 @@ class FrameArrays:
     superpixel, how far (px) the road around it lies below the road model
     (stages/local_road.py); ``inconsistent``: bool per superpixel, where the two views
     disagree on its brightness (stages/photometric.py); ``bumps``: bool per superpixel, where
-    the road stands significantly above the local road, and ``below``: float64 per
-    superpixel, how far (px) it lies below that road (local_road.LocalTests); ``searched``:
+    the road stands significantly above the local road (local_road.LocalTests); ``searched``:
     bool per superpixel, where potholes are looked for (PipelineResult); ``depressed``: with the
     local road reference, bool per superpixel, the searched ones that lie below the local road
     by more than refine_depth_fraction of their threshold (components.join_pieces);
@@ -128,7 +127,6 @@ class FrameArrays:
     local: Any = None
     inconsistent: Any = None
     bumps: Any = None
-    below: Any = None
     searched: Any = None
     depressed: Any = None
     significant: Any = None
@@ -338,7 +336,7 @@ class Method:
                 config.threshold_noise_sigmas, max_depth_m=config.max_threshold_m)
             observed, drops = observe(observed_range=report.observed_range)
             drop = config.delta_pd_px if pixels else drops
-            searched, local, bumps, below, depressed = observed, None, None, None, None
+            searched, local, bumps, depressed = observed, None, None, None
             significant = None
             if config.road_reference != "local" and config.corner_significance > 0:
                 significant = local_road.deeper(observed, found.means, config.delta_dt_px,
@@ -361,7 +359,7 @@ class Method:
                     config.refine_depth_fraction, config.corner_significance,
                     config.bump_noise_sigmas)
                 drop, depressed = tests.drop, tests.depressed
-                significant, bumps, below = tests.significant, tests.bumps, tests.below
+                significant, bumps = tests.significant, tests.bumps
             selected = thresholding.select(
                 backend, report.threshold, config.histogram_bin_px, config.delta_dt_px,
                 thresholding.reference_for(config.threshold_reference, config.threshold_mode),
@@ -377,8 +375,8 @@ class Method:
                 flagged = photometric.inconsistent(backend, disagreement, searched & ~selected,
                                                    config.photometric_factor)
         frame = FrameArrays(disparity, transformed, valid, found, candidate, None, observed,
-                            drops, region_px, local, flagged, bumps, below, searched,
-                            depressed, significant)
+                            drops, region_px, local, flagged, bumps, searched, depressed,
+                            significant)
         frame.labels = self.label_and_measure(frame, road, report, clock)
         return frame
 
@@ -392,8 +390,7 @@ class Method:
             labels = components.pothole_components(
                 backend, frame.candidate, frame.valid, found.labels, found.count,
                 config.min_pothole_superpixels, config.slic_downsample,
-                report.capacity, report.components, frame.inconsistent, frame.bumps,
-                frame.below)
+                report.capacity, report.components, frame.inconsistent, frame.bumps)
         with clock.stage("refine"):
             shift = None if frame.local is None else local_road.pixel_offsets(
                 backend, frame.local, frame.disparity.shape, frame.region_px,

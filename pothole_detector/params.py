@@ -186,10 +186,9 @@ PARAMETERS: tuple[Param, ...] = (
           "0 turns the test off.", 0, 100),
     Param("bump_noise_sigmas", float, 4.0,
           "A component is no pothole where it touches a superpixel that stands above the road "
-          "around it by more than this many of the road's local noise sigmas and at least half "
-          "as high as the component is deep: a matcher that moved an edge (a lane marking's) "
-          "reads one side as a dip and the other as a bump of about its size; 0 turns the test "
-          "off.", 0, 20),
+          "around it by more than this many of the road's local noise sigmas: a matcher that "
+          "moved an edge (a lane marking's) reads one side as a dip and the other as a bump; "
+          "0 turns the test off.", 0, 20),
     Param("texture_noise", bool, True,
           "With the local road reference, each superpixel's disparity noise is the road's "
           "around it times how much less texture it has than the road's typical superpixel "

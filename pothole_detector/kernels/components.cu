@@ -40,18 +40,16 @@ __device__ __forceinline__ int component_at(const int* small, int row, int col, 
 // (words_per_component words) marks superpixel s, and held[c] counts the distinct ones (the
 // thread whose atomicOr sets the bit adds 1; a plain read first spares the atomic once the
 // bit is set), inconsistent[c] those of them flagged in `flagged` (one byte per superpixel).
-// touched[c] holds (as float bits, 0 for none) the greatest height above the road (float of
-// -below) of the superpixels flagged in `bumps` (one byte per superpixel) whose pixels off
-// every component are 8-neighbours of c's, deepest[c] the greatest depth (float of below, 0
-// at the least, NaN none) of c's superpixels. Components past `capacity` (the tables' size)
-// set touched[0], the overflow flag; the caller then runs again with a larger capacity.
+// touched[c] = 1 where a pixel of c is an 8-neighbour of a pixel off every component whose
+// superpixel is flagged in `bumps` (one byte per superpixel). Components past `capacity` (the
+// tables' size) set touched[0], the overflow flag; the caller then runs again with a larger
+// capacity.
 extern "C" __global__ void component_marks(const int* small, const int* superpixels,
                                            const bool* flagged, const bool* bumps,
-                                           const double* below, int height, int width,
-                                           int factor, int small_height, int small_width,
+                                           int height, int width, int factor,
+                                           int small_height, int small_width,
                                            int words_per_component, int capacity, int* touched,
-                                           int* held, int* inconsistent, int* deepest,
-                                           unsigned* present) {
+                                           int* held, int* inconsistent, unsigned* present) {
     const long long index = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     if (index >= (long long)height * width) return;
     const int row = (int)(index / width), col = (int)(index % width);
@@ -65,10 +63,9 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
         for (int du = -1; du <= 1; ++du) {
             const int v = row + dv, u = col + du;
             if ((dv == 0 && du == 0) || v < 0 || v >= height || u < 0 || u >= width) continue;
-            const int beside = superpixels[(long long)v * width + u];
             if (component_at(small, v, u, factor, small_height, small_width) == 0
-                && bumps[beside])
-                atomicMax(&touched[component], __float_as_int(-__double2float_rn(below[beside])));
+                && bumps[superpixels[(long long)v * width + u]])
+                touched[component] = 1;
         }
     }
     const int superpixel = superpixels[index];
@@ -77,19 +74,17 @@ extern "C" __global__ void component_marks(const int* small, const int* superpix
     if (!(*word & bit) && !(atomicOr(word, bit) & bit)) {
         atomicAdd(&held[component], 1);
         if (flagged[superpixel]) atomicAdd(&inconsistent[component], 1);
-        const float depth = __double2float_rn(below[superpixel]);
-        if (depth > 0.0f) atomicMax(&deepest[component], __float_as_int(depth));
     }
 }
 
 // One block: component c (1..count, count = min(*components, capacity)) is kept when it
-// touches no bump standing BUMP_MIRROR times as high as c is deep, holds at least
-// min_superpixels superpixels and no more than half of them are inconsistent; new_id[c]
-// (capacity + 1 entries) numbers the kept ones 1..m in order (0 otherwise); kept[0] = m.
+// touches no bump, holds at least min_superpixels superpixels and no more than half of them
+// are inconsistent; new_id[c] (capacity + 1 entries) numbers the kept ones 1..m in order (0
+// otherwise); kept[0] = m.
 extern "C" __global__ void component_keep(const int* touched, const int* held,
-                                          const int* inconsistent, const int* deepest,
-                                          const int* components, int capacity,
-                                          int min_superpixels, int* new_id, int* kept) {
+                                          const int* inconsistent, const int* components,
+                                          int capacity, int min_superpixels, int* new_id,
+                                          int* kept) {
     __shared__ int warp_totals[32];
     __shared__ int carry;
     const int count = min(components[0], capacity);
@@ -97,11 +92,7 @@ extern "C" __global__ void component_keep(const int* touched, const int* held,
     __syncthreads();
     for (int start = 0; start <= capacity; start += blockDim.x) {
         const int component = start + threadIdx.x;
-        const bool mirrored = component <= capacity && touched[component] > 0
-                              && __int_as_float(touched[component])
-                                     >= __fmul_rn((float)BUMP_MIRROR,
-                                                  __int_as_float(deepest[component]));
-        const int flag = component > 0 && component <= count && !mirrored
+        const int flag = component > 0 && component <= count && !touched[component]
                          && held[component] >= min_superpixels
                          && 2 * inconsistent[component] <= held[component];
         const int inclusive = block_inclusive_scan(flag, warp_totals) + carry;

@@ -171,15 +171,13 @@ extern "C" __global__ void local_road_fit(
 }
 
 // local_tests (stages/local_road.py, whose array code is the reference), one thread per
-// superpixel k: drop[k] + reference[k] into total; how far the mean lies below the local road
-// into below; flags[0], [1], [2] (count each): depressed, significant, bumps. Rounded as NumPy
-// does, without fused multiply-adds.
+// superpixel k: drop[k] + reference[k] into total; flags[0], [1], [2] (count each): depressed,
+// significant, bumps. Rounded as NumPy does, without fused multiply-adds.
 extern "C" __global__ void local_tests(const float* means, const double* reference,
                                        const double* noise, const double* drop,
                                        const bool* searched, int count, double road_level,
                                        double refine_fraction, double corner_significance,
-                                       double noise_sigmas, double* total, double* below_road,
-                                       bool* flags) {
+                                       double noise_sigmas, double* total, bool* flags) {
     const int k = blockIdx.x * blockDim.x + threadIdx.x;
     if (k >= count) return;
     const double mean = means[k], offset = reference[k], threshold = drop[k];
@@ -190,7 +188,6 @@ extern "C" __global__ void local_tests(const float* means, const double* referen
     flags[count + k] = search && mean < __dsub_rn(level, __dmul_rn(corner_significance,
                                                                    threshold));
     const double below = __dsub_rn(__dsub_rn(road_level, mean), offset);
-    below_road[k] = below;
     flags[2 * count + k] = search && isfinite(below)
                            && below < __dmul_rn(-noise_sigmas, noise[k]);
 }

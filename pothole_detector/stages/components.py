@@ -12,12 +12,6 @@ from ..backend import Backend, to_host
 from .superpixels import upsample_labels
 
 EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
-# a bump drops a component it touches where it stands at least this share as high above the
-# road around it as the component's deepest superpixel lies below: the two sides of an edge a
-# matcher moved mirror each other, while a pothole's raised lip or a near rim that reads high
-# is a small part of its depth
-BUMP_MIRROR = 0.5
-_DEFINES = {"BUMP_MIRROR": BUMP_MIRROR}
 
 
 @dataclass(frozen=True)
@@ -75,18 +69,14 @@ def in_far_corner(corners: FarCorners, rows: Any, cols: Any) -> Any:
 def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                        n_superpixels: int, min_superpixels: int,
                        factor: int = 1, capacity: int | None = None,
-                       counts: Any = None, inconsistent: Any = None, bumps: Any = None,
-                       below: Any = None) -> Any:
+                       counts: Any = None, inconsistent: Any = None, bumps: Any = None) -> Any:
     """The components stage: label the 8-connected components of the bool ``candidate`` mask
     (of the HxW shape of the bool ``valid``); drop components that hold fewer than
     ``min_superpixels`` superpixels (HxW
     ``superpixel_labels``), of whose superpixels more than half are flagged in the bool
     (n_superpixels,) ``inconsistent`` (where given), or that touch a superpixel flagged in
     the bool (n_superpixels,) ``bumps`` (where given; a pixel of it is an 8-neighbour of
-    one of that superpixel's pixels) standing at least BUMP_MIRROR times as high above the
-    road as the component's deepest superpixel lies below it (float32 of ``below``: float64
-    (n_superpixels,) px below the local road, negative above, NaN unknown; given with
-    ``bumps``). Returns int32 HxW labels numbered 1..k, 0 elsewhere.
+    one of that superpixel's pixels). Returns int32 HxW labels numbered 1..k, 0 elsewhere.
 
     ``candidate`` is HxW, or the mask on the SLIC grid reduced by ``factor`` whose
     nearest-neighbour enlargement (superpixels.upsample_labels) is the HxW mask: enlarging by
@@ -106,8 +96,7 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
             capacity = max(int(to_host(found)[0]), 1)
         counts = xp.empty(3, dtype=xp.int32) if counts is None else counts
         return filter_on_device(backend, small, found, valid, superpixel_labels, n_superpixels,
-                                min_superpixels, factor, capacity, counts, inconsistent, bumps,
-                                below)
+                                min_superpixels, factor, capacity, counts, inconsistent, bumps)
     components, count = label_components(backend, candidate)
     components = upsample_labels(backend, components, factor, valid.shape)
     if count == 0:
@@ -124,53 +113,36 @@ def pothole_components(backend: Backend, candidate: Any, valid: Any, superpixel_
         if inconsistent is not None:
             keep &= 2 * (held & inconsistent[None, :]).sum(axis=1) <= superpixel_count
         if bumps is not None:
-            keep &= ~mirrored_bumps(xp, components, count, superpixel_labels, held, bumps,
-                                    below)
+            keep[beside(xp, components, bumps[superpixel_labels])] = False
+            keep[0] = False
         labels, kept = relabel(xp, components, keep)
     if counts is not None:
         counts[...] = (count, kept, int(capacity is not None and count > capacity))
     return labels
 
 
-def mirrored_bumps(xp: Any, components: Any, count: int, superpixel_labels: Any, held: Any,
-                   bumps: Any, below: Any) -> Any:
-    """Bool (count + 1,): the components of the int HxW ``components`` (1..count) that touch
-    a ``bumps`` superpixel standing at least BUMP_MIRROR times as high above the road as their
-    deepest superpixel (of the bool (count + 1, n) ``held``) lies below it; heights and
-    depths in float32 of the float64 (n,) ``below`` (px, positive below the road)."""
-    depth = xp.where(xp.isfinite(below), below, 0.0).astype(xp.float32)
-    deepest = xp.maximum(xp.where(held, depth[None, :], xp.float32(0)).max(axis=1),
-                         xp.float32(0))
-    touching, superpixels = beside(xp, components, bumps[superpixel_labels], superpixel_labels)
-    highest = xp.zeros(count + 1, dtype=xp.float32)
-    xp.maximum.at(highest, touching, -depth[superpixels])
-    highest[0] = 0
-    return (highest > 0) & (highest >= xp.float32(BUMP_MIRROR) * deepest)
-
-
-def beside(xp: Any, components: Any, marked: Any, superpixel_labels: Any) -> tuple[Any, Any]:
-    """The labels (int (m,), with repeats, 0 for none) of the components of the int HxW
-    ``components`` (0 off them) whose pixel is an 8-neighbour of a ``marked`` pixel (bool
-    HxW) off every component, and the superpixels (of the int HxW ``superpixel_labels``) of
-    those marked pixels, pair by pair."""
+def beside(xp: Any, components: Any, marked: Any) -> Any:
+    """The labels (int (m,), with repeats) of the components of the int HxW ``components``
+    (0 off them) of which a pixel is an 8-neighbour of a ``marked`` pixel (bool HxW) off every
+    component."""
     height, width = components.shape
     padded = xp.pad(components, 1)
     outside = marked & (components == 0)
     found = [padded[1 + dv:1 + dv + height, 1 + du:1 + du + width][outside]
              for dv in (-1, 0, 1) for du in (-1, 0, 1) if dv or du]
-    return xp.concatenate(found), xp.tile(superpixel_labels[outside], len(found))
+    return xp.concatenate(found)
 
 
 def components_found(backend: Backend, candidate: Any, valid: Any, superpixel_labels: Any,
                      n_superpixels: int, min_superpixels: int,
-                     factor: int = 1, inconsistent: Any = None, bumps: Any = None,
-                     below: Any = None) -> tuple[Any, int]:
+                     factor: int = 1, inconsistent: Any = None, bumps: Any = None
+                     ) -> tuple[Any, int]:
     """:func:`pothole_components` with every component and the kept count read back:
     (int32 HxW labels, k)."""
     counts = backend.xp.zeros(3, dtype=backend.xp.int32)
     labels = pothole_components(backend, candidate, valid, superpixel_labels, n_superpixels,
                                 min_superpixels, factor, counts=counts,
-                                inconsistent=inconsistent, bumps=bumps, below=below)
+                                inconsistent=inconsistent, bumps=bumps)
     return labels, int(to_host(counts)[1])
 
 
@@ -354,7 +326,7 @@ def _words(n_superpixels: int) -> int:
 def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
                      superpixel_labels: Any, n_superpixels: int, min_superpixels: int,
                      factor: int, capacity: int, counts: Any, inconsistent: Any = None,
-                     bumps: Any = None, below: Any = None) -> Any:
+                     bumps: Any = None) -> Any:
     """The bump, superpixel and consistency filters of pothole_components on labels
     ``small`` of the (reduced) candidate mask with the device component ``count``:
     kernels/components.cu reads them at full resolution by index arithmetic (superpixel,
@@ -365,25 +337,23 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
     small_height, small_width = small.shape
     i32 = np.int32
     words = _words(n_superpixels)
-    marks = xp.zeros((capacity + 1) * (4 + words), dtype=xp.int32)
-    touched, held, flagged_held, deepest = (marks[k * (capacity + 1):(k + 1) * (capacity + 1)]
-                                            for k in range(4))
-    present = marks[4 * (capacity + 1):].view(xp.uint32)
+    marks = xp.zeros((capacity + 1) * (3 + words), dtype=xp.int32)
+    touched, held, flagged_held = (marks[k * (capacity + 1):(k + 1) * (capacity + 1)]
+                                   for k in range(3))
+    present = marks[3 * (capacity + 1):].view(xp.uint32)
     flagged, bumped = (xp.zeros(max(n_superpixels, 1), dtype=xp.bool_) if given is None
                        else xp.ascontiguousarray(given, dtype=xp.bool_)
                        for given in (inconsistent, bumps))
-    below = (xp.zeros(max(n_superpixels, 1), dtype=xp.float64) if below is None
-             else xp.ascontiguousarray(below, dtype=xp.float64))
     size = height * width
     grid = ((size + 255) // 256,)
     _kernel(backend, "component_marks")(
         grid, (256,),
         (small, xp.ascontiguousarray(superpixel_labels, dtype=xp.int32), flagged, bumped,
-         below, i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
-         i32(words), i32(capacity), touched, held, flagged_held, deepest, present))
+         i32(height), i32(width), i32(factor), i32(small_height), i32(small_width),
+         i32(words), i32(capacity), touched, held, flagged_held, present))
     new_id = xp.empty(capacity + 1, dtype=xp.int32)
     _kernel(backend, "component_keep")(
-        (1,), (1024,), (touched, held, flagged_held, deepest, count, i32(capacity),
+        (1,), (1024,), (touched, held, flagged_held, count, i32(capacity),
                         i32(min_superpixels), new_id, counts[1:2]))
     counts[0:1] = count
     counts[2:3] = touched[0:1]
@@ -395,6 +365,6 @@ def filter_on_device(backend: Backend, small: Any, count: Any, valid: Any,
 
 
 def _kernel(backend: Backend, name: str) -> Any:
-    """Kernel ``name`` of kernels/components.cu with the numbers it shares with this module."""
-    return backend.kernel("components.cu", name, _DEFINES)
+    """Kernel ``name`` of kernels/components.cu."""
+    return backend.kernel("components.cu", name, {})
 

@@ -128,15 +128,13 @@ class LocalTests:
     ``corner_significance`` times it (None where that is 0); ``bumps``, bool or None, searched
     and above the local road by more than ``noise_sigmas`` times the road's noise there: where
     a matcher that moved an edge (a lane marking's) reads one side as a dip, the other reads
-    as a bump of about the same size (None where ``noise_sigmas`` is 0); ``below``, float64
-    px or None with ``bumps``, how far the mean lies below the local road (negative above,
-    NaN where the mean is)."""
+    as a bump, which a road does not make next to a pothole (None where ``noise_sigmas`` is
+    0)."""
 
     drop: Any
     depressed: Any
     significant: Any
     bumps: Any
-    below: Any
 
 
 def local_tests(backend: Backend, means: Any, reference: Any, noise: Any, drop: Any,
@@ -153,7 +151,6 @@ def local_tests(backend: Backend, means: Any, reference: Any, noise: Any, drop: 
         drops = xp.full(count, drop, dtype=xp.float64) if np.isscalar(drop) \
             else xp.ascontiguousarray(drop, dtype=xp.float64)
         total = xp.empty(count, dtype=xp.float64)
-        below = xp.empty(count, dtype=xp.float64)
         flags = xp.empty((3, count), dtype=xp.bool_)
         threads = 256
         backend.kernel("local_road.cu", "local_tests", _DEFINES)(
@@ -163,20 +160,19 @@ def local_tests(backend: Backend, means: Any, reference: Any, noise: Any, drop: 
              xp.ascontiguousarray(noise, dtype=xp.float64), drops,
              xp.ascontiguousarray(searched, dtype=xp.bool_), np.int32(count),
              np.float64(road_level), np.float64(refine_fraction),
-             np.float64(corner_significance), np.float64(noise_sigmas), total, below, flags))
-        bumps = noise_sigmas > 0
+             np.float64(corner_significance), np.float64(noise_sigmas), total, flags))
         return LocalTests(total, flags[0], flags[1] if corner_significance > 0 else None,
-                          flags[2] if bumps else None, below if bumps else None)
+                          flags[2] if noise_sigmas > 0 else None)
     significant = None
     if corner_significance > 0:
         significant = deeper(searched, means, road_level, reference, drop, corner_significance)
-    bumps = below = None
+    bumps = None
     if noise_sigmas > 0:
         below = road_level - means.astype(xp.float64) - reference
         bumps = searched & xp.isfinite(below) & (below < -noise_sigmas * noise)
     return LocalTests(drop + reference,
                       deeper(searched, means, road_level, reference, drop, refine_fraction),
-                      significant, bumps, below)
+                      significant, bumps)
 
 
 def deeper(searched: Any, means: Any, road_level: float, reference: Any, drop: Any,
