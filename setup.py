@@ -62,7 +62,7 @@ setup(
     entry_points={
         "console_scripts": [
             "pothole-detector = pothole_detector.cli:main",
-            "pothole_detector_node = pothole_detector.node_main:main",
+            "pothole_detector_node = pothole_detector.ros.node_main:main",
         ],
     },
 )

@@ -33,9 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
 from pothole_detector_msgs.msg import PotholeArray  # noqa: E402
 
-from pothole_detector import conversions  # noqa: E402
+from pothole_detector.recordings.camera import camera_info_message, camera_info_of  # noqa: E402
+from pothole_detector.recordings.images import array_to_image, compressed_image  # noqa: E402
 from pothole_detector.evaluation.synthetic import demo_scene, raw_camera, render, render_raw  # noqa
-from pothole_detector.transport import large_image_transport  # noqa: E402
+from pothole_detector.ros.transport import large_image_transport  # noqa: E402
 from rosgraph import NodeProcess, Probe, header_at, isolate_ros_graph, stamp_ns  # noqa: E402
 
 FIRST_STAMP_NS = 1_900_000_000_000_000_000
@@ -117,19 +118,19 @@ def bench_size(width: int, height: int, rates: list[float], seconds: float, back
     sample = render(scene)
     header = header_at(0)
     images = {side: sample.left if side == "left" else sample.right for side in ("left", "right")}
-    infos = [conversions.camera_info_message(sample.calibration, width, height, header,
+    infos = [camera_info_message(sample.calibration, width, height, header,
                                              right=right) for right in (False, True)]
     if encoding == "raw-jpeg":
         camera = raw_camera(sample.calibration, width, height, "plumb_bob")
         images = dict(zip(("left", "right"), render_raw(scene, camera)))
-        infos = [conversions.camera_info_of(model, header)
+        infos = [camera_info_of(model, header)
                  for model in (camera.left, camera.right)]
         node_params = {"image_transport": "compressed", **node_params}
     if encoding in ("rgb8", "raw-jpeg"):
         images = {side: np.repeat(image[..., None], 3, axis=2) for side, image in images.items()}
-    make = (lambda pixels: conversions.compressed_image(pixels, "jpeg", header)) \
+    make = (lambda pixels: compressed_image(pixels, "jpeg", header)) \
         if encoding == "raw-jpeg" else \
-        (lambda pixels: conversions.array_to_image(pixels, encoding, header))
+        (lambda pixels: array_to_image(pixels, encoding, header))
     frame = {"left": make(images["left"]), "right": make(images["right"]),
              "left_info": infos[0], "right_info": infos[1]}
     node = NodeProcess(Path(f"/tmp/bench_node_{width}x{height}.log"), backend=backend,

@@ -26,7 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pothole_detector.bagtools import process, write_drive_bag  # noqa: E402
+from pothole_detector.recordings.writing import write_drive_bag  # noqa: E402
+from pothole_detector.ros.bagtools import process  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.stages.matching import (set_host_threads, sgm_disparity,  # noqa: E402
                                                to_gray8)

@@ -38,7 +38,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pothole_detector.bagtools import RecordingForm, write_drive_bag  # noqa: E402
+from pothole_detector.recordings.writing import RecordingForm, write_drive_bag  # noqa: E402
 from pothole_detector.survey.fleet import ray_chunks  # noqa: E402
 from pothole_detector.params import PARAMETER_BY_NAME, Config  # noqa: E402
 from pothole_detector.survey.report import write_report  # noqa: E402

@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pothole_detector import bagtools  # noqa: E402
+from pothole_detector.recordings.writing import write_drive_bag  # noqa: E402
 from pothole_detector.geodesy import enu_of  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.survey.drive import severity, survey  # noqa: E402
@@ -45,7 +45,7 @@ def main() -> None:
         for kind, label in (("none", "visual odometry"), ("odom", "nav_msgs/Odometry"),
                             ("gnss", "NavSatFix (GNSS)")):
             bag = Path(scratch) / kind
-            bagtools.write_drive_bag(bag, [s.camera_y_m - start for s in scenes], samples,
+            write_drive_bag(bag, [s.camera_y_m - start for s in scenes], samples,
                                      kind, ORIGIN)
             (drive,) = survey([bag], config)
             truths = []

@@ -23,6 +23,7 @@ from .params import Config, load_yaml
 from .method import PipelineResult
 from .pipeline import Pipeline
 from .recordings.camera import RECTIFY_CHOICES, pipeline_inputs
+from .ros.bagtools import play, process, record
 from .evaluation.rig_matrix import RIG_CLASS_NAMES
 from .stages.rectify import Rectification
 
@@ -252,7 +253,6 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def run_play(args: argparse.Namespace) -> int:
-    from .bagtools import play
     count = play(args.bag, rate=args.rate, loop=args.loop, remaps=args.remap,
                  reliability=args.qos, wait_for_subscribers=args.wait_for_subscribers,
                  clock=not args.no_clock)
@@ -261,7 +261,6 @@ def run_play(args: argparse.Namespace) -> int:
 
 
 def run_process(args: argparse.Namespace) -> int:
-    from .bagtools import process
     start = time.perf_counter()
     summary = process(
         args.bag, args.out, _config(args.config, args.backend, args), storage=args.storage,
@@ -357,7 +356,6 @@ def run_survey(args: argparse.Namespace) -> int:
 
 
 def run_record(args: argparse.Namespace) -> int:
-    from .bagtools import record
     counts = record(args.out, args.topics, storage=args.storage, duration=args.duration,
                     reliability=args.qos)
     summary = ", ".join(f"{topic}: {count}" for topic, count in counts.items())

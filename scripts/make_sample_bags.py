@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from pothole_detector.bagtools import write_stereo_bag
+from pothole_detector.recordings.writing import write_stereo_bag
 from pothole_detector.calibration import load_stereo_camera_info
 from pothole_detector.imageio import read_image
 from pothole_detector.evaluation.synthetic import drive_scenes, render

@@ -74,7 +74,7 @@ def survey_drive_bags(tmp_path_factory):
     north). Returns (bags by kind, scenes)."""
     from dataclasses import replace
 
-    from pothole_detector import bagtools
+    from pothole_detector.recordings.writing import DRIVE_MOTIONS, write_drive_bag
     from pothole_detector.evaluation.synthetic import survey_drive
 
     scenes = [replace(s, supersample=1) for s in survey_drive(width=480, height=270)]
@@ -82,10 +82,10 @@ def survey_drive_bags(tmp_path_factory):
     folder = tmp_path_factory.mktemp("survey_drives")
     forward = [s.camera_y_m - scenes[0].camera_y_m for s in scenes]
     bags = {}
-    for kind in bagtools.DRIVE_MOTIONS:
+    for kind in DRIVE_MOTIONS:
         bags[kind] = folder / f"drive_{kind}"
-        bagtools.write_drive_bag(bags[kind], forward, samples, kind, SURVEY_ORIGIN_LATLON,
-                                 SURVEY_START_NS)
+        write_drive_bag(bags[kind], forward, samples, kind, SURVEY_ORIGIN_LATLON,
+                        SURVEY_START_NS)
     return bags, scenes, samples
 
 
@@ -94,14 +94,15 @@ def rewrite_bag(source, out, log_time=lambda topic, timestamp: timestamp,
     """Copy bag ``source`` to ``out`` with each message logged at ``log_time(topic, log time
     ns)`` (None: left out) and its CDR bytes as ``payload(topic, index in the bag, bytes)``
     gives them."""
-    from pothole_detector import bagtools
     from pothole_detector.recordings.bags import cdr_bytes, open_bag
+    from pothole_detector.recordings.messages import typestore
+    from pothole_detector.recordings.writing import writer_for
 
     reader = open_bag(source)
-    writer = bagtools.writer_for(out, "mcap")
+    writer = writer_for(out, "mcap")
     writer.open()
     try:
-        store = bagtools.typestore()
+        store = typestore()
         connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
                        for c in reader.connections}
         for index, (connection, timestamp, rawdata) in enumerate(reader.messages()):

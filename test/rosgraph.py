@@ -23,11 +23,10 @@ from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 from visualization_msgs.msg import MarkerArray
 
-from pothole_detector import msgtypes
-from pothole_detector.recordings.images import decode_raw  # noqa: E402
-from pothole_detector.recordings import bags
-from pothole_detector.msgtypes import stamp_ns
-from pothole_detector.transport import large_image_transport
+from pothole_detector.recordings import bags, messages
+from pothole_detector.recordings.images import decode_raw
+from pothole_detector.recordings.messages import stamp_ns
+from pothole_detector.ros.transport import large_image_transport
 from pothole_detector_msgs.msg import PotholeArray
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,7 +48,7 @@ def isolate_ros_graph() -> None:
 
 
 def header_at(nanoseconds: int, frame_id: str = "stereo_left_optical_frame") -> Header:
-    return msgtypes.header_at(nanoseconds, frame_id)
+    return messages.header_at(nanoseconds, frame_id)
 
 
 def sample_frames(count: int) -> list[dict[str, Any]]:
@@ -66,13 +65,13 @@ def sample_frames(count: int) -> list[dict[str, Any]]:
 
 
 class NodeProcess:
-    """``python -m pothole_detector.node`` in namespace ``namespace`` with ``params``, the
+    """``python -m pothole_detector.ros.node`` in namespace ``namespace`` with ``params``, the
     parameter file ``params_file`` (the shipped one by default) and, where given, the node
     renamed ``node_name``."""
 
     def __init__(self, log: Path, namespace: str = "/stereo", params_file: Path | None = None,
                  node_name: str | None = None, **params: Any) -> None:
-        args = [sys.executable, "-m", "pothole_detector.node", "--ros-args",
+        args = [sys.executable, "-m", "pothole_detector.ros.node", "--ros-args",
                 "-r", f"__ns:={namespace}",
                 "--params-file", str(params_file or REPO / "config" / "pothole_detector.yaml")]
         if node_name:

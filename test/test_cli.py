@@ -119,7 +119,7 @@ def test_bad_input_exits_with_one_line(case, says, pair_dir, tmp_path):
 
 
 def test_the_node_prints_its_usage_and_exits():
-    result = subprocess.run([sys.executable, "-m", "pothole_detector.node", "--help"],
+    result = subprocess.run([sys.executable, "-m", "pothole_detector.ros.node", "--help"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.startswith("usage: pothole_detector_node")
     assert "left/image_rect" in result.stdout and "--params-file" in result.stdout
@@ -149,7 +149,7 @@ def drive_without_baseline(tmp_path_factory):
     publish it so), and the baseline they were taken with."""
     from dataclasses import replace
 
-    from pothole_detector.bagtools import RecordingForm, write_stereo_bag
+    from pothole_detector.recordings.writing import RecordingForm, write_stereo_bag
     from pothole_detector.evaluation.synthetic import drive_scenes, render
 
     samples = [render(replace(s, supersample=1)) for s in drive_scenes(frames=3)]

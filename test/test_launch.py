@@ -14,7 +14,7 @@ import types
 import pytest
 
 from conftest import REPO
-from pothole_detector.outputs import OUTPUT_TYPES
+from pothole_detector.ros.outputs import OUTPUT_TYPES
 from pothole_detector.params import PARAMETER_BY_NAME
 
 
@@ -63,7 +63,7 @@ def test_the_launch_file_wires_the_node_to_a_camera(launch_description):
                 for e in entities if e.kind == "DeclareLaunchArgument"}
     (node,) = [e for e in entities if e.kind == "Node"]
     assert node.kwargs["executable"] == "pothole_detector_node"
-    assert "pothole_detector_node = pothole_detector.node_main:main" in \
+    assert "pothole_detector_node = pothole_detector.ros.node_main:main" in \
         (REPO / "setup.py").read_text()
     _, overrides = node.kwargs["parameters"]
     for name in overrides:

@@ -10,7 +10,7 @@ import sys
 import pytest
 from conftest import REPO
 
-from pothole_detector.bagtools import open_bag
+from pothole_detector.recordings.bags import open_bag
 
 PAIR = REPO / "bags" / "sample_pair"
 
@@ -65,8 +65,8 @@ def test_process_without_ros_writes_what_rclpy_writes(base_install, tmp_path):
     """The same bag from both installs: every message decodes to the same values (the CDR
     padding bytes may differ)."""
     pytest.importorskip("rclpy")
-    from pothole_detector.bagtools import process
-    from pothole_detector.msgtypes import typestore
+    from pothole_detector.ros.bagtools import process
+    from pothole_detector.recordings.messages import typestore
     from pothole_detector.params import Config
 
     drive = REPO / "bags" / "sample_drive"

@@ -14,15 +14,16 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from pothole_detector import bagtools  # noqa: E402
-from pothole_detector.bagtools import RecordingForm  # noqa: E402
+from pothole_detector.ros import bagtools  # noqa: E402
+from pothole_detector.recordings.writing import RecordingForm, write_stereo_bag  # noqa: E402
 from pothole_detector.calibration import CameraModel, StereoCamera  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode_raw  # noqa
 from pothole_detector.recordings.topics import StereoTopics  # noqa: E402
-from pothole_detector.evaluation.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
+from pothole_detector.evaluation.synthetic import (drive_scenes, raw_camera, render,
+                                                   render_raw)  # noqa
 
 from conftest import rewrite_bag  # noqa: E402
 
@@ -69,7 +70,7 @@ def _labels_f(out, namespace, samples):
 def _process(folder, name, samples, form=RecordingForm(), config=CPU):
     bag = folder / name
     frames = [(START + i * 100_000_000, sample) for i, sample in enumerate(samples)]
-    assert bagtools.write_stereo_bag(bag, frames, ground_truth=False, form=form) == len(samples)
+    assert write_stereo_bag(bag, frames, ground_truth=False, form=form) == len(samples)
     summary = bagtools.process(bag, folder / f"{name}_out", config, keep_inputs=False)
     return summary, folder / f"{name}_out"
 
@@ -162,7 +163,7 @@ def test_images_that_disagree_with_their_camera_info_fail_alone(tmp_path, drive)
 def test_corrupt_messages_are_skipped_and_counted(tmp_path, drive):
     source = tmp_path / "source"
     frames = [(START + i * 100_000_000, s) for i, s in enumerate(drive[1])]
-    bagtools.write_stereo_bag(source, frames, ground_truth=False,
+    write_stereo_bag(source, frames, ground_truth=False,
                               form=RecordingForm(compression="jpeg"))
     first_left = []
 
@@ -186,7 +187,7 @@ def test_a_bag_cut_off_mid_chunk_keeps_the_frames_before_the_cut(tmp_path, drive
     frames = [(START + i * 100_000_000, s) for i, s in enumerate(samples)]
     for storage in ("mcap", "sqlite3"):
         source = tmp_path / f"source_{storage}"
-        bagtools.write_stereo_bag(source, frames, ground_truth=False, storage=storage,
+        write_stereo_bag(source, frames, ground_truth=False, storage=storage,
                                   form=RecordingForm(compression="png"))
         cut = tmp_path / f"cut_{storage}"
         cut.mkdir()
@@ -216,7 +217,7 @@ def test_sets_in_one_pass_by_span_and_in_threads(tmp_path, drive):
     samples = drive[1] * 5
     source = tmp_path / "source"
     frames = [(START + i * 100_000_000, s) for i, s in enumerate(samples)]
-    bagtools.write_stereo_bag(source, frames, ground_truth=False)
+    write_stereo_bag(source, frames, ground_truth=False)
     topics = StereoTopics("/stereo/left/image_rect", "/stereo/right/image_rect",
                           "/stereo/left/camera_info", "/stereo/right/camera_info")
     reader = bags.open_bag(source)

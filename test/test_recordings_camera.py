@@ -9,20 +9,21 @@ import cv2
 import numpy as np
 import pytest
 
-from pothole_detector import conversions, msgtypes
+from pothole_detector.recordings.camera import camera_info_message
+from pothole_detector.recordings.messages import header_at
 from pothole_detector.calibration import StereoCalibration
 from pothole_detector.errors import CalibrationError
 from pothole_detector.recordings.camera import (pipeline_inputs, rectifies, rectification,
                                                 stereo_camera)
 from pothole_detector.evaluation.synthetic import LENS_DISTORTION, raw_camera
 
-HEADER = msgtypes.header_at(0, "cam")
+HEADER = header_at(0, "cam")
 CAL = StereoCalibration(700.0, 0.12, 320.5, 180.25)
 
 
 def _infos():
-    return (conversions.camera_info_message(CAL, 640, 360, HEADER),
-            conversions.camera_info_message(CAL, 640, 360, HEADER, right=True))
+    return (camera_info_message(CAL, 640, 360, HEADER),
+            camera_info_message(CAL, 640, 360, HEADER, right=True))
 
 
 def test_rectified_camera_info_round_trip_and_refusals():
@@ -32,19 +33,19 @@ def test_rectified_camera_info_round_trip_and_refusals():
     assert pipeline_inputs(camera, "auto") == (CAL, None)
     with pytest.raises(CalibrationError, match="for 640x360 images but the images are 320x180"):
         stereo_camera(left, right, 320, 180)
-    flat = conversions.camera_info_message(CAL, 640, 360, HEADER)
+    flat = camera_info_message(CAL, 640, 360, HEADER)
     with pytest.raises(CalibrationError, match="Tx = P.0,3. = 0.*--baseline.*baseline_m"):
         stereo_camera(left, flat, 640, 360).calibration()
     given = stereo_camera(left, flat, 640, 360, baseline_m=0.12)
     assert math.isclose(given.calibration().baseline, 0.12)
     assert any("using baseline 0.12 m" in note for note in given.notes())
-    broken = conversions.camera_info_message(CAL, 640, 360, HEADER, right=True)
+    broken = camera_info_message(CAL, 640, 360, HEADER, right=True)
     broken.p[0] = math.nan
     with pytest.raises(CalibrationError, match="P has NaN"):
         stereo_camera(left, broken, 640, 360)
     for index, value, words in ((0, math.nan, "K has NaN"), (4, 0.0, "focal length <= 0"),
                                 (2, math.inf, "K has NaN")):
-        bad_k = conversions.camera_info_message(CAL, 640, 360, HEADER)
+        bad_k = camera_info_message(CAL, 640, 360, HEADER)
         bad_k.k[index] = value
         with pytest.raises(CalibrationError, match=words):
             stereo_camera(bad_k, right, 640, 360)

@@ -11,14 +11,13 @@ import zlib
 import numpy as np
 import pytest
 
-from pothole_detector import msgtypes
+from pothole_detector.recordings.messages import header_at, message
 from pothole_detector.errors import InputError
-from pothole_detector.msgtypes import message
 from pothole_detector.recordings import images
 
 Image = message("sensor_msgs/msg/Image")
 CompressedImage = message("sensor_msgs/msg/CompressedImage")
-HEADER = msgtypes.header_at(1_700_000_000_000_000_000, "cam")
+HEADER = header_at(1_700_000_000_000_000_000, "cam")
 RNG = np.random.default_rng(3)
 
 

@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from pothole_detector import bagtools  # noqa: E402
+from pothole_detector.recordings.writing import write_stereo_bag  # noqa: E402
 from pothole_detector.recordings import bags, readahead  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
@@ -45,7 +45,7 @@ def _bag(folder, samples, count, colour=False, infos_from=0):
                    for s in samples]
     source, bag = folder / "source", folder / "bag"
     frames = [(START + i * PERIOD_NS, samples[i % len(samples)]) for i in range(count)]
-    assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == count
+    assert write_stereo_bag(source, frames, namespace="/cam") == count
 
     def logged(topic, timestamp):
         if topic.endswith("camera_info") and timestamp < START + infos_from * PERIOD_NS:

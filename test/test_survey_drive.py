@@ -184,7 +184,7 @@ def test_the_map_measures_depth_better_than_the_best_single_view(survey_drive_ba
     the map's depth errs less than the best single view's (median over the twelve)."""
     from dataclasses import replace
 
-    from pothole_detector import bagtools
+    from pothole_detector.recordings.writing import write_drive_bag
     from pothole_detector.evaluation.synthetic import render
 
     bags, scenes, _ = survey_drive_bags
@@ -192,7 +192,7 @@ def test_the_map_measures_depth_better_than_the_best_single_view(survey_drive_ba
         replace(p, x_m=-p.x_m, depth_m=0.8 * p.depth_m + 0.01) for p in s.potholes))
         for s in scenes]
     forward = [s.camera_y_m - scenes[0].camera_y_m for s in scenes]
-    bagtools.write_drive_bag(tmp_path / "mirrored", forward, [render(s) for s in mirrored],
+    write_drive_bag(tmp_path / "mirrored", forward, [render(s) for s in mirrored],
                              "odom")
     map_errors, view_errors = [], []
     for bag, drive_scenes in ((bags["odom"], scenes), (tmp_path / "mirrored", mirrored)):

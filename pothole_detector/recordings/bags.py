@@ -20,12 +20,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection
 
 from ..calibration import StereoCalibration, StereoCamera
-from ..msgtypes import stamp_ns
 from ..errors import InputError
-from ..msgtypes import deserialize, typestore
+from .messages import deserialize, stamp_ns, typestore
 from ..params import Config
 from ..stages.rectify import Rectification
-from ..sync import StereoSynchronizer
+from .sync import StereoSynchronizer
 from .camera import rectification, rectifies, stereo_camera
 from .images import decode
 from .repair import repaired_copy
@@ -88,7 +87,7 @@ def cdr_bytes(reader: AnyReader, connection: Connection, rawdata: bytes) -> byte
 class BagFrame:
     """One synchronized stereo set of a bag, converted: images as arrays (HxW or HxWx3, as
     recorded: raw or rectified) and the stereo camera they were taken with; None where the set
-    could not be converted. Once processed (bagtools.frame_results) it also carries the
+    could not be converted. Once processed (replay.frame_results) it also carries the
     rectified pair's calibration and, for raw images, the rectification."""
 
     stamp: int

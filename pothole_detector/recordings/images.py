@@ -6,6 +6,7 @@ checked against the largest allowed and, where known, the camera_info's."""
 
 from __future__ import annotations
 
+import array
 import io
 import warnings
 from typing import Any, Sequence
@@ -15,9 +16,12 @@ import numpy as np
 from PIL import Image as PILImage
 
 from ..errors import InputError
+from .messages import ROS, message
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+Image = message(IMAGE_TYPE)
+CompressedImage = message(COMPRESSED_TYPE)
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 
 # encoding -> (dtype, channels as stored)
@@ -231,3 +235,32 @@ def compressed_format_string(pixels: np.ndarray, codec: str = "jpeg") -> str:
         kind = "mono16" if pixels.dtype == np.uint16 else "mono8"
         return f"{kind}; {codec} compressed {kind}"
     return f"rgb8; {codec} compressed bgr8"
+
+
+def byte_field(values: np.ndarray) -> array.array | np.ndarray:
+    """The bytes of ``values`` as a uint8[] field takes them (rclpy: array.array)."""
+    if not ROS:
+        return np.ascontiguousarray(values).view(np.uint8).reshape(-1).copy()
+    data = array.array("B")
+    data.frombytes(np.ascontiguousarray(values).tobytes())
+    return data
+
+
+def array_to_image(pixels: np.ndarray, encoding: str, header: Any) -> Any:
+    """A sensor_msgs/Image of a host array (HxW or HxWxC, as ``encoding`` stores its pixels:
+    RAW_LAYOUTS) in ``encoding`` (little endian, tightly packed)."""
+    dtype, channels = RAW_LAYOUTS[encoding]
+    pixels = np.ascontiguousarray(pixels, dtype=dtype.newbyteorder("<"))
+    if pixels.ndim != (2 if channels == 1 else 3):
+        raise InputError(f"{encoding} needs {'HxW' if channels == 1 else 'HxWxC'} pixels")
+    height, width = pixels.shape[:2]
+    return Image(header=header, height=height, width=width, encoding=encoding,
+                 is_bigendian=0, step=width * channels * dtype.itemsize, data=byte_field(pixels))
+
+
+def compressed_image(pixels: np.ndarray, codec: str, header: Any) -> Any:
+    """A sensor_msgs/CompressedImage of HxW grey or HxWx3 RGB ``pixels`` compressed with
+    ``codec`` (jpeg or png) as image_transport's compressed transport writes it."""
+    return CompressedImage(header=header, format=compressed_format_string(pixels, codec),
+                           data=byte_field(np.frombuffer(encode_compressed(pixels, codec),
+                                                     np.uint8)))

@@ -23,9 +23,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from ..msgtypes import header_at
 from ..errors import PotholeError
-from ..msgtypes import deserialize, serialize
+from .messages import deserialize, header_at, serialize
 from ..params import Config
 from .bags import (BagFrame, LogSpan, SetCounts, block_sets, cdr_bytes, convert_set, open_bag,
                    read_blocks)

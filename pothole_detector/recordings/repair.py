@@ -27,7 +27,7 @@ except ImportError:
     from backports import zstd
 
 from ..errors import InputError
-from ..msgtypes import typestore
+from .messages import typestore
 
 _log = logging.getLogger(__name__)
 # a record larger than this is taken for damage, not read (bytes)

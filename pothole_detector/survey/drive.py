@@ -22,16 +22,16 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .. import bagtools
-from ..bagtools import FailureTally
 from ..backend import get_backend
 from ..calibration import StereoCalibration
-from ..msgtypes import stamp_ns
 from ..errors import InputError, PotholeError
 from ..geodesy import enu_of, latlon_of
 from .motion import (GnssFusion, Pose2, RoadFrame, StereoOdometry, fuse_gnss,
                      interpolate_poses, planar_pose, road_frame)
 from ..recordings import bags, readahead
+from ..recordings.messages import stamp_ns
+from ..recordings.writing import GNSS_TYPE, ODOMETRY_TYPE
+from ..replay import FailureTally, ProcessSummary, frame_results
 from ..recordings.topics import StereoTopics, find_stereo_topics
 from ..stages.matching import to_gray8
 from ..params import Config
@@ -40,9 +40,7 @@ from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, res
 from .tracking import (PotholeTracker, Sighting, Track, joined, linked_groups, merge_overlapping,
                        sightings_of)
 
-ODOMETRY_TYPE = bagtools.ODOMETRY_TYPE
 TF_TYPE = "tf2_msgs/msg/TFMessage"
-GNSS_TYPE = bagtools.GNSS_TYPE
 SEVERITIES = ("low", "moderate", "high")
 CSV_COLUMNS = ("pothole_id", "bag", "first_stamp_ns", "last_stamp_ns", "sightings",
                "best_stamp_ns", "first_time_utc", "last_time_utc", "best_time_utc", "x_m",
@@ -193,8 +191,8 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     has_odometry = bool(topics.odometry) and bags.message_count(reader, topics.odometry) > 0
     observations: list[FrameObservation] = []
     motion_messages: list[tuple[str, int, Any]] = []
-    results = bagtools.frame_results(
-        reader, topics.stereo, config, get_backend(config.backend), bagtools.ProcessSummary(),
+    results = frame_results(
+        reader, topics.stereo, config, get_backend(config.backend), ProcessSummary(),
         progress, span, config.read_threads, topics.motion_topics(), motion_messages,
         config.read_processes)
     try:

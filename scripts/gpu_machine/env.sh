@@ -2,7 +2,7 @@
 #   source scripts/gpu_machine/env.sh
 # Makes a virtual environment in $ROS_VENV (default /tmp/ros_venv) that sees the image's own
 # packages (CuPy, NumPy, OpenCV), installs the ROS 2 runtime from .gpu_machine/wheels, puts
-# this repository on its path (python -m pothole_detector.node, python -m pothole_detector.cli)
+# this repository on its path (python -m pothole_detector.ros.node, python -m pothole_detector.cli)
 # and unpacks our messages from .gpu_machine/pothole_detector_msgs-cp312.tar.gz.
 # When that archive is missing, it builds the messages there with CMake (from
 # .gpu_machine/build_wheels) and writes the archive to $OUT (or .gpu_machine/): bring it back

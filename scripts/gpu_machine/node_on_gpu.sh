@@ -10,7 +10,7 @@ export PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1
 # shellcheck source=env.sh
 source scripts/gpu_machine/env.sh || exit 1
 nvidia-smi --query-gpu=name --format=csv,noheader > "$out/device.txt"
-timeout 230 python -m pytest -q -p no:cacheprovider test/test_node.py test/test_conversions.py \
+timeout 230 python -m pytest -q -p no:cacheprovider test/test_ros_node.py test/test_ros_conversions.py \
     > "$out/node_tests.txt" 2>&1
 echo "tests rc $?" >> "$out/node_tests.txt"
 timeout 300 python benchmarks/bench_node.py --backend gpu --sizes 1280x720 2079x1040 \

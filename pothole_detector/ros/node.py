@@ -34,21 +34,21 @@ from visualization_msgs.msg import MarkerArray
 
 from pothole_detector_msgs.msg import PotholeArray
 
-from . import msgtypes
 from .conversions import map_cloud_message, occupancy_grid_message
-from .backend import Backend, get_backend
-from .calibration import StereoCalibration, StereoCamera
-from .errors import ConfigError, InputError, PotholeError
+from ..backend import Backend, get_backend
+from ..calibration import StereoCalibration, StereoCamera
+from ..errors import ConfigError, InputError, PotholeError
 from .outputs import ON_REQUEST, failure_messages, output_messages
-from .params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
-from .pipeline import Pipeline
-from .recordings.camera import pipeline_inputs, stereo_camera
-from .recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
-from .stages import host_kernels
-from .sync import StereoSynchronizer
-from .survey.motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
-from .survey.roadmap import LiveMap
-from .survey.tracking import MAX_ID, PotholeTracker, sightings_of
+from ..params import NODE_NAME, PARAMETER_BY_NAME, PARAMETERS, Config, Param
+from ..pipeline import Pipeline
+from ..recordings.messages import stamp_ns as stamp_of
+from ..recordings.camera import pipeline_inputs, stereo_camera
+from ..recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
+from ..stages import host_kernels
+from ..recordings.sync import StereoSynchronizer
+from ..survey.motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
+from ..survey.roadmap import LiveMap
+from ..survey.tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
 PIPELINE_PARAMETERS = frozenset(p.name for p in PARAMETERS if p.group in ("pipeline", "input"))
@@ -387,7 +387,7 @@ class PotholeDetectorNode(Node):
     def _on_odometry(self, msg: Odometry) -> None:
         pose = planar_pose(msg.pose.pose.position, msg.pose.pose.orientation)
         with self._lock:
-            self._odometry.append((msgtypes.stamp_ns(msg.header), pose))
+            self._odometry.append((stamp_of(msg.header), pose))
             self._odometry_frame = msg.header.frame_id or self._odometry_frame
 
     def _on_info(self, side: str, msg: CameraInfo) -> None:
@@ -402,11 +402,11 @@ class PotholeDetectorNode(Node):
     def _infos_reached(self, stamp_ns: int) -> bool:
         """Both camera_info streams have reached ``stamp_ns`` (ns, less the sync tolerance)."""
         earliest = stamp_ns - self._synchronizer.tolerance_ns
-        return all(history and msgtypes.stamp_ns(history[-1].header) >= earliest
+        return all(history and stamp_of(history[-1].header) >= earliest
                    for history in self._infos.values())
 
     def _on_image(self, side: str, msg: Image) -> None:
-        stamp_ns = msgtypes.stamp_ns(msg.header)
+        stamp_ns = stamp_of(msg.header)
         self._stats.image(msg.header.frame_id)
         with self._lock:
             outcome = self._synchronizer.add(side, stamp_ns, msg)
@@ -469,7 +469,7 @@ class PotholeDetectorNode(Node):
         """The camera_info of ``side`` stamped ``stamp_ns`` (within the sync tolerance)."""
         tolerance = self._synchronizer.tolerance_ns
         for info in reversed(self._infos[side]):
-            if abs(msgtypes.stamp_ns(info.header) - stamp_ns) <= tolerance:
+            if abs(stamp_of(info.header) - stamp_ns) <= tolerance:
                 return info
         return None
 

@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 
-from pothole_detector.sync import StereoSynchronizer
+from pothole_detector.recordings.sync import StereoSynchronizer
 
 MS = 1_000_000
 

@@ -22,13 +22,16 @@ from rclpy.parameter_client import AsyncParameterClient  # noqa: E402
 from rclpy.qos import ReliabilityPolicy  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
-from pothole_detector import conversions, msgtypes  # noqa: E402
-from pothole_detector.recordings.camera import pipeline_inputs, stereo_camera  # noqa: E402
-from pothole_detector.recordings.images import decode_raw  # noqa: E402
+from pothole_detector.ros import conversions  # noqa: E402
+from pothole_detector.recordings.camera import (camera_info_message, camera_info_of,
+                                                pipeline_inputs, stereo_camera)  # noqa: E402
+from pothole_detector.recordings.images import (array_to_image, compressed_image,
+                                                decode_raw)  # noqa: E402
 from pothole_detector.backend import gpu_available  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
-from pothole_detector.evaluation.synthetic import drive_scenes, raw_camera, render, render_raw  # noqa
+from pothole_detector.evaluation.synthetic import (drive_scenes, raw_camera, render,
+                                                   render_raw)  # noqa
 from rosgraph import (SAMPLE_DRIVE, NodeProcess, Probe, header_at,  # noqa: E402
                       isolate_ros_graph, labels_of, sample_frames, stamp_ns)
 
@@ -276,7 +279,7 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
 
     def smaller(msg, width):
         pixels = decode_raw(msg)[:, :width]
-        return conversions.array_to_image(pixels, "mono8", msg.header)
+        return array_to_image(pixels, "mono8", msg.header)
 
     lying_step = copy.deepcopy(good["left"])
     lying_step.step = lying_step.width - 10
@@ -306,7 +309,7 @@ def test_bad_input_is_reported_and_the_node_keeps_running(node_factory, probe, f
         assert p.spin(15, lambda: stamp + 500_000_000 in p.stamps()), node.text()
         # the refused set has its PotholeArray too: status FAILED and why
         (refused,) = [m for m in p.received["potholes"]
-                      if msgtypes.stamp_ns(m.header) == stamp]
+                      if stamp_ns(m.header) == stamp]
         assert refused.status == refused.FAILED and words in refused.reason
         assert not refused.potholes
     p.publish(good, T0 + 2)
@@ -378,7 +381,7 @@ def test_diagnostics_tell_no_input_and_failures_in_a_row(node_factory, probe, fr
     assert status.name == "/stereo/pothole_detector: pipeline"
     good = frames[0]
     right = decode_raw(good["right"])[:, :600]
-    narrow = conversions.array_to_image(right, "mono8", good["right"].header)
+    narrow = array_to_image(right, "mono8", good["right"].header)
     for index in range(2):  # one at a time: a set arriving while the node is busy is dropped
         p.publish(good, T0 + index, right=narrow)
         assert p.spin(15, lambda: T0 + index in p.stamps())
@@ -415,7 +418,7 @@ def test_a_node_started_with_sigint_ignored_still_stops_on_it(tmp_path):
 
     log = open(tmp_path / "node.log", "w")
     process = subprocess.Popen(
-        [sys.executable, "-m", "pothole_detector.node", "--ros-args", "-r", "__ns:=/ignored",
+        [sys.executable, "-m", "pothole_detector.ros.node", "--ros-args", "-r", "__ns:=/ignored",
          "-p", "backend:=cpu"], stdout=log, stderr=subprocess.STDOUT,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     time.sleep(3.0)
@@ -489,7 +492,7 @@ def test_a_burst_of_sets_waits_up_to_max_waiting_sets(node_factory, probe, frame
 
 
 def test_statistics_tell_whether_the_worker_keeps_up():
-    from pothole_detector.node import Statistics
+    from pothole_detector.ros.node import Statistics
 
     stats = Statistics(window_seconds=1.0)
     assert stats.keeping_up()
@@ -509,7 +512,7 @@ def test_pothole_ids_follow_the_odometry(node_factory, probe, odometry):
     generated pothole; without it, ids jump to the next pothole."""
     from nav_msgs.msg import Odometry
 
-    from pothole_detector.bagtools import odometry_message
+    from pothole_detector.recordings.writing import odometry_message
 
     node_factory(backend="cpu", use_odometry=odometry)
     p = probe(outputs=("potholes", "pothole_labels"))
@@ -541,7 +544,7 @@ def test_the_road_map_is_published_around_the_camera_for_rviz_and_planners(node_
     frame."""
     from nav_msgs.msg import Odometry
 
-    from pothole_detector.bagtools import odometry_message
+    from pothole_detector.recordings.writing import odometry_message
 
     node_factory(backend="cpu", use_odometry=True, map_publish_rate_hz=30.0)
     p = probe(outputs=("potholes", "map_cloud", "map_potholes"))
@@ -581,12 +584,12 @@ def test_the_shipped_parameters_take_every_frame_of_a_640x480_vehicle_drive(node
     p.wait_connected()
     for index in range(6):
         sample = render(vehicle_scene(640, 480, camera_y_m=0.5 * index))
-        header = msgtypes.header_at(T0, "stereo_left_optical_frame")
-        frame = {"left": conversions.array_to_image(sample.left, "mono8", header),
-                 "right": conversions.array_to_image(sample.right, "mono8", header),
-                 "left_info": conversions.camera_info_message(sample.calibration, 640, 480,
+        header = header_at(T0, "stereo_left_optical_frame")
+        frame = {"left": array_to_image(sample.left, "mono8", header),
+                 "right": array_to_image(sample.right, "mono8", header),
+                 "left_info": camera_info_message(sample.calibration, 640, 480,
                                                               header),
-                 "right_info": conversions.camera_info_message(sample.calibration, 640, 480,
+                 "right_info": camera_info_message(sample.calibration, 640, 480,
                                                                header, right=True)}
         p.publish(frame, T0 + index)  # one at a time: a set arriving while busy is dropped
         assert p.spin(30, lambda: T0 + index in p.stamps()), p.diagnostics()
@@ -600,7 +603,7 @@ def test_the_node_takes_compressed_and_raw_distorted_input(node_factory, probe, 
     .../image_rect/compressed gives the labels of the uncompressed pairs; raw images of a
     distorted, rotated camera with its camera_info (rectify auto): rectified in the node,
     the labels of the same pipeline offline, close to the ground truth."""
-    compressed = [{**frame, **{side: conversions.compressed_image(
+    compressed = [{**frame, **{side: compressed_image(
         decode_raw(frame[side]), "png", frame[side].header) for side in ("left", "right")}}
         for frame in frames]
     node_factory(backend="cpu", image_transport="compressed")
@@ -617,7 +620,7 @@ def test_the_node_takes_compressed_and_raw_distorted_input(node_factory, probe, 
     samples = [render(scene) for scene in scenes]
     camera = raw_camera(samples[0].calibration, 640, 360, "plumb_bob", seed=2)
     raw = [render_raw(scene, camera) for scene in scenes]
-    infos = [conversions.camera_info_of(model, header_at(0))
+    infos = [camera_info_of(model, header_at(0))
              for model in (camera.left, camera.right)]
     node_factory(backend="cpu", namespace="/raw")
     q = probe(outputs=("potholes", "pothole_labels"), namespace="/raw")
@@ -625,8 +628,8 @@ def test_the_node_takes_compressed_and_raw_distorted_input(node_factory, probe, 
     calibration, rectification = pipeline_inputs(camera, "auto")
     pipeline = Pipeline(Config({"backend": "cpu"}), calibration, rectification=rectification)
     for index, ((left, right), sample) in enumerate(zip(raw, samples)):
-        q.publish({"left": conversions.array_to_image(left, "mono8", header_at(0)),
-                   "right": conversions.array_to_image(right, "mono8", header_at(0)),
+        q.publish({"left": array_to_image(left, "mono8", header_at(0)),
+                   "right": array_to_image(right, "mono8", header_at(0)),
                    "left_info": infos[0], "right_info": infos[1]}, T0 + 10 + index)
         assert q.spin(30, lambda: len(q.received["pothole_labels"]) == index + 1), index
         labels = labels_of(q.received["pothole_labels"][-1])
@@ -640,7 +643,7 @@ def test_ctrl_c_while_the_node_starts_exits_quietly(tmp_path):
     """The console script interrupted at once, while Python still loads ROS: status 0 and no
     traceback."""
     for delay in (0.2, 1.5):
-        process = subprocess.Popen([sys.executable, "-m", "pothole_detector.node_main",
+        process = subprocess.Popen([sys.executable, "-m", "pothole_detector.ros.node_main",
                                     "--ros-args", "-p", "backend:=cpu"],
                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         time.sleep(delay)

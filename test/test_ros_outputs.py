@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from pothole_detector.outputs import relabel
+from pothole_detector.ros.outputs import relabel
 
 
 def test_relabel_renames_labels():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .params import NODE_NAME
+from ..params import NODE_NAME
 
 LARGE_IMAGE_PROFILE = "fastdds_large_images.xml"
 
@@ -17,7 +17,7 @@ def large_image_transport() -> None:
     if os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE") or \
             os.environ.get("FASTDDS_DEFAULT_PROFILES_FILE"):
         return
-    profile = Path(__file__).resolve().parents[1] / "config" / LARGE_IMAGE_PROFILE
+    profile = Path(__file__).resolve().parents[2] / "config" / LARGE_IMAGE_PROFILE
     if not profile.is_file():
         try:
             from ament_index_python.packages import get_package_share_directory

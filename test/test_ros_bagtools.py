@@ -11,8 +11,11 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from pothole_detector import bagtools, conversions, msgtypes  # noqa: E402
-from pothole_detector.recordings.images import decode_raw  # noqa: E402
+from pothole_detector.ros import bagtools, conversions  # noqa: E402
+from pothole_detector.recordings.images import IMAGE_TYPE, decode_raw  # noqa: E402
+from pothole_detector.recordings.messages import stamp_ns, typestore  # noqa: E402
+from pothole_detector.recordings.topics import INFO_TYPE  # noqa: E402
+from pothole_detector.recordings.writing import write_stereo_bag, writer_for  # noqa: E402
 from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
@@ -36,16 +39,8 @@ def drive_frames():
 @pytest.fixture(scope="module")
 def drive_bag(tmp_path_factory, drive_frames):
     path = tmp_path_factory.mktemp("bags") / "drive"
-    assert bagtools.write_stereo_bag(path, drive_frames, namespace="/cam") == 3
+    assert write_stereo_bag(path, drive_frames, namespace="/cam") == 3
     return path
-
-
-def test_typestore_knows_our_messages():
-    store = bagtools.typestore()
-    names = [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/PotholeArray"][1]]
-    assert names == ["header", "status", "reason", "a0", "a1", "roll_deg", "inlier_fraction",
-                     "observed_near_m", "observed_far_m", "potholes"]
-    assert "bbox_px" in [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/Pothole"][1]]
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -66,7 +61,7 @@ def test_process_writes_every_output_equal_to_the_pipeline(tmp_path, drive_bag, 
     expected = {stamp: pipeline.run(s.left, s.right) for stamp, s in drive_frames}
     seen = set()
     for topic, stamp, msg in bags.read_messages(out, ["/cam/disparity", "/cam/potholes"]):
-        assert msgtypes.stamp_ns(msg.header) == stamp
+        assert stamp_ns(msg.header) == stamp
         assert msg.header.frame_id == "stereo_left_optical_frame"
         if topic == "/cam/disparity":
             np.testing.assert_array_equal(conversions.disparity_from_message(msg),
@@ -91,7 +86,7 @@ def test_mcap_carries_message_definitions_for_foxglove(tmp_path, drive_bag):
 def test_process_reads_a_ros1_bag(tmp_path, drive_bag):
     noetic = get_typestore(Stores.ROS1_NOETIC)
     path = tmp_path / "drive.bag"
-    with AnyReader([drive_bag], default_typestore=bagtools.typestore()) as source, \
+    with AnyReader([drive_bag], default_typestore=typestore()) as source, \
             Writer1(path) as writer:
         connections = {}
         for connection, stamp, raw in source.messages():
@@ -104,7 +99,7 @@ def test_process_reads_a_ros1_bag(tmp_path, drive_bag):
                     sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec),
                 frame_id=msg.header.frame_id)
             fields["header"] = header
-            if connection.msgtype == bagtools.INFO_TYPE:
+            if connection.msgtype == INFO_TYPE:
                 fields = {(k.upper() if k in "dkrp" else k): v for k, v in fields.items()}
                 fields["roi"] = noetic.types["sensor_msgs/msg/RegionOfInterest"](
                     **{k: getattr(msg.roi, k) for k in msg.roi.__dataclass_fields__})
@@ -129,8 +124,8 @@ def test_process_refuses_existing_output_and_missing_bag(tmp_path, drive_bag):
 def test_committed_sample_bag_is_the_generators_output():
     bag = REPO / "bags" / "sample_drive"
     topics = bags.topics_of(bag)
-    assert topics["/stereo/left/image_rect"] == bagtools.IMAGE_TYPE
-    assert topics["/stereo/ground_truth/pothole_labels"] == bagtools.IMAGE_TYPE
+    assert topics["/stereo/left/image_rect"] == IMAGE_TYPE
+    assert topics["/stereo/ground_truth/pothole_labels"] == IMAGE_TYPE
     first = {}
     for topic, stamp, msg in bags.read_messages(bag):
         first.setdefault(topic, (stamp, msg))
@@ -149,9 +144,9 @@ def test_committed_sample_bag_is_the_generators_output():
 
 def test_process_counts_unpaired_images(tmp_path, drive_bag):
     cut = tmp_path / "cut"
-    writer = bagtools.writer_for(cut, "mcap")
+    writer = writer_for(cut, "mcap")
     writer.open()
-    store = bagtools.typestore()
+    store = typestore()
     connections = {}
     with AnyReader([drive_bag], default_typestore=store) as reader:
         for connection, stamp, raw in reader.messages():
@@ -179,7 +174,7 @@ def test_process_goes_on_after_a_failed_frame_and_a_new_calibration(tmp_path, dr
     moved = dataclasses.replace(third, calibration=wider)
     bag = tmp_path / "mixed"
     frames = [(s0, first), (s1, blank), (s2, moved), (s2 + 100_000_000, moved)]
-    assert bagtools.write_stereo_bag(bag, frames, namespace="/cam") == 4
+    assert write_stereo_bag(bag, frames, namespace="/cam") == 4
     summary = bagtools.process(bag, tmp_path / "out", Config({"backend": "cpu"}))
     assert (summary.frames, summary.failed) == (3, 1)
     [(count, reason, stamp)] = summary.failures.rows()
@@ -208,7 +203,7 @@ def test_process_pairs_camera_info_written_after_the_images(tmp_path, drive_fram
     """A bag that writes each camera_info after its images (bag time 5 ms later, header stamp
     the images'): every pair still gets the camera_info of its own stamp."""
     source, late = tmp_path / "ordered", tmp_path / "late"
-    assert bagtools.write_stereo_bag(source, drive_frames[:2], namespace="/cam") == 2
+    assert write_stereo_bag(source, drive_frames[:2], namespace="/cam") == 2
     rewrite_bag(source, late, lambda topic, timestamp: timestamp + (
         5_000_000 if topic.endswith("camera_info") else 0))
     summary = bagtools.process(late, tmp_path / "out", Config({"backend": "cpu"}))
@@ -222,7 +217,7 @@ def test_process_with_the_shipped_config_takes_every_frame_of_a_640x480_vehicle_
     from pothole_detector.evaluation.synthetic import vehicle_scene
     frames = [(START + i * 100_000_000, render(vehicle_scene(640, 480, camera_y_m=0.5 * i)))
               for i in range(6)]
-    assert bagtools.write_stereo_bag(tmp_path / "vehicle", frames, namespace="/cam") == 6
+    assert write_stereo_bag(tmp_path / "vehicle", frames, namespace="/cam") == 6
     config = Config(load_yaml(REPO / "config" / "pothole_detector.yaml"))
     summary = bagtools.process(tmp_path / "vehicle", tmp_path / "out", config)
     assert (summary.frames, summary.failed) == (6, 0)
@@ -238,7 +233,7 @@ def test_a_span_reads_its_own_sets_and_finds_a_camera_info_latched_before_it(tmp
     read."""
     source, latched = tmp_path / "every", tmp_path / "latched"
     frames = [(START + i * 200_000_000, drive_frames[i % 3][1]) for i in range(9)]
-    assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 9
+    assert write_stereo_bag(source, frames, namespace="/cam") == 9
     rewrite_bag(source, latched, lambda topic, timestamp: timestamp if (
         not topic.endswith("camera_info") or timestamp == START) else None)
     config = Config()
@@ -271,7 +266,7 @@ def test_sets_read_ahead_in_threads_are_the_sets_read_in_one(tmp_path, drive_fra
     order, each with its camera_info."""
     source, late = tmp_path / "source", tmp_path / "late"
     frames = [(START + i * 100_000_000, drive_frames[i % 3][1]) for i in range(20)]
-    assert bagtools.write_stereo_bag(source, frames, namespace="/cam") == 20
+    assert write_stereo_bag(source, frames, namespace="/cam") == 20
     rewrite_bag(source, late, lambda topic, timestamp: timestamp + (
         0 if topic == STEREO[0] else 30_000_000))
     monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)

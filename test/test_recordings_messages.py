@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pothole_detector import msgtypes
-from pothole_detector.msgtypes import StoreMessage, deserialize, serialize, typestore
+from pothole_detector.recordings.messages import (StoreMessage, deserialize, message, serialize,
+                                                  typestore)
 
 
 def test_store_messages_default_every_field_and_carry_constants():
@@ -29,8 +29,16 @@ def test_store_messages_serialize_like_the_typestore_reads():
 
 
 def test_serialize_and_deserialize_round_trip_with_either_kind():
-    header = msgtypes.message("std_msgs/msg/Header")(frame_id="cam")
+    header = message("std_msgs/msg/Header")(frame_id="cam")
     header.stamp.sec = 12
     raw = serialize(header, "std_msgs/msg/Header")
     back = deserialize(raw, "std_msgs/msg/Header")
     assert (back.frame_id, back.stamp.sec) == ("cam", 12)
+
+
+def test_typestore_knows_our_messages():
+    store = typestore()
+    names = [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/PotholeArray"][1]]
+    assert names == ["header", "status", "reason", "a0", "a1", "roll_deg", "inlier_fraction",
+                     "observed_near_m", "observed_far_m", "potholes"]
+    assert "bbox_px" in [n for n, *_ in store.fielddefs["pothole_detector_msgs/msg/Pothole"][1]]

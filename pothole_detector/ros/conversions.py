@@ -8,15 +8,14 @@ from typing import Any, Sequence
 
 import cv2
 import numpy as np
-from . import msgtypes
-from .msgtypes import message
 
-from .calibration import CameraModel, StereoCalibration
-from .errors import InputError
-from .recordings.images import (RAW_LAYOUTS, compressed_format_string, decode_raw,
-                                encode_compressed)
-from .stages.measure import Pothole, depth_below_road
-from .stages.road_model import RoadModel
+from ..calibration import StereoCalibration
+from ..errors import InputError
+from ..recordings import messages
+from ..recordings.images import array_to_image, byte_field, decode_raw
+from ..recordings.messages import message
+from ..stages.measure import Pothole, depth_below_road
+from ..stages.road_model import RoadModel
 
 Duration = message("builtin_interfaces/msg/Duration")
 Time = message("builtin_interfaces/msg/Time")
@@ -43,42 +42,6 @@ POINT_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", Poin
                 ("depth_below_road", PointField.FLOAT32), ("label", PointField.UINT32))
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("depth_below_road", "<f4"),
                         ("label", "<u4")])
-
-
-def _bytes(values: np.ndarray) -> array.array | np.ndarray:
-    """The bytes of ``values`` as a uint8[] field takes them (rclpy: array.array)."""
-    if not msgtypes.ROS:
-        return np.ascontiguousarray(values).view(np.uint8).reshape(-1).copy()
-    data = array.array("B")
-    data.frombytes(np.ascontiguousarray(values).tobytes())
-    return data
-
-
-def array_to_image(pixels: np.ndarray, encoding: str, header: Header) -> Image:
-    """A sensor_msgs/Image of a host array (HxW or HxWxC, as ``encoding`` stores its pixels:
-    recordings.images.RAW_LAYOUTS) in ``encoding`` (little endian, tightly packed)."""
-    dtype, channels = RAW_LAYOUTS[encoding]
-    pixels = np.ascontiguousarray(pixels, dtype=dtype.newbyteorder("<"))
-    if pixels.ndim != (2 if channels == 1 else 3):
-        raise InputError(f"{encoding} needs {'HxW' if channels == 1 else 'HxWxC'} pixels")
-    height, width = pixels.shape[:2]
-    return Image(header=header, height=height, width=width, encoding=encoding,
-                 is_bigendian=0, step=width * channels * dtype.itemsize, data=_bytes(pixels))
-
-
-def compressed_image(pixels: np.ndarray, codec: str, header: Header) -> CompressedImage:
-    """A sensor_msgs/CompressedImage of HxW grey or HxWx3 RGB ``pixels`` compressed with
-    ``codec`` (jpeg or png) as image_transport's compressed transport writes it."""
-    return CompressedImage(header=header, format=compressed_format_string(pixels, codec),
-                           data=_bytes(np.frombuffer(encode_compressed(pixels, codec),
-                                                     np.uint8)))
-
-
-def camera_info_of(model: CameraModel, header: Header) -> CameraInfo:
-    """sensor_msgs/CameraInfo of a calibrated camera (its raw images: D, K, R and P)."""
-    return CameraInfo(header=header, width=model.width, height=model.height,
-                      distortion_model=model.distortion_model, d=list(model.d), k=list(model.k),
-                      r=list(model.r), p=list(model.p))
 
 
 def disparity_message(disparity: np.ndarray, calibration: StereoCalibration,
@@ -167,7 +130,7 @@ def organized_cloud_message(cloud: np.ndarray, header: Header) -> PointCloud2:
     return PointCloud2(header=header, height=height, width=width, fields=fields,
                        is_bigendian=False, point_step=CLOUD_DTYPE.itemsize,
                        row_step=CLOUD_DTYPE.itemsize * width,
-                       data=_bytes(np.ascontiguousarray(cloud).view(np.uint8).reshape(-1)),
+                       data=byte_field(np.ascontiguousarray(cloud).view(np.uint8).reshape(-1)),
                        is_dense=False)
 
 
@@ -187,7 +150,7 @@ def pointcloud_message(points: np.ndarray, header: Header) -> PointCloud2:
     return PointCloud2(header=header, height=1, width=int(points.size), fields=fields,
                        is_bigendian=False, point_step=POINT_DTYPE.itemsize,
                        row_step=POINT_DTYPE.itemsize * int(points.size),
-                       data=_bytes(points.view(np.uint8)), is_dense=True)
+                       data=byte_field(points.view(np.uint8)), is_dense=True)
 
 
 def pointcloud_to_array(msg: PointCloud2) -> np.ndarray:
@@ -277,18 +240,6 @@ def markers_message(labels: np.ndarray, potholes: Sequence[Pothole], road: RoadM
     return MarkerArray(markers=markers)
 
 
-def camera_info_message(calibration: StereoCalibration, width: int, height: int,
-                        header: Header, right: bool = False) -> CameraInfo:
-    """sensor_msgs/CameraInfo of one rectified view; the right one carries
-    ``P[0,3] = -f * baseline``."""
-    f, cx, cy = calibration.f, calibration.cx, calibration.cy
-    tx = -f * calibration.baseline if right else 0.0
-    return CameraInfo(header=header, width=width, height=height, distortion_model="plumb_bob",
-                      d=[0.0] * 5, k=[f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
-                      r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                      p=[f, 0.0, cx, tx, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
-
-
 # the road map's cloud: a point per seen cell at its centre, z the road's height there
 MAP_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", PointField.FLOAT32),
               ("depth_below_road", PointField.FLOAT32), ("sigma", PointField.FLOAT32),
@@ -319,7 +270,7 @@ def map_cloud_message(view: Any, header: Header) -> PointCloud2:
     return PointCloud2(header=header, height=1, width=len(cloud), fields=fields,
                        is_bigendian=False, point_step=MAP_DTYPE.itemsize,
                        row_step=MAP_DTYPE.itemsize * len(cloud),
-                       data=_bytes(cloud.view(np.uint8)), is_dense=False)
+                       data=byte_field(cloud.view(np.uint8)), is_dense=False)
 
 
 def occupancy_grid_message(view: Any, header: Header) -> OccupancyGrid:
@@ -335,7 +286,7 @@ def occupancy_grid_message(view: Any, header: Header) -> OccupancyGrid:
                        width=width, height=height, origin=origin)
     cells = np.ascontiguousarray(grid, dtype=np.int8).reshape(-1)
     data: array.array | np.ndarray = cells.copy()
-    if msgtypes.ROS:
+    if messages.ROS:
         data = array.array("b")
         data.frombytes(cells.tobytes())
     return OccupancyGrid(header=header, info=info, data=data)

@@ -1,19 +1,18 @@
-"""A pipeline result as the output messages, for the live node and the bag tools alike. The
-output names and types import without ROS; building messages needs it."""
+"""A pipeline result as the output messages, for the live node and the bag tools alike (rclpy's
+messages where ROS is installed, else the rosbags typestore's)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Collection, Sequence
+from typing import Any, Collection, Sequence
 
 import numpy as np
 
-from .calibration import StereoCalibration
-from .imageio import overlay
-from .method import PipelineResult
-
-if TYPE_CHECKING:
-    from std_msgs.msg import Header
+from ..calibration import StereoCalibration
+from ..imageio import overlay
+from ..method import PipelineResult
+from ..recordings.images import array_to_image
+from . import conversions
 
 # output topic (relative) -> ROS message type
 OUTPUT_TYPES = {
@@ -43,14 +42,12 @@ class Outputs:
 
 
 def output_messages(result: PipelineResult, left: np.ndarray, calibration: StereoCalibration,
-                    header: "Header", wanted: Collection[str] = ON_REQUEST,
+                    header: Any, wanted: Collection[str] = ON_REQUEST,
                     ids: Sequence[int] | None = None) -> Outputs:
     """``potholes`` and the outputs named in ``wanted`` for ``result`` of the pair whose left
     image (host, HxW or HxWx3) is ``left``, each stamped with ``header``; with ``ids``
     (tracking.PotholeTracker), pothole k is named ``ids[k - 1]`` in every message. Only the
     arrays these messages need are copied to the host, each once."""
-    from . import conversions
-
     unknown = set(wanted) - set(OUTPUT_TYPES)
     if unknown:
         raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {list(OUTPUT_TYPES)}")
@@ -74,10 +71,10 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
         messages["disparity"] = conversions.disparity_message(
             array("disparity"), calibration, result.disparity_range, header)
     if "disparity_transformed" in wanted:
-        messages["disparity_transformed"] = conversions.array_to_image(
+        messages["disparity_transformed"] = array_to_image(
             array("transformed"), "32FC1", header)
     if "pothole_labels" in wanted:
-        messages["pothole_labels"] = conversions.array_to_image(
+        messages["pothole_labels"] = array_to_image(
             array("labels").astype(np.uint16), "mono16", header)
     if "pothole_points" in wanted:
         points = conversions.pothole_points(array("labels"), array("disparity"), result.road,
@@ -93,15 +90,13 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
     if "overlay" in wanted:
         made.overlay = overlay(left, array("labels"), potholes, array("observed"),
                                array("searched"))
-        messages["overlay"] = conversions.array_to_image(made.overlay, "rgb8", header)
+        messages["overlay"] = array_to_image(made.overlay, "rgb8", header)
     return made
 
 
-def failure_messages(header: "Header", reason: str) -> dict[str, Any]:
+def failure_messages(header: Any, reason: str) -> dict[str, Any]:
     """The messages of a stereo set that could not be processed: ``potholes`` with status
     FAILED and ``reason``, so that subscribers can tell a failed set from a lost message."""
-    from . import conversions
-
     return {"potholes": conversions.failed_potholes_message(header, reason)}
 
 

@@ -11,7 +11,7 @@ pytest.importorskip("pothole_detector_msgs.msg")
 from std_msgs.msg import Header  # noqa: E402
 from visualization_msgs.msg import Marker  # noqa: E402
 
-from pothole_detector import conversions  # noqa: E402
+from pothole_detector.ros import conversions  # noqa: E402
 from pothole_detector.calibration import StereoCalibration  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402

@@ -1,7 +1,7 @@
-"""Message classes and CDR (de)serialization for the conversions and the bag tools: rclpy's
-where ROS 2 and our messages are installed, else classes of the rosbags typestore, so that
-``process``, ``survey``, ``detect`` and ``evaluate`` run without ROS. Both kinds take keyword
-fields, default the rest as ROS does and carry the message constants."""
+"""Message classes and CDR (de)serialization for reading and writing bags and for the node's
+messages: rclpy's where ROS 2 and our messages are installed, else classes of the rosbags
+typestore, so that ``process``, ``survey``, ``detect`` and ``evaluate`` run without ROS. Both
+kinds take keyword fields, default the rest as ROS does and carry the message constants."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from .errors import InputError
+from ..errors import InputError
 
 MSG_PACKAGE = "pothole_detector_msgs"
 MSG_NAMES = ("Pothole", "PotholeArray")
@@ -46,7 +46,7 @@ def msg_directory() -> Path:
     """Where the .msg files of pothole_detector_msgs are: the source tree's msg_schemas/msg,
     else where pip installed them (share/pothole_detector/msg), else the ROS package's share
     directory."""
-    source = Path(__file__).resolve().parents[1] / "msg_schemas" / "msg"
+    source = Path(__file__).resolve().parents[2] / "msg_schemas" / "msg"
     if source.is_dir():
         return source
     installed = Path(sys.prefix) / "share" / "pothole_detector" / "msg"
