@@ -853,43 +853,59 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
         return [[future.result() for future in per_bag] for per_bag in futures]
 
 
+def _left_images(bag: str | Path, topics: DriveTopics) -> int:
+    reader = bags.open_bag(bag)
+    try:
+        return bags.message_count(reader, topics.stereo.left)
+    finally:
+        reader.close()
+
+
+def observe_here(plans: Sequence[Plan], config: Config,
+                 progress: Callable[[int, int], None] | None = None
+                 ) -> list[list[ChunkResult]]:
+    """:func:`observe` of every (bag, topics, chunk spans) plan, one chunk after the other in
+    this process; per bag, in chunk order. ``progress(done, total)`` counts frames."""
+    total = sum(_left_images(bag, topics) for bag, topics, _ in plans) \
+        if progress is not None else 0
+    chunked, done = [], 0
+    for bag, topics, spans in plans:
+        per_bag: list[ChunkResult] = []
+        for span in spans:
+            def step(index: int, _: int, base: int = done) -> None:
+                if progress is not None:
+                    progress(min(base + index, total), total)
+            observed, samples = observe(bag, topics, config, span, step)
+            per_bag.append((observed, samples))
+            done += len(observed)
+        chunked.append(per_bag)
+    if progress is not None:
+        progress(total, total)
+    return chunked
+
+
 def survey(bags: Iterable[str | Path], config: Config,
            progress: Callable[[int, int], None] | None = None, jobs: int = 1,
            chunks: ChunkRunner | None = None, **names: Any) -> list[DriveSurvey]:
-    """Survey every bag (one id sequence over all of them). With ``chunks``, that runs every
-    chunk of every bag (fleet.ray_chunks: on Ray's workers); with ``jobs`` > 1, a task of one
-    of ``jobs`` worker processes here (:func:`observe_in_processes`); else one after the
-    other here."""
+    """Survey every bag (one id sequence over all of them). Every chunk of every bag is
+    observed by the ChunkRunner ``chunks`` (fleet.ray_chunks: on Ray's workers); without one,
+    with ``jobs`` > 1, each as a task of one of ``jobs`` worker processes here
+    (:func:`observe_in_processes`), else one after the other here (:func:`observe_here`);
+    then each bag's observations are assembled here (:func:`assemble`)."""
     plans: list[Plan] = []
     unreadable: dict[int, DriveSurvey] = {}
-    total = 0
     for index, bag in enumerate(bags):
         try:
             topics = drive_topics(bag, **names)
-            count, spans = chunk_spans(bag, topics, config)
+            _, spans = chunk_spans(bag, topics, config)
         except PotholeError as exc:
             unreadable[index] = DriveSurvey.unreadable(bag, str(exc))
             continue
         plans.append((Path(bag), topics, spans))
-        total += count
-    if chunks is not None:
-        chunked = chunks(plans, config, progress)
-    elif jobs > 1:
-        chunked = observe_in_processes(plans, config, jobs, progress)
-    else:
-        chunked, done = [], 0
-        for bag, topics, spans in plans:
-            per_bag: list[ChunkResult] = []
-            for span in spans:
-                def step(index: int, _: int, base: int = done) -> None:
-                    if progress is not None:
-                        progress(min(base + index, total), total)
-                observed, samples = observe(bag, topics, config, span, step)
-                per_bag.append((observed, samples))
-                done += len(observed)
-            chunked.append(per_bag)
-        if progress is not None:
-            progress(total, total)
+    if chunks is None:
+        chunks = observe_here if jobs <= 1 else \
+            (lambda plans, config, progress: observe_in_processes(plans, config, jobs, progress))
+    chunked = chunks(plans, config, progress)
     surveys, next_id = [], 1
     for (bag, topics, _), per_bag in zip(plans, chunked):
         observations = [o for observed, _ in per_bag for o in observed]
