@@ -58,8 +58,9 @@ class FailureTally:
 
 @dataclass
 class ProcessSummary:
-    """What :func:`process` did: frames processed, failed (by reason), potholes found, images
-    without a partner, messages that could not be read, time per processed frame."""
+    """What a run over a recording did (ros.bagtools.process, the survey): frames processed,
+    failed (by reason), potholes found, images without a partner, messages that could not be
+    read, time per processed frame."""
 
     frames: int = 0
     potholes: int = 0
