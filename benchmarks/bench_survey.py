@@ -43,9 +43,8 @@ from pothole_detector.recordings.writing import RecordingForm, write_drive_bag  
 from pothole_detector.survey.fleet import ray_chunks  # noqa: E402
 from pothole_detector.params import PARAMETER_BY_NAME, Config  # noqa: E402
 from pothole_detector.survey.report import write_report  # noqa: E402
-from pothole_detector.survey.drive import (ChunkRunner, best_view_picture,  # noqa: E402
-                                           observe_here, observe_in_processes, survey,
-                                           write_csv)
+from pothole_detector.survey.drive import (best_view_picture, chunk_runner,  # noqa: E402
+                                           survey, write_csv)
 from pothole_detector.evaluation.synthetic import (raw_camera, render, render_raw,  # noqa: E402
                                                    survey_drive)
 
@@ -79,9 +78,7 @@ def bench(bag: Path, config: Config, ray_gpus: int | None, jobs: int, out: Path
     before the clock. Returns (seconds, of which observing the chunks, frames, potholes); the
     rest is this process's: planning, assembling (poses, tracking, the road maps, the rows),
     survey.csv and report.html."""
-    runner: ChunkRunner = ray_chunks() if ray_gpus is not None else observe_here \
-        if jobs <= 1 else (lambda plans, values, progress:
-                           observe_in_processes(plans, values, jobs, progress))
+    runner = ray_chunks() if ray_gpus is not None else chunk_runner(jobs)
     observing: list[float] = []
 
     def timed(plans: Any, values: Config, progress: Any) -> Any:

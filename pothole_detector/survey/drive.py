@@ -16,7 +16,7 @@ import os
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, NamedTuple, Sequence
 
 import cv2
 import numpy as np
@@ -814,10 +814,19 @@ def drive_topics(bag: str | Path, **names: Any) -> DriveTopics:
     return find_drive_topics(bags.topics_of(bag), **names)
 
 
-Plan = tuple[Path, DriveTopics, list[bags.LogSpan]]
+class Plan(NamedTuple):
+    """One bag of a survey: its path, topics, chunks (:func:`chunk_spans`) and left images (an
+    upper bound of its stereo frames)."""
+
+    bag: Path
+    topics: DriveTopics
+    spans: list[bags.LogSpan]
+    left_images: int
+
+
 ChunkResult = tuple[list[FrameObservation], MotionSamples]
-# runs the chunks of every (bag, topics, chunk spans) plan with the config, reporting
-# (done, total) to the progress callback; per bag, its chunks' results in order
+# runs the chunks of every plan with the config, reporting (done, total) to the progress
+# callback; per bag, its chunks' results in order
 ChunkRunner = Callable[[Sequence[Plan], Config, Callable[[int, int], None] | None],
                        list[list[ChunkResult]]]
 
@@ -845,7 +854,7 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
                              initializer=set_host_threads, initargs=(threads,)) as pool:
         futures = [[pool.submit(observe_chunk, str(bag), topics, values, span)
-                    for span in spans] for bag, topics, spans in plans]
+                    for span in spans] for bag, topics, spans, _ in plans]
         flat = [future for per_bag in futures for future in per_bag]
         for done, _ in enumerate(as_completed(flat), 1):
             if progress is not None:
@@ -853,23 +862,14 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
         return [[future.result() for future in per_bag] for per_bag in futures]
 
 
-def _left_images(bag: str | Path, topics: DriveTopics) -> int:
-    reader = bags.open_bag(bag)
-    try:
-        return bags.message_count(reader, topics.stereo.left)
-    finally:
-        reader.close()
-
-
 def observe_here(plans: Sequence[Plan], config: Config,
                  progress: Callable[[int, int], None] | None = None
                  ) -> list[list[ChunkResult]]:
-    """:func:`observe` of every (bag, topics, chunk spans) plan, one chunk after the other in
-    this process; per bag, in chunk order. ``progress(done, total)`` counts frames."""
-    total = sum(_left_images(bag, topics) for bag, topics, _ in plans) \
-        if progress is not None else 0
+    """:func:`observe` of every plan's chunks, one after the other in this process; per bag,
+    in chunk order. ``progress(done, total)`` counts frames."""
+    total = sum(plan.left_images for plan in plans)
     chunked, done = [], 0
-    for bag, topics, spans in plans:
+    for bag, topics, spans, _ in plans:
         per_bag: list[ChunkResult] = []
         for span in spans:
             def step(index: int, _: int, base: int = done) -> None:
@@ -882,6 +882,14 @@ def observe_here(plans: Sequence[Plan], config: Config,
     if progress is not None:
         progress(total, total)
     return chunked
+
+
+def chunk_runner(jobs: int) -> ChunkRunner:
+    """The ChunkRunner of a survey on this machine: :func:`observe_here` for one job, else
+    :func:`observe_in_processes` in ``jobs`` worker processes."""
+    if jobs <= 1:
+        return observe_here
+    return lambda plans, config, progress: observe_in_processes(plans, config, jobs, progress)
 
 
 def survey(bags: Iterable[str | Path], config: Config,
@@ -897,17 +905,14 @@ def survey(bags: Iterable[str | Path], config: Config,
     for index, bag in enumerate(bags):
         try:
             topics = drive_topics(bag, **names)
-            _, spans = chunk_spans(bag, topics, config)
+            left_images, spans = chunk_spans(bag, topics, config)
         except PotholeError as exc:
             unreadable[index] = DriveSurvey.unreadable(bag, str(exc))
             continue
-        plans.append((Path(bag), topics, spans))
-    if chunks is None:
-        chunks = observe_here if jobs <= 1 else \
-            (lambda plans, config, progress: observe_in_processes(plans, config, jobs, progress))
-    chunked = chunks(plans, config, progress)
+        plans.append(Plan(Path(bag), topics, spans, left_images))
+    chunked = (chunks or chunk_runner(jobs))(plans, config, progress)
     surveys, next_id = [], 1
-    for (bag, topics, _), per_bag in zip(plans, chunked):
+    for (bag, topics, _, _), per_bag in zip(plans, chunked):
         observations = [o for observed, _ in per_bag for o in observed]
         motion = motion_series((samples for _, samples in per_bag), topics)
         drive = assemble(bag, observations, motion, config, next_id, topics)

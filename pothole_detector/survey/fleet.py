@@ -48,7 +48,8 @@ def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = 
         values = {**config.as_dict(), "backend": backend}
         on_gpu = backend == "gpu"
         cores = cores_per_gpu(ray.nodes()) if on_gpu else 1
-        chunks = [(str(bag), topics, span) for bag, topics, spans in plans for span in spans]
+        chunks = [(str(bag), topics, span) for bag, topics, spans, _ in plans
+                  for span in spans]
         if not chunks:
             return [[] for _ in plans]
         slots = gpus if on_gpu else int(resources.get("CPU", 1))
@@ -60,7 +61,7 @@ def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = 
             for worker in workers:
                 ray.kill(worker)
         per_bag, at = [], 0
-        for _, _, spans in plans:
+        for _, _, spans, _ in plans:
             per_bag.append(results[at:at + len(spans)])
             at += len(spans)
         return per_bag
