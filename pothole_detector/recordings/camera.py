@@ -15,10 +15,9 @@ from ..errors import CalibrationError
 from ..params import PARAMETER_BY_NAME
 from ..stages.rectify import Rectification
 from .messages import message
+from .topics import INFO_TYPE
 
 RECTIFY_CHOICES = PARAMETER_BY_NAME["rectify"].choices or ()
-
-CameraInfo = message("sensor_msgs/msg/CameraInfo")
 
 
 def camera_model(info: Any) -> CameraModel:
@@ -78,9 +77,9 @@ def pipeline_inputs(camera: StereoCamera, mode: str
 
 def camera_info_of(model: CameraModel, header: Any) -> Any:
     """sensor_msgs/CameraInfo of a calibrated camera (its raw images: D, K, R and P)."""
-    return CameraInfo(header=header, width=model.width, height=model.height,
-                      distortion_model=model.distortion_model, d=list(model.d),
-                      k=list(model.k), r=list(model.r), p=list(model.p))
+    return message(INFO_TYPE)(header=header, width=model.width, height=model.height,
+                              distortion_model=model.distortion_model, d=list(model.d),
+                              k=list(model.k), r=list(model.r), p=list(model.p))
 
 
 def camera_info_message(calibration: StereoCalibration, width: int, height: int,
@@ -89,7 +88,8 @@ def camera_info_message(calibration: StereoCalibration, width: int, height: int,
     ``P[0,3] = -f * baseline``."""
     f, cx, cy = calibration.f, calibration.cx, calibration.cy
     tx = -f * calibration.baseline if right else 0.0
-    return CameraInfo(header=header, width=width, height=height, distortion_model="plumb_bob",
-                      d=[0.0] * 5, k=[f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
-                      r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                      p=[f, 0.0, cx, tx, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+    return message(INFO_TYPE)(header=header, width=width, height=height,
+                              distortion_model="plumb_bob", d=[0.0] * 5,
+                              k=[f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
+                              r=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                              p=[f, 0.0, cx, tx, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0])

@@ -20,8 +20,6 @@ from .messages import ROS, message
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
-Image = message(IMAGE_TYPE)
-CompressedImage = message(COMPRESSED_TYPE)
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 
 # encoding -> (dtype, channels as stored)
@@ -254,13 +252,14 @@ def array_to_image(pixels: np.ndarray, encoding: str, header: Any) -> Any:
     if pixels.ndim != (2 if channels == 1 else 3):
         raise InputError(f"{encoding} needs {'HxW' if channels == 1 else 'HxWxC'} pixels")
     height, width = pixels.shape[:2]
-    return Image(header=header, height=height, width=width, encoding=encoding,
-                 is_bigendian=0, step=width * channels * dtype.itemsize, data=byte_field(pixels))
+    return message(IMAGE_TYPE)(header=header, height=height, width=width, encoding=encoding,
+                               is_bigendian=0, step=width * channels * dtype.itemsize,
+                               data=byte_field(pixels))
 
 
 def compressed_image(pixels: np.ndarray, codec: str, header: Any) -> Any:
     """A sensor_msgs/CompressedImage of HxW grey or HxWx3 RGB ``pixels`` compressed with
     ``codec`` (jpeg or png) as image_transport's compressed transport writes it."""
-    return CompressedImage(header=header, format=compressed_format_string(pixels, codec),
-                           data=byte_field(np.frombuffer(encode_compressed(pixels, codec),
-                                                     np.uint8)))
+    compressed = np.frombuffer(encode_compressed(pixels, codec), np.uint8)
+    return message(COMPRESSED_TYPE)(header=header, format=compressed_format_string(pixels, codec),
+                                    data=byte_field(compressed))

@@ -18,11 +18,7 @@ from ..stages.measure import Pothole, depth_below_road
 from ..stages.road_model import RoadModel
 
 Duration = message("builtin_interfaces/msg/Duration")
-Time = message("builtin_interfaces/msg/Time")
 Point = message("geometry_msgs/msg/Point")
-CameraInfo = message("sensor_msgs/msg/CameraInfo")
-CompressedImage = message("sensor_msgs/msg/CompressedImage")
-Image = message("sensor_msgs/msg/Image")
 PointCloud2 = message("sensor_msgs/msg/PointCloud2")
 PointField = message("sensor_msgs/msg/PointField")
 RegionOfInterest = message("sensor_msgs/msg/RegionOfInterest")
