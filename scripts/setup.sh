@@ -12,3 +12,4 @@ fi
 scripts/build_msgs.sh
 # the CPU kernels (Numba) compiled into their cache now: no first run waits for the compiler
 .venv/bin/python -m pothole_detector.stages
+.venv/bin/python -c "from pothole_detector.survey.roadmap import compile_map_kernels as c; c()"

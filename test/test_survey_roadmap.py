@@ -12,8 +12,9 @@ from pothole_detector.backend import gpu_available
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.survey.motion import road_frame
-from pothole_detector.survey.roadmap import (TILE_CELLS, RoadMap, near_potholes,
-                                             result_patch, road_map, road_patch, sample_pixels)
+from pothole_detector.survey.roadmap import (TILE_CELLS, VIEW_SHARE, RoadMap, Tile,
+                                             near_potholes, result_patch, road_map, road_patch,
+                                             sample_pixels)
 
 
 def flat_map(**changes) -> RoadMap:
@@ -98,6 +99,65 @@ def test_the_rolling_window_keeps_memory_flat_over_a_long_drive():
         counts.append(len(roadmap.tiles))
     assert max(counts) <= 8 and max(counts[len(counts) // 2:]) == max(counts[:len(counts) // 2])
 
+
+def splat_by_bincount(tiles: dict, cell_m: float, xy, depth, sigma) -> None:
+    """The fusion's definition in NumPy: each finite sample with sigma > 0 shared over its four
+    nearest cell centres bilinearly, per tile and cell the frame's float64 sums (in sample
+    order, corners (0, 0), (1, 0), (0, 1), (1, 1) one after the other) added once to the
+    float32 sums; a view where the shares sum to VIEW_SHARE."""
+    good = np.isfinite(depth) & np.isfinite(sigma) & (sigma > 0) & np.isfinite(xy).all(1)
+    grid = np.asarray(xy, np.float64)[good] / cell_m - 0.5
+    base = np.floor(grid).astype(np.int64)
+    fx, fy = (grid - base).T
+    weight = 1.0 / np.square(sigma[good].astype(np.float64))
+    corners = [(0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy),
+               (1, 1, fx * fy)]
+    cx = np.concatenate([base[:, 0] + dx for dx, _, _ in corners])
+    cy = np.concatenate([base[:, 1] + dy for _, dy, _ in corners])
+    share = np.concatenate([s for _, _, s in corners])
+    w = share * np.tile(weight, 4)
+    wz = w * np.tile(depth[good].astype(np.float64), 4)
+    size = TILE_CELLS * TILE_CELLS
+    for tx, ty in set(zip(cx // TILE_CELLS, cy // TILE_CELLS)):
+        mine = (cx // TILE_CELLS == tx) & (cy // TILE_CELLS == ty)
+        cells = (cy[mine] - ty * TILE_CELLS) * TILE_CELLS + cx[mine] - tx * TILE_CELLS
+        tile = tiles.setdefault((int(tx), int(ty)), Tile.new())
+        tile.weight.ravel()[:] += np.bincount(cells, w[mine], size)
+        tile.weighted.ravel()[:] += np.bincount(cells, wz[mine], size)
+        seen = np.bincount(cells, share[mine], size) >= VIEW_SHARE
+        tile.views.ravel()[seen] += 1
+
+
+def test_the_fusion_adds_each_frame_as_its_definition_does_to_the_bit():
+    """Frames of float16 samples over tiles on both sides of the origin, some exactly on cell
+    centres (shares of zero), some not finite or with a sigma of zero: the map's tiles equal,
+    bit for bit, those of the fusion's definition in NumPy."""
+    rng = np.random.default_rng(3)
+    roadmap, expected = flat_map(), {}
+    for frame in range(40):
+        count = int(rng.integers(0, 2000))
+        xy = rng.normal(0, 2.0, 2) + rng.normal(0, 1.0, (count, 2))
+        if frame % 5 == 0:
+            xy = (np.round(xy / 0.02) + 0.5) * 0.02
+        depth = rng.normal(0.0, 0.01, count).astype(np.float16)
+        sigma = np.abs(rng.normal(0.003, 0.002, count)).astype(np.float16)
+        depth[::11], sigma[::13], xy[::17, 0] = np.nan, 0, np.inf
+        roadmap.add(xy, depth, sigma)
+        splat_by_bincount(expected, 0.02, xy, depth, sigma)
+    assert len(expected) > 8 and set(roadmap.tiles) == set(expected)
+    for key, tile in expected.items():
+        for name in ("weight", "weighted", "views"):
+            mine, theirs = getattr(roadmap.tiles[key], name), getattr(tile, name)
+            assert mine.dtype == theirs.dtype and np.array_equal(mine, theirs), (key, name)
+
+
+def test_a_cell_counts_views_up_to_the_uint16_maximum():
+    roadmap = flat_map()
+    roadmap.add(np.array([[0.01, 0.01]]), np.array([0.01]), np.array([0.001]))
+    roadmap.tiles[(0, 0)].views[0, 0] = np.iinfo(np.uint16).max - 1
+    for _ in range(3):
+        roadmap.add(np.array([[0.01, 0.01]]), np.array([0.01]), np.array([0.001]))
+    assert roadmap.tiles[(0, 0)].views[0, 0] == np.iinfo(np.uint16).max
 
 def test_near_potholes_grows_each_box_by_its_size():
     rows, cols = np.nonzero(np.ones((20, 30), bool))

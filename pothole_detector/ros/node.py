@@ -47,7 +47,7 @@ from ..recordings.images import COMPRESSED_TYPE, IMAGE_TYPE, decode
 from ..stages import host_kernels
 from ..recordings.sync import StereoSynchronizer
 from ..survey.motion import Pose2, RoadFrame, interpolate_poses, planar_pose, road_frame
-from ..survey.roadmap import LiveMap
+from ..survey.roadmap import LiveMap, compile_map_kernels
 from ..survey.tracking import MAX_ID, PotholeTracker, sightings_of
 from .transport import large_image_transport
 
@@ -305,11 +305,14 @@ class PotholeDetectorNode(Node):
 
     def _warm_up(self) -> None:
         """The worker's start: the backend made and, on the CPU, the kernels compiled (or
-        loaded from Numba's cache) before the first frame; sets arriving meanwhile wait (up to
-        WARM_UP_WAITING_SETS) and the diagnostics say so."""
+        loaded from Numba's cache) before the first frame, the road map's too where the map
+        is on; sets arriving meanwhile wait (up to WARM_UP_WAITING_SETS) and the diagnostics
+        say so."""
         config = self._config
         if not self._backend_for(config).is_gpu:
             host_kernels.compile_cpu_kernels(census=config.matcher == "census")
+        if config.map_cell_m > 0:
+            compile_map_kernels()
         with self._lock:
             self._warming_up = False
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any, Iterator, Sequence
 
 import cv2
+import numba
 import numpy as np
 
 from ..calibration import StereoCalibration
@@ -258,6 +259,8 @@ class RoadMap:
         self.min_area_m2 = min_area_m2
         self.min_depth_m = min_depth_m
         self.tiles: dict[tuple[int, int], Tile] = {}
+        self._sums = np.zeros((3, TILE_CELLS * TILE_CELLS))
+        self._touched = np.zeros(TILE_CELLS * TILE_CELLS, bool)
 
     @property
     def tile_m(self) -> float:
@@ -266,41 +269,21 @@ class RoadMap:
     def add(self, xy: np.ndarray, depth: np.ndarray, sigma: np.ndarray) -> None:
         """Fuse one frame's samples: ``xy`` (K, 2) places in the map frame (m), ``depth`` and
         ``sigma`` (K,) m. Each sample is splatted onto its four nearest cell centres with
-        bilinear shares of its weight 1/sigma^2."""
-        good = np.isfinite(depth) & np.isfinite(sigma) & (sigma > 0) & np.isfinite(xy).all(1)
-        if not good.any():
-            return
-        grid = np.asarray(xy, np.float64)[good] / self.cell_m - 0.5
-        base = np.floor(grid).astype(np.int64)
-        frac = grid - base
-        weight = 1.0 / np.square(sigma[good].astype(np.float64))
-        value = depth[good].astype(np.float64)
-        corners = [(0, 0, (1 - frac[:, 0]) * (1 - frac[:, 1])),
-                   (1, 0, frac[:, 0] * (1 - frac[:, 1])),
-                   (0, 1, (1 - frac[:, 0]) * frac[:, 1]), (1, 1, frac[:, 0] * frac[:, 1])]
-        cx = np.concatenate([base[:, 0] + dx for dx, _, _ in corners])
-        cy = np.concatenate([base[:, 1] + dy for _, dy, _ in corners])
-        share = np.concatenate([s for _, _, s in corners])
-        w = share * np.tile(weight, 4)
-        wz = w * np.tile(value, 4)
-        tile_x, tile_y = np.floor_divide(cx, TILE_CELLS), np.floor_divide(cy, TILE_CELLS)
-        local = (cy - tile_y * TILE_CELLS) * TILE_CELLS + (cx - tile_x * TILE_CELLS)
-        low_x, low_y = tile_x.min(), tile_y.min()
-        span = tile_y.max() - low_y + 1
-        keys, which = np.unique((tile_x - low_x) * span + (tile_y - low_y), return_inverse=True)
-        tiles = np.stack([keys // span + low_x, keys % span + low_y], axis=1)
-        size = TILE_CELLS * TILE_CELLS
-        for index, (tx, ty) in enumerate(tiles):
-            mine = which == index
-            tile = self.tiles.get((int(tx), int(ty)))
+        bilinear shares of its weight 1/sigma^2; per cell, the frame's shares are summed in
+        float64 and added once to the tile's float32 sums (:func:`_tile_entries`,
+        :func:`_fuse_into_tile`)."""
+        keys, bounds, local, w, wz, share = _tile_entries(
+            np.ascontiguousarray(xy, np.float64).reshape(-1, 2),
+            np.ascontiguousarray(depth, np.float64), np.ascontiguousarray(sigma, np.float64),
+            self.cell_m)
+        for index, (tx, ty) in enumerate(keys.tolist()):
+            tile = self.tiles.get((tx, ty))
             if tile is None:
-                tile = self.tiles[(int(tx), int(ty))] = Tile.new()
-            cells = local[mine]
-            tile.weight.ravel()[:] += np.bincount(cells, w[mine], size)
-            tile.weighted.ravel()[:] += np.bincount(cells, wz[mine], size)
-            seen = np.bincount(cells, share[mine], size) >= VIEW_SHARE
-            tile.views.ravel()[seen] = np.minimum(tile.views.ravel()[seen].astype(np.int64) + 1,
-                                                  np.iinfo(np.uint16).max)
+                tile = self.tiles[(tx, ty)] = Tile.new()
+            part = slice(bounds[index], bounds[index + 1])
+            _fuse_into_tile(local[part], w[part], wz[part], share[part], tile.weight.ravel(),
+                            tile.weighted.ravel(), tile.views.ravel(), VIEW_SHARE,
+                            self._sums, self._touched)
 
     def views_at(self, xy: np.ndarray) -> np.ndarray:
         """The views (int (N,)) of the cells at ``xy`` (N, 2) m in the map frame."""
@@ -474,6 +457,110 @@ class RoadMap:
                                        cv2.CHAIN_APPROX_SIMPLE)
         largest = max(contours, key=cv2.contourArea).reshape(-1, 2).astype(np.float64)
         return np.asarray(origin) + (largest + 0.5) * self.cell_m
+
+
+def compile_map_kernels() -> None:
+    """The map's fusion kernels (Numba's) compiled, or loaded from Numba's cache, now: set-up
+    and the live node's start call it, so that no frame waits for the compiler."""
+    road_map(Config()).add(np.full((1, 2), 0.5), np.zeros(1), np.ones(1))
+
+
+@numba.njit(cache=True)
+def _tile_entries(xy: np.ndarray, depth: np.ndarray, sigma: np.ndarray, cell_m: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                             np.ndarray]:
+    """The bilinear splat of the samples at ``xy`` (K, 2 m) with heights ``depth`` and
+    standard deviations ``sigma`` (K,) m, float64, that are finite with sigma > 0: four entries
+    a sample (its cell corners (0, 0), (1, 0), (0, 1), (1, 1) about the cell centre below it,
+    every sample's first corner first), grouped by the tile they fall in, tiles in the order
+    first met, entries in their order within a tile. Returns the tiles' (tx, ty) int64 (T, 2),
+    their entries' bounds int64 (T + 1,) and per entry its cell in the tile (row-major, int64),
+    its weight share * 1/sigma^2 (1/m^2), that times the height (m/m^2) and its share."""
+    good = np.zeros(len(depth), np.int64)
+    count = 0
+    for i in range(len(depth)):
+        if (np.isfinite(depth[i]) and np.isfinite(sigma[i]) and sigma[i] > 0
+                and np.isfinite(xy[i, 0]) and np.isfinite(xy[i, 1])):
+            good[count] = i
+            count += 1
+    entries = 4 * count
+    cx = np.empty(entries, np.int64)
+    cy = np.empty(entries, np.int64)
+    share = np.empty(entries)
+    w = np.empty(entries)
+    wz = np.empty(entries)
+    for n in range(count):
+        i = good[n]
+        gx, gy = xy[i, 0] / cell_m - 0.5, xy[i, 1] / cell_m - 0.5
+        bx, by = np.floor(gx), np.floor(gy)
+        fx, fy = gx - bx, gy - by
+        weight = 1.0 / (sigma[i] * sigma[i])
+        for corner in range(4):
+            dx, dy = corner % 2, corner // 2
+            e = corner * count + n
+            cx[e], cy[e] = np.int64(bx) + dx, np.int64(by) + dy
+            share[e] = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
+            w[e] = share[e] * weight
+            wz[e] = w[e] * depth[i]
+    seen = np.empty((entries, 2), np.int64)
+    slot = np.empty(entries, np.int64)
+    sizes = np.zeros(entries + 1, np.int64)
+    tiles, found = 0, -1
+    for e in range(entries):
+        tx, ty = cx[e] // TILE_CELLS, cy[e] // TILE_CELLS
+        if found < 0 or tx != seen[found, 0] or ty != seen[found, 1]:
+            found = 0
+            while found < tiles and (seen[found, 0] != tx or seen[found, 1] != ty):
+                found += 1
+            if found == tiles:
+                seen[found, 0], seen[found, 1] = tx, ty
+                tiles += 1
+        slot[e] = found
+        sizes[found + 1] += 1
+    keys = seen[:tiles]
+    bounds = np.cumsum(sizes[:tiles + 1])
+    at = bounds[:tiles].copy()
+    order = np.empty(entries, np.int64)
+    for e in range(entries):
+        order[at[slot[e]]] = e
+        at[slot[e]] += 1
+    local = np.empty(entries, np.int64)
+    for n in range(entries):
+        e = order[n]
+        tx, ty = keys[slot[e], 0], keys[slot[e], 1]
+        local[n] = (cy[e] - ty * TILE_CELLS) * TILE_CELLS + (cx[e] - tx * TILE_CELLS)
+    return keys, bounds, local, w[order], wz[order], share[order]
+
+
+@numba.njit(cache=True)
+def _fuse_into_tile(local: np.ndarray, w: np.ndarray, wz: np.ndarray, share: np.ndarray,
+                    weight: np.ndarray, weighted: np.ndarray, views: np.ndarray,
+                    view_share: float, sums: np.ndarray, touched: np.ndarray) -> None:
+    """One frame's entries of one tile (:func:`_tile_entries`) fused into the tile's flat
+    float32 sums ``weight`` and ``weighted`` and uint16 ``views`` (TILE_CELLS^2,): per cell,
+    the entries' float64 sums, in entry order, each added once to the float32 sum; a view
+    more where the shares sum to ``view_share`` or more (at most the uint16 maximum).
+    ``sums`` float64 (3, TILE_CELLS^2) and ``touched`` bool (TILE_CELLS^2,): scratch, zero on
+    entry and left zero."""
+    first = np.empty(len(local), np.int64)
+    count = 0
+    for e in range(len(local)):
+        cell = local[e]
+        if not touched[cell]:
+            touched[cell] = True
+            first[count] = cell
+            count += 1
+        sums[0, cell] += w[e]
+        sums[1, cell] += wz[e]
+        sums[2, cell] += share[e]
+    for n in range(count):
+        cell = first[n]
+        weight[cell] = np.float32(np.float64(weight[cell]) + sums[0, cell])
+        weighted[cell] = np.float32(np.float64(weighted[cell]) + sums[1, cell])
+        if sums[2, cell] >= view_share and views[cell] < 65535:
+            views[cell] += 1
+        sums[:, cell] = 0.0
+        touched[cell] = False
 
 
 class LiveMap:
