@@ -14,10 +14,11 @@ import numpy as np
 from numba import types
 from numba.extending import intrinsic
 
-_OUTSIDE = 1 << 20
 # A path cost above any real one (31 + P2 <= 127): the sentinel at both ends of a path's levels
 # (index 0 and D + 1), so that every level takes the same steps; plus P1 it fits int16.
 _FAR = 1 << 14
+# Above any sum of the eight path costs (uint16, at most 8 x 127): "none" in the winner search.
+_NO_SUM = (1 << 16) - 1
 
 
 @intrinsic
@@ -160,39 +161,47 @@ def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
 
 @numba.njit(parallel=True, cache=True)
 def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> np.ndarray:
-    """select_disparities' kernel: rows on the threads, each with its right view's winners.
-    Minima are branch-free reductions, a winner the first level at its minimum (the lowest d
-    of ties)."""
+    """select_disparities' kernel: rows on the threads. A row's right view's winners come from
+    one pass over its pixels: pixel u's sums at levels d = 0, 1, ... are candidates of right
+    pixels u, u - 1, ..., kept mirrored (right pixel x at width - 1 - x) so that each pixel's
+    levels meet them in order, as vectors. Minima are branch-free uint16 reductions (sums
+    are at most 8 x 127), a winner the first level at its minimum (the lowest d of ties)."""
     height, width, levels = total.shape
+    none = np.uint16(_NO_SUM)
     raw = np.empty((height, width), dtype=np.float32)
     for v in numba.prange(height):
         row = total[v]
-        right_best = np.empty(width, dtype=np.int32)
-        for x in range(width):
-            right_least = np.int32(_OUTSIDE)
-            for d in range(min(levels, width - x)):
-                right_least = min(right_least, np.int32(row[x + d, d]))
-            best = 0
-            while row[x + best, best] != right_least:
-                best += 1
-            right_best[x] = best
+        mirrored_least = np.full(width, none, dtype=np.uint16)
+        mirrored_best = np.zeros(width, dtype=np.uint16)
         for u in range(width):
-            sums = total[v, u]
-            least = np.int32(_OUTSIDE)
+            sums = row[u]
+            first = width - 1 - u
+            count = min(levels, u + 1)
+            right_least = mirrored_least[first:first + count]
+            right_best = mirrored_best[first:first + count]
+            for d in range(count):
+                value = sums[d]
+                better = value < right_least[d]
+                right_best[d] = np.uint16(d) if better else right_best[d]
+                right_least[d] = value if better else right_least[d]
+        for u in range(width):
+            sums = row[u]
+            least = none
             for d in range(levels):
-                least = min(least, np.int32(sums[d]))
-            best = 0
-            while sums[best] != least:
-                best += 1
-            second = np.int32(_OUTSIDE)
+                least = min(least, sums[d])
+            first_least = none
             for d in range(levels):
-                second = min(second, np.int32(sums[d]) if abs(d - best) > 1 else _OUTSIDE)
-            valid = uniqueness_percent == 0 or second == _OUTSIDE \
+                first_least = min(first_least, np.uint16(d) if sums[d] == least else none)
+            best = np.int64(first_least)
+            second = none
+            for d in range(levels):
+                second = min(second, sums[d] if abs(d - best) > 1 else none)
+            valid = uniqueness_percent == 0 or second == none \
                 or 100 * np.int64(least) < (100 - uniqueness_percent) * np.int64(second)
             target = u - best
             valid = valid and target >= 0
             if valid and lr_max_diff_px >= 0:
-                valid = abs(right_best[target] - best) <= lr_max_diff_px
+                valid = abs(np.int64(mirrored_best[width - 1 - target]) - best) <= lr_max_diff_px
             if not valid:
                 raw[v, u] = -1.0
             elif 0 < best < levels - 1:
