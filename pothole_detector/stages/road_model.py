@@ -225,12 +225,20 @@ def _fit_curvature(xp: Any, design: Any, residual: Any, mask: Any) -> tuple[floa
 
 def masked_median(xp: Any, values: Any, mask: Any) -> tuple[Any, Any]:
     """The median of ``values`` where the bool ``mask`` holds (the mean of the two middle ones
-    for an even count; meaningless for none) and that count, as 0-d backend arrays: a sort
-    with the others last and a take at the count, nothing read back."""
-    ordered = xp.sort(xp.where(mask, values, xp.inf).reshape(-1))
+    for an even count; meaningless for none) and that count, as 0-d backend arrays: the others
+    set to infinity, the elements at the two middle places of the masked count in sorted
+    order. On the device a sort and a take at the count, nothing read back; on the host a
+    partition at those places (the same elements, without sorting the rest)."""
+    filled = xp.where(mask, values, xp.inf).reshape(-1)
     count = xp.count_nonzero(mask)
-    low = xp.take(ordered, xp.maximum((count - 1) // 2, 0))
-    high = xp.take(ordered, xp.minimum(count // 2, ordered.size - 1))
+    if xp is np:
+        places = (max((int(count) - 1) // 2, 0), min(int(count) // 2, filled.size - 1))
+        ordered = np.partition(filled, places)
+        low, high = ordered[places[0]], ordered[places[1]]
+    else:
+        ordered = xp.sort(filled)
+        low = xp.take(ordered, xp.maximum((count - 1) // 2, 0))
+        high = xp.take(ordered, xp.minimum(count // 2, ordered.size - 1))
     return (low + high) / 2, count
 
 
