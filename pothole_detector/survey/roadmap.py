@@ -29,6 +29,8 @@ MIN_NOISE_PX = 0.05
 VIEW_SHARE = 0.25
 # rounds of the local road level that leave out the cells below the last one
 LEVEL_ROUNDS = 3
+# the views a cell counts up to (Tile.views is uint16)
+_MOST_VIEWS = np.iinfo(np.uint16).max
 
 
 @dataclass(frozen=True, eq=False)
@@ -504,6 +506,7 @@ def _tile_entries(xy: np.ndarray, depth: np.ndarray, sigma: np.ndarray, cell_m: 
             wz[e] = w[e] * depth[i]
     seen = np.empty((entries, 2), np.int64)
     slot = np.empty(entries, np.int64)
+    local = np.empty(entries, np.int64)
     sizes = np.zeros(entries + 1, np.int64)
     tiles, found = 0, -1
     for e in range(entries):
@@ -516,20 +519,15 @@ def _tile_entries(xy: np.ndarray, depth: np.ndarray, sigma: np.ndarray, cell_m: 
                 seen[found, 0], seen[found, 1] = tx, ty
                 tiles += 1
         slot[e] = found
+        local[e] = (cy[e] - ty * TILE_CELLS) * TILE_CELLS + (cx[e] - tx * TILE_CELLS)
         sizes[found + 1] += 1
-    keys = seen[:tiles]
     bounds = np.cumsum(sizes[:tiles + 1])
     at = bounds[:tiles].copy()
     order = np.empty(entries, np.int64)
     for e in range(entries):
         order[at[slot[e]]] = e
         at[slot[e]] += 1
-    local = np.empty(entries, np.int64)
-    for n in range(entries):
-        e = order[n]
-        tx, ty = keys[slot[e], 0], keys[slot[e], 1]
-        local[n] = (cy[e] - ty * TILE_CELLS) * TILE_CELLS + (cx[e] - tx * TILE_CELLS)
-    return keys, bounds, local, w[order], wz[order], share[order]
+    return seen[:tiles], bounds, local[order], w[order], wz[order], share[order]
 
 
 @numba.njit(cache=True)
@@ -542,22 +540,22 @@ def _fuse_into_tile(local: np.ndarray, w: np.ndarray, wz: np.ndarray, share: np.
     more where the shares sum to ``view_share`` or more (at most the uint16 maximum).
     ``sums`` float64 (3, TILE_CELLS^2) and ``touched`` bool (TILE_CELLS^2,): scratch, zero on
     entry and left zero."""
-    first = np.empty(len(local), np.int64)
+    touched_cells = np.empty(len(local), np.int64)
     count = 0
     for e in range(len(local)):
         cell = local[e]
         if not touched[cell]:
             touched[cell] = True
-            first[count] = cell
+            touched_cells[count] = cell
             count += 1
         sums[0, cell] += w[e]
         sums[1, cell] += wz[e]
         sums[2, cell] += share[e]
     for n in range(count):
-        cell = first[n]
+        cell = touched_cells[n]
         weight[cell] = np.float32(np.float64(weight[cell]) + sums[0, cell])
         weighted[cell] = np.float32(np.float64(weighted[cell]) + sums[1, cell])
-        if sums[2, cell] >= view_share and views[cell] < 65535:
+        if sums[2, cell] >= view_share and views[cell] < _MOST_VIEWS:
             views[cell] += 1
         sums[:, cell] = 0.0
         touched[cell] = False
