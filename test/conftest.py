@@ -105,11 +105,10 @@ def rewrite_bag(source, out, log_time=lambda topic, timestamp: timestamp,
     gives them."""
     from pothole_detector.recordings.bags import cdr_bytes, open_bag
     from pothole_detector.recordings.messages import typestore
-    from pothole_detector.recordings.writing import writer_for
+    from pothole_detector.recordings.bagwriter import BagWriter
 
     reader = open_bag(source)
-    writer = writer_for(out, "mcap")
-    writer.open()
+    writer = BagWriter(out, "mcap")
     try:
         store = typestore()
         connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)

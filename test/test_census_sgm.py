@@ -302,6 +302,20 @@ def test_cpu_matcher_gives_the_reference_disparities_exactly(height, width, leve
     assert np.isfinite(actual).mean() > 0.2
 
 
+def test_volumes_kept_between_frames_give_each_frame_its_own_disparities():
+    """Frames of other sizes and level counts in turn through one HostVolumes (grown, then
+    reused with the values the frame before left): each as a matcher with new volumes."""
+    volumes = census_sgm.HostVolumes()
+    rng = np.random.default_rng(8)
+    for height, width, levels in ((30, 70, 32), (12, 40, 16), (30, 70, 48), (30, 70, 32)):
+        left, right = textured_pair(height, width, rng.integers(4, 12, height), seed=levels)
+        shifts = row_shifts(rng.integers(0, 6, height))
+        kept = cpu_disparity(left, right, shifts, levels, 7, 86, 5, 1, True, volumes)
+        np.testing.assert_array_equal(
+            kept, cpu_disparity(left, right, shifts, levels, 7, 86, 5, 1, True))
+        assert np.isfinite(kept).mean() > 0.1
+
+
 def test_compiling_the_cpu_kernels_ahead_covers_what_a_frame_needs(demo_sample):
     """The node compiles the CPU kernels before it subscribes: a frame afterwards finds every
     kernel compiled for its argument types and compiles nothing more."""

@@ -26,6 +26,23 @@ def test_row_shifts_move_each_row_right_and_zero_fill():
     assert transform_right(np, colour, shifts)[2, 3, 1] == 9
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint32])
+def test_the_host_kernel_shifts_rows_as_the_gather_does(dtype):
+    """An HxW image on the host goes through the Numba kernel; an HxWx1 one through the gather
+    of source_columns, the device's form: the same pixels, for row and pixel shifts whose
+    lines rise, fall and reach zero within the row."""
+    rng = np.random.default_rng(3)
+    image = rng.integers(1, np.iinfo(dtype).max, (40, 97), dtype=dtype)
+    base = rng.integers(-20 * SHIFT_ONE, 30 * SHIFT_ONE, 40)
+    step = rng.integers(-SHIFT_ONE // 2, SHIFT_ONE // 2, 40)
+    for shifts in (shifts_table(base, step), row_shifts(rng.integers(0, 99, 40))):
+        expected = transform_right(np, image[:, :, None], shifts)[:, :, 0]
+        actual = transform_right(np, image, shifts)
+        assert actual.dtype == dtype
+        np.testing.assert_array_equal(actual, expected)
+        assert (actual == 0).any() and (actual != 0).any()
+
+
 def test_kappa_is_the_floored_line_clipped_at_zero():
     # row 0: 2.5 + 0.25 x; row 1: 1.75 - 0.5 x (reaches 0 at x = 3.5)
     shifts = shifts_table(np.array([5 * SHIFT_ONE // 2, 7 * SHIFT_ONE // 4]),

@@ -15,7 +15,8 @@ from pothole_detector.ros import bagtools, conversions  # noqa: E402
 from pothole_detector.recordings.images import IMAGE_TYPE, decode_raw  # noqa: E402
 from pothole_detector.recordings.messages import stamp_ns, typestore  # noqa: E402
 from pothole_detector.recordings.topics import INFO_TYPE  # noqa: E402
-from pothole_detector.recordings.writing import write_stereo_bag, writer_for  # noqa: E402
+from pothole_detector.recordings.bagwriter import BagWriter  # noqa: E402
+from pothole_detector.recordings.writing import write_stereo_bag  # noqa: E402
 from pothole_detector.recordings import bags  # noqa: E402
 from pothole_detector.errors import InputError  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
@@ -144,8 +145,7 @@ def test_committed_sample_bag_is_the_generators_output():
 
 def test_process_counts_unpaired_images(tmp_path, drive_bag):
     cut = tmp_path / "cut"
-    writer = writer_for(cut, "mcap")
-    writer.open()
+    writer = BagWriter(cut, "mcap")
     store = typestore()
     connections = {}
     with AnyReader([drive_bag], default_typestore=store) as reader:

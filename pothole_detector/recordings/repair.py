@@ -18,8 +18,6 @@ from typing import Iterator
 from mcap.exceptions import McapError
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 try:  # the zstd that rosbags reads mcap chunks with
     from compression import zstd  # type: ignore[import-not-found]
@@ -27,6 +25,7 @@ except ImportError:
     from backports import zstd
 
 from ..errors import InputError
+from .bagwriter import BagWriter
 from .messages import typestore
 
 _log = logging.getLogger(__name__)
@@ -77,9 +76,7 @@ def repaired_copy(path: Path) -> tuple[Path, int, str]:
     work = target.with_name(target.name + f".{id(target)}")
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    writer = Writer(work / "bag", version=9, storage_plugin=StoragePlugin.MCAP)
-    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-    writer.open()
+    writer = BagWriter(work / "bag", "mcap")
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     connections: dict[int, object] = {}

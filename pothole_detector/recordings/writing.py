@@ -12,33 +12,18 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 from rosbags.highlevel import AnyReader
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from ..calibration import StereoCamera
-from ..errors import InputError
 from ..geodesy import latlon_of
 from .bags import cdr_bytes
+from .bagwriter import BagWriter
 from .camera import camera_info_message, camera_info_of
 from .images import COMPRESSED_TYPE, IMAGE_TYPE, array_to_image, compressed_image, encode_raw
 from .messages import header_at, message, serialize, typestore
 from .topics import INFO_TYPE, StereoTopics
 
 
-def writer_for(path: str | Path, storage: str) -> Writer:
-    """A new ROS 2 bag (version 9) in ``storage`` mcap (zstd chunks) or sqlite3."""
-    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}.get(storage)
-    if plugin is None:
-        raise InputError(f"storage must be mcap or sqlite3, got {storage!r}")
-    if Path(path).exists():
-        raise InputError(f"{path} exists already; choose a new output path")
-    writer = Writer(Path(path), version=9, storage_plugin=plugin)
-    if plugin == StoragePlugin.MCAP:
-        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-    return writer
-
-
-def copy_messages(reader: AnyReader, writer: Writer, topics: Sequence[str]) -> None:
+def copy_messages(reader: AnyReader, writer: BagWriter, topics: Sequence[str]) -> None:
     """Copy the messages of ``topics`` from a bag into a new one (ROS 2 CDR), up to where
     the bag is damaged, if it is."""
     store = typestore()
@@ -143,8 +128,7 @@ def write_stereo_bag(out: str | Path, frames: Iterable[tuple[int, Any]],
     sample)`` gives more messages per frame by topic (``/odom``: nav_msgs/Odometry,
     ``/gnss/fix``: sensor_msgs/NavSatFix). Returns the number of frames written."""
     store = typestore()
-    writer = writer_for(out, storage)
-    writer.open()
+    writer = BagWriter(out, storage)
     image_type = COMPRESSED_TYPE if form.compression else IMAGE_TYPE
     names = form.topics or StereoTopics(
         *(f"{namespace}/{side}/image_rect" + ("/compressed" if form.compression else "")

@@ -19,7 +19,8 @@ from ..params import Config
 from ..recordings.bags import cdr_bytes, open_bag
 from ..recordings.messages import message, serialize, typestore
 from ..recordings.topics import find_stereo_topics
-from ..recordings.writing import copy_messages, writer_for
+from ..recordings.bagwriter import BagWriter
+from ..recordings.writing import copy_messages
 from ..replay import ProcessSummary, frame_results
 from .outputs import OFFLINE_OUTPUTS, OUTPUT_TYPES, failure_messages, output_messages
 from .transport import large_image_transport
@@ -119,13 +120,12 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
         large_image_transport()
         rclpy.init(args=[])
     node = rclpy.create_node("pothole_detector_recorder")
-    writer = writer_for(out, storage)
+    writer = BagWriter(out, storage)
     counts = {topic: 0 for topic in topics}
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE
                      if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    writer.open()
     try:
         connections: dict[str, Connection] = {}
         subscriptions = []
@@ -181,8 +181,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
         stereo = find_stereo_topics(bag_topics, left, right, left_info, right_info)
         _log.info(stereo.describe())
         namespace = stereo.namespace
-        writer = writer_for(out, storage)
-        writer.open()
+        writer = BagWriter(out, storage)
         store = typestore()
         try:
             output = {name: writer.add_connection(f"{namespace}/{name}", msgtype,

@@ -54,21 +54,22 @@ def census_words(padded: np.ndarray, offsets: np.ndarray, radius_y: int, radius_
 
 @numba.njit(parallel=True, cache=True)
 def _cost_volume(census_left: np.ndarray, transformed_right: np.ndarray, first: np.ndarray,
-                 levels: int, invalid_cost: int) -> np.ndarray:
-    """matching_cost's kernel: rows on the threads."""
-    height, width = census_left.shape
-    cost = np.empty((height, width, levels), dtype=np.uint8)
+                 invalid_cost: int, cost: np.ndarray) -> None:
+    """matching_cost's kernel, into ``cost``: rows on the threads. A row's right words are
+    reversed first, so that pixel u's levels d = 0, 1, ... read theirs (column u - d, at
+    width - 1 - u + d) forward, as vectors."""
+    height, width, levels = cost.shape
     for v in numba.prange(height):
-        right = transformed_right[v]
+        reversed_right = transformed_right[v, ::-1].copy()
         for u in range(width):
             word = census_left[v, u]
             out = cost[v, u]
             inside = min(levels, max(u - first[v] + 1, 0))
+            candidates = reversed_right[width - 1 - u:width - 1 - u + inside]
             for d in range(inside):
-                out[d] = _popcount(word ^ right[u - d])
+                out[d] = _popcount(word ^ candidates[d])
             for d in range(inside, levels):
                 out[d] = invalid_cost
-    return cost
 
 
 @numba.njit(inline="always")
@@ -215,19 +216,24 @@ def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> 
 
 
 def matching_cost(census_left: np.ndarray, transformed_right: np.ndarray, first: np.ndarray,
-                  levels: int, invalid_cost: int) -> np.ndarray:
+                  levels: int, invalid_cost: int, out: np.ndarray | None = None) -> np.ndarray:
     """uint8 HxWxD Hamming costs of the left census words (uint32 HxW) against column u - d of
     the GPT-transformed right ones; ``invalid_cost`` where u - d < ``first`` (int (H,), each
-    row's first column that shows a right pixel)."""
-    return _cost_volume(census_left, transformed_right, first.astype(np.int64), levels,
-                        invalid_cost)
+    row's first column that shows a right pixel; below 0 taken as 0). Into ``out`` (uint8
+    HxWxD) where given."""
+    if out is None:
+        out = np.empty((*census_left.shape, levels), dtype=np.uint8)
+    _cost_volume(census_left, transformed_right, np.maximum(first, 0).astype(np.int64),
+                 invalid_cost, out)
+    return out
 
 
-def path_sums(cost: np.ndarray, p1: int, p2: int) -> np.ndarray:
+def path_sums(cost: np.ndarray, p1: int, p2: int, out: np.ndarray | None = None
+              ) -> np.ndarray:
     """uint16 HxWxD sum S of the eight path costs L_r (census_sgm.DIRECTIONS) of the uint8
     HxWxD ``cost``: the two along the rows, then the three from above a row at a time down the
-    image, then the three from below up it."""
-    total = np.empty(cost.shape, dtype=np.uint16)
+    image, then the three from below up it. Into ``out`` (uint16 HxWxD) where given."""
+    total = np.empty(cost.shape, dtype=np.uint16) if out is None else out
     _write_row_paths(cost, total, p1, p2)
     _add_crossing_paths(cost, total, p1, p2, True)
     _add_crossing_paths(cost, total, p1, p2, False)

@@ -99,19 +99,38 @@ def finish(raw: np.ndarray, shifts: np.ndarray, median: bool,
     return np.where(invalid, np.float32(np.nan), disparity).astype(np.float32)
 
 
+class HostVolumes:
+    """The host matcher's cost (uint8) and path-sum (uint16) volumes, H x W x D, kept from
+    frame to frame and grown to the largest asked for: a new array's pages are mapped and
+    zeroed by the system at their first write, about 9 ms of a 1280x720 frame of 64 levels."""
+
+    def __init__(self) -> None:
+        self._cost = np.empty(0, dtype=np.uint8)
+        self._total = np.empty(0, dtype=np.uint16)
+
+    def take(self, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Views (cost, total) of ``shape`` into the held volumes (their values: any)."""
+        size = shape[0] * shape[1] * shape[2]
+        if self._cost.size < size:
+            self._cost = self._total = np.empty(0, dtype=np.uint8)  # freed before the new
+            self._cost = np.empty(size, dtype=np.uint8)
+            self._total = np.empty(size, dtype=np.uint16)
+        return self._cost[:size].reshape(shape), self._total[:size].reshape(shape)
+
+
 def cpu_disparity(left: np.ndarray, right: np.ndarray, shifts: np.ndarray, levels: int,
                   p1: int, p2: int, uniqueness_percent: int, lr_max_diff_px: int,
-                  median: bool) -> np.ndarray:
+                  median: bool, volumes: HostVolumes | None = None) -> np.ndarray:
     """The whole census SGM on the host: float32 HxW D1 (px, NaN invalid) of uint8 HxW images
     and the int32 (3, H) GPT ``shifts``, with stages/census_cpu.py's compiled kernels (the same
-    integers as the GPU's)."""
+    integers as the GPU's); its volumes in ``volumes`` where given, else new ones."""
     check_settings(left.shape, levels, p1, p2)
     census_left = census_transform(left)
     transformed = perspective.transform_right(np, census_transform(right), shifts)
-    cost = census_cpu.matching_cost(census_left, transformed, shifts[perspective.SHIFT_FIRST],
-                                    levels, INVALID_COST)
-    total = census_cpu.path_sums(cost, p1, p2)
-    del cost
+    cost, total = (volumes or HostVolumes()).take((*left.shape, levels))
+    census_cpu.matching_cost(census_left, transformed, shifts[perspective.SHIFT_FIRST],
+                             levels, INVALID_COST, cost)
+    census_cpu.path_sums(cost, p1, p2, total)
     raw = census_cpu.select_disparities(total, uniqueness_percent, lr_max_diff_px)
     return finish(raw, shifts, median, census_left, levels)
 

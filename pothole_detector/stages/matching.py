@@ -127,15 +127,16 @@ def sgm_disparity(left: np.ndarray, right: np.ndarray, levels: int, config: Conf
 
 class Matcher:
     """D1 of a rectified pair on one backend: census SGM or OpenCV SGBM (``config.matcher``).
-    Keeps the GPU buffers between frames."""
+    Keeps the GPU buffers, or the host census SGM's volumes, between frames."""
 
     def __init__(self, backend: Backend, lender: Matcher | None = None) -> None:
-        """``lender``: a matcher never run at the same time whose GPU path volume this one may
-        use (see census_sgm.GpuMatcher)."""
+        """``lender``: a matcher never run at the same time whose GPU path volume, or host
+        volumes, this one may use (see census_sgm.GpuMatcher and HostVolumes)."""
         self.backend = backend
         self._gpu = census_sgm.GpuMatcher(
             backend, lender=lender._gpu if lender is not None else None) \
             if backend.is_gpu else None
+        self._volumes = lender._volumes if lender is not None else census_sgm.HostVolumes()
 
     @property
     def generation(self) -> int:
@@ -157,7 +158,8 @@ class Matcher:
         if kind == "census":
             disparity = census_sgm.cpu_disparity(
                 left, right, shifts, levels, config.census_p1, config.census_p2,
-                config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter)
+                config.sgm_uniqueness_percent, config.lr_max_diff_px, config.median_filter,
+                self._volumes)
         else:
             disparity = add_shifts(sgm_disparity(left, transform_right(np, right, shifts),
                                                  levels, config, block_size), shifts)

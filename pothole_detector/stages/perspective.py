@@ -83,7 +83,12 @@ def source_columns(xp: Any, shifts: Any, width: int) -> Any:
 
 def transform_right(xp: Any, image: Any, shifts: Any) -> Any:
     """The transformed right image (HxW or HxWxC, same dtype): column x of row v shows
-    column x - kappa(x, v), zero where that lies left of the image."""
+    column x - kappa(x, v), zero where that lies left of the image. An HxW image on the host
+    goes through a Numba kernel, rows on its threads."""
+    if xp is np and image.ndim == 2:
+        table = np.asarray(shifts).astype(np.int64)
+        return _transform_rows(np.ascontiguousarray(image), table[SHIFT_BASE],
+                               table[SHIFT_STEP])
     source = source_columns(xp, shifts, image.shape[1])
     inside = source >= 0
     source = xp.maximum(source, 0)
@@ -92,6 +97,18 @@ def transform_right(xp: Any, image: Any, shifts: Any) -> Any:
         return xp.where(inside[:, :, None], shifted, 0).astype(image.dtype)
     shifted = xp.take_along_axis(image, source, axis=1)
     return xp.where(inside, shifted, 0).astype(image.dtype)
+
+
+@numba.njit(parallel=True, cache=True)
+def _transform_rows(image: np.ndarray, base: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """transform_right's kernel for an HxW image on the host."""
+    height, width = image.shape
+    out = np.empty_like(image)
+    for v in numba.prange(height):
+        for x in range(width):
+            source = x - max((base[v] + step[v] * x) >> SHIFT_BITS, 0)
+            out[v, x] = image[v, source] if source >= 0 else 0
+    return out
 
 
 def add_shifts(d0: np.ndarray, shifts: np.ndarray) -> np.ndarray:
