@@ -1,10 +1,12 @@
-"""`pothole-detector process` on the CPU against OpenCV's SGBM alone, in the same run: a drive
-bag of our generator (the survey drive, every frame rendered) is processed end to end (bag
-reading, the pipeline, every output topic written), and OpenCV's StereoSGBM (3WAY, block 5,
-128 disparities, no left-right check) matches the same pairs on the same threads. Prints a
-Markdown table for docs/benchmarks.md.
+"""`pothole-detector process` against OpenCV's SGBM alone, in the same run: a drive bag of our
+generator (the survey drive, every frame rendered, or ``--distinct`` of its frames cycled with
+fresh stamps) is processed end to end (bag reading, the pipeline on ``--backend``, every output
+topic written into a new bag), and OpenCV's StereoSGBM (3WAY, block 5, 128 disparities, no
+left-right check) matches the distinct pairs on the host's ``--threads``. Prints a Markdown
+table for docs/benchmarks.md.
 
-    python benchmarks/bench_process_cpu.py [--size 640x480] [--frames 20] [--threads 2]
+    python benchmarks/bench_process.py [--size 640x480] [--frames 20] [--threads 2]
+        [--backend cpu|gpu] [--distinct N]
 """
 
 from __future__ import annotations
@@ -42,18 +44,24 @@ def main() -> None:
     parser.add_argument("--size", default="640x480")
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--backend", choices=("cpu", "gpu"), default="cpu")
+    parser.add_argument("--distinct", type=int, default=0,
+                        help="render this many frames of the drive and cycle them (0: all)")
     args = parser.parse_args()
     width, height = (int(n) for n in args.size.split("x"))
     set_host_threads(args.threads)
     cv2.setNumThreads(args.threads)
     scenes = survey_drive(frames=args.frames, width=width, height=height)
+    if args.distinct:
+        scenes = scenes[::max(1, args.frames // args.distinct)][:args.distinct]
     with ProcessPoolExecutor(args.threads, mp_context=get_context("spawn")) as pool:
         samples = list(pool.map(render, scenes))
+    cycle = [i % len(samples) for i in range(args.frames)]
     with tempfile.TemporaryDirectory() as folder:
         bag = Path(folder) / "drive"
-        write_drive_bag(bag, [s.camera_y_m for s in scenes], samples, "odom",
-                        ground_truth=False)
-        config = Config({"backend": "cpu"})
+        write_drive_bag(bag, [scenes[i].camera_y_m for i in cycle],
+                        [samples[i] for i in cycle], "odom", ground_truth=False)
+        config = Config({"backend": args.backend})
         process(bag, Path(folder) / "warm", config)  # compiled kernels loaded, caches warm
         started = time.perf_counter()
         summary = process(bag, Path(folder) / "out", config)
@@ -67,9 +75,10 @@ def main() -> None:
         sgm_disparity(left, right, SGBM_LEVELS, sgbm_config)
         sgbm_ms.append((time.perf_counter() - begun) * 1e3)
     sgbm = float(np.mean(sgbm_ms))
-    print(f"`process` on the CPU against OpenCV SGBM alone, {date.today()}, "
+    print(f"`process` on the {args.backend.upper()} against OpenCV SGBM alone, {date.today()}, "
           f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores, "
-          f"{args.threads} threads; {args.frames} frames of the survey drive at {args.size}\n")
+          f"{args.threads} threads; {args.frames} frames of the survey drive at {args.size}"
+          f"{f' ({len(samples)} distinct)' if args.distinct else ''}\n")
     print("| size | frames | processed | process ms/frame (all) | ms a frame, median "
           "| OpenCV SGBM ms/frame | process / SGBM |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
