@@ -6,7 +6,7 @@ left-right check) matches the distinct pairs on the host's ``--threads``. Prints
 table for docs/benchmarks.md.
 
     python benchmarks/bench_process.py [--size 640x480] [--frames 20] [--threads 2]
-        [--backend cpu|gpu] [--distinct N]
+        [--backend cpu|gpu] [--distinct N] [--storage mcap|sqlite3]
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--backend", choices=("cpu", "gpu"), default="cpu")
+    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
+                        help="process's output bag: mcap (zstd chunks) or sqlite3 (plain)")
     parser.add_argument("--distinct", type=int, default=0,
                         help="render this many frames of the drive and cycle them (0: all)")
     args = parser.parse_args()
@@ -62,9 +64,9 @@ def main() -> None:
         write_drive_bag(bag, [scenes[i].camera_y_m for i in cycle],
                         [samples[i] for i in cycle], "odom", ground_truth=False)
         config = Config({"backend": args.backend})
-        process(bag, Path(folder) / "warm", config)  # compiled kernels loaded, caches warm
+        process(bag, Path(folder) / "warm", config, args.storage)  # compiled, caches warm
         started = time.perf_counter()
-        summary = process(bag, Path(folder) / "out", config)
+        summary = process(bag, Path(folder) / "out", config, args.storage)
         process_ms = (time.perf_counter() - started) * 1e3 / max(summary.frames, 1)
     sgbm_config = Config({"lr_max_diff_px": -1, "speckle_window_px": 0,
                           "median_filter": False})
@@ -78,7 +80,7 @@ def main() -> None:
     print(f"`process` on the {args.backend.upper()} against OpenCV SGBM alone, {date.today()}, "
           f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores, "
           f"{args.threads} threads; {args.frames} frames of the survey drive at {args.size}"
-          f"{f' ({len(samples)} distinct)' if args.distinct else ''}\n")
+          f"{f' ({len(samples)} distinct)' if args.distinct else ''}, output {args.storage}\n")
     print("| size | frames | processed | process ms/frame (all) | ms a frame, median "
           "| OpenCV SGBM ms/frame | process / SGBM |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
