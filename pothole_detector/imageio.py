@@ -37,6 +37,11 @@ PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200),
 UNSEARCHED_SHADE, UNOBSERVED_SHADE = 0.4, 0.7
 
 
+def _shade_table(shade: float) -> np.ndarray:
+    """uint8 (256,): each value times ``shade``, truncated."""
+    return (np.arange(256, dtype=np.uint8) * shade).astype(np.uint8)
+
+
 def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
             observed: np.ndarray | None = None,
             searched: np.ndarray | None = None) -> np.ndarray:
@@ -53,19 +58,26 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
     canvas = image.copy()
     if observed is not None:
         looked = observed if searched is None else searched
-        beyond = looked & ~observed
-        canvas[~looked] = (canvas[~looked] * UNSEARCHED_SHADE).astype(np.uint8)
-        canvas[beyond] = (canvas[beyond] * UNOBSERVED_SHADE).astype(np.uint8)
+        for shaded, shade in ((~looked, UNSEARCHED_SHADE),
+                              (looked & ~observed, UNOBSERVED_SHADE)):
+            cv2.copyTo(cv2.LUT(canvas, _shade_table(shade)), shaded.view(np.uint8), canvas)
     scale = max(0.5, min(image.shape[:2]) / 700.0)
     thickness = max(1, int(round(2 * scale)))
+    height, width = labels.shape
     for pothole in potholes:
         colour = PALETTE[(pothole.label - 1) % len(PALETTE)]
-        mask = labels == pothole.label
-        canvas[mask] = (0.55 * canvas[mask] + 0.45 * colour).astype(np.uint8)
+        # the label lies within its bounding box; one pixel more on each side keeps the
+        # outline's surroundings as in the whole image
+        u0, v0, u1, v1 = pothole.bbox_px
+        rows = slice(max(v0 - 1, 0), min(v1 + 2, height))
+        cols = slice(max(u0 - 1, 0), min(u1 + 2, width))
+        mask = labels[rows, cols] == pothole.label
+        window = canvas[rows, cols]
+        window[mask] = (0.55 * window[mask] + 0.45 * colour).astype(np.uint8)
         contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
-                                       cv2.CHAIN_APPROX_SIMPLE)
+                                       cv2.CHAIN_APPROX_SIMPLE,
+                                       offset=(cols.start, rows.start))
         cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
-        _, v0, u1, _ = pothole.bbox_px
         text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
         (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
         x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))

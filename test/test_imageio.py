@@ -22,3 +22,66 @@ def test_the_overlay_shades_the_road_beyond_the_observed_and_the_searched_road()
     assert (shaded[:2] == int(200 * UNSEARCHED_SHADE)).all()
     plain = overlay(image, labels, [], observed)
     assert (plain[:4] == int(200 * UNSEARCHED_SHADE)).all() and (plain[4:] == 200).all()
+
+
+
+def _overlay_whole_image(image, labels, potholes, observed, searched):
+    """The overlay as whole-image array code: each pothole's mask, tint and outline over the
+    whole image, the shading by boolean indexing."""
+    import cv2
+
+    from pothole_detector.imageio import PALETTE
+    canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    beyond = searched & ~observed
+    canvas[~searched] = (canvas[~searched] * UNSEARCHED_SHADE).astype(np.uint8)
+    canvas[beyond] = (canvas[beyond] * UNOBSERVED_SHADE).astype(np.uint8)
+    scale = max(0.5, min(image.shape) / 700.0)
+    thickness = max(1, int(round(2 * scale)))
+    for pothole in potholes:
+        colour = PALETTE[(pothole.label - 1) % len(PALETTE)]
+        mask = labels == pothole.label
+        canvas[mask] = (0.55 * canvas[mask] + 0.45 * colour).astype(np.uint8)
+        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                       cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
+        _, v0, u1, _ = pothole.bbox_px
+        text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
+        x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))
+        y = int(min(max(v0 + th + 2, th + 2), image.shape[0] - 2))
+        cv2.rectangle(canvas, (x - 2, y - th - 4), (x + tw + 2, y + 4), (0, 0, 0), -1)
+        cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
+                    (255, 255, 255), thickness, cv2.LINE_AA)
+    return canvas
+
+
+def test_each_pothole_is_drawn_in_its_box_as_over_the_whole_image():
+    """Tint and outline worked within each pothole's bounding box give the whole-image
+    form's pixels, for potholes of two pieces, with holes, at the image's edges and corners,
+    ragged ones, over a shaded road."""
+    from pothole_detector.stages.measure import Pothole
+
+    rng = np.random.default_rng(4)
+    height, width = 180, 400
+    image = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    labels = np.zeros((height, width), np.int32)
+    labels[0:12, 0:20] = 1                      # a corner
+    labels[60:100, 40:70] = 2
+    labels[70:80, 50:60] = 0                    # a hole
+    labels[120:124, 45:52] = 2                  # a second piece
+    labels[150:180, 340:400] = 3                # the bottom right corner
+    labels[20:40, 399] = 4                      # one column at the right edge
+    labels[5:45, 180:260] = np.where(rng.random((40, 80)) < 0.5, 5, 0)  # ragged
+    observed = rng.random((height, width)) < 0.6
+    searched = observed | (rng.random((height, width)) < 0.5)
+    potholes = []
+    for label in range(1, 6):
+        rows, cols = np.nonzero(labels == label)
+        potholes.append(Pothole(label=label, pixels=rows.size, area_m2=0.1, max_depth_m=0.05,
+                                mean_depth_m=0.03, volume_m3=0.003,
+                                centroid_cam_m=(0.0, 0.0, 5.0),
+                                bbox_px=(int(cols.min()), int(rows.min()), int(cols.max()),
+                                         int(rows.max()))))
+    expected = _overlay_whole_image(image, labels, potholes, observed, searched)
+    np.testing.assert_array_equal(overlay(image, labels, potholes, observed, searched),
+                                  expected)
