@@ -114,13 +114,13 @@ def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+    writer = BagWriter(out, storage)  # the output path checked before the graph is joined
     store = typestore()
     own_context = not rclpy.ok()
     if own_context:
         large_image_transport()
         rclpy.init(args=[])
     node = rclpy.create_node("pothole_detector_recorder")
-    writer = BagWriter(out, storage)
     counts = {topic: 0 for topic in topics}
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE
                      if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
