@@ -63,14 +63,9 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
             cv2.copyTo(cv2.LUT(canvas, _shade_table(shade)), shaded.view(np.uint8), canvas)
     scale = max(0.5, min(image.shape[:2]) / 700.0)
     thickness = max(1, int(round(2 * scale)))
-    height, width = labels.shape
     for pothole in potholes:
         colour = PALETTE[(pothole.label - 1) % len(PALETTE)]
-        # the label lies within its bounding box; one pixel more on each side keeps the
-        # outline's surroundings as in the whole image
-        u0, v0, u1, v1 = pothole.bbox_px
-        rows = slice(max(v0 - 1, 0), min(v1 + 2, height))
-        cols = slice(max(u0 - 1, 0), min(u1 + 2, width))
+        rows, cols = pothole.window(labels.shape)
         mask = labels[rows, cols] == pothole.label
         window = canvas[rows, cols]
         window[mask] = (0.55 * window[mask] + 0.45 * colour).astype(np.uint8)
@@ -78,6 +73,7 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
                                        cv2.CHAIN_APPROX_SIMPLE,
                                        offset=(cols.start, rows.start))
         cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
+        _, v0, u1, _ = pothole.bbox_px
         text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
         (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
         x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))

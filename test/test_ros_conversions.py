@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -54,6 +55,16 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
     assert outline.type == Marker.LINE_STRIP and outline.points[0] == outline.points[-1]
     road = demo_sample.calibration.fb / result.road.at(np, np.array([0.0]), np.array([0.0]))
     assert all(0.2 < p.z < 3 * road[0] for p in outline.points)
+    for pothole, line in zip(result.potholes, markers[1::2]):
+        # traced in the pothole's box: the whole image's outline, thinned to 64 points
+        whole = (result.labels == pothole.label).astype(np.uint8)
+        contours, _ = cv2.findContours(whole, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        traced = max(contours, key=cv2.contourArea)[:, 0, :]
+        traced = traced[::max(1, math.ceil(len(traced) / 64))]
+        expected = conversions.road_point(traced[:, 0], traced[:, 1], result.road,
+                                          demo_sample.calibration)
+        np.testing.assert_allclose([[p.x, p.y, p.z] for p in line.points[:-1]], expected,
+                                   rtol=1e-12)
     array = conversions.potholes_message(result.potholes, result.road, HEADER,
                                          result.observed_range_m)
     assert (array.observed_near_m, array.observed_far_m) == result.observed_range_m

@@ -208,8 +208,10 @@ def markers_message(labels: np.ndarray, potholes: Sequence[Pothole], road: RoadM
         return MarkerArray(markers=markers)
     lifetime = Duration(sec=0, nanosec=0)
     for pothole in potholes:
-        mask = (labels == pothole.label).astype(np.uint8)
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        rows, cols = pothole.window(labels.shape)
+        mask = (labels[rows, cols] == pothole.label).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE,
+                                       offset=(cols.start, rows.start))
         if not contours:
             continue
         outline = max(contours, key=cv2.contourArea)[:, 0, :]

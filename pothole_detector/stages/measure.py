@@ -59,7 +59,7 @@ class Extreme(IntEnum):
 @dataclass(frozen=True)
 class Pothole:
     """One pothole. Lengths in metres in the left optical frame (x right, y down, z forward);
-    ``bbox_px`` is (u0, v0, u1, v1) inclusive."""
+    ``bbox_px`` is (u0, v0, u1, v1) inclusive: every pixel of the label lies in it."""
 
     label: int
     pixels: int
@@ -77,6 +77,14 @@ class Pothole:
             "volume_m3": self.volume_m3, "centroid_cam_m": list(self.centroid_cam_m),
             "bbox_px": list(self.bbox_px),
         }
+
+    def window(self, shape: tuple[int, ...]) -> tuple[slice, slice]:
+        """Rows and columns of an image of ``shape`` (H, W, ...) that hold this pothole: its
+        bounding box and one pixel more on each side where the image has it (an outline
+        traced there is the one traced over the whole image)."""
+        u0, v0, u1, v1 = self.bbox_px
+        return (slice(max(v0 - 1, 0), min(v1 + 2, shape[0])),
+                slice(max(u0 - 1, 0), min(u1 + 2, shape[1])))
 
 
 def road_normal(model: RoadModel, calibration: StereoCalibration) -> np.ndarray:
