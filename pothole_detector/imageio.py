@@ -73,15 +73,21 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
                                        cv2.CHAIN_APPROX_SIMPLE,
                                        offset=(cols.start, rows.start))
         cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
-        _, v0, u1, _ = pothole.bbox_px
-        text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
-        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
-        x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))
-        y = int(min(max(v0 + th + 2, th + 2), image.shape[0] - 2))
-        cv2.rectangle(canvas, (x - 2, y - th - 4), (x + tw + 2, y + 4), (0, 0, 0), -1)
-        cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
-                    (255, 255, 255), thickness, cv2.LINE_AA)
+        write_label(canvas, pothole, scale, thickness)
     return canvas
+
+
+def write_label(canvas: np.ndarray, pothole: Pothole, scale: float, thickness: int) -> None:
+    """The pothole's id, maximum depth (cm) and area (m^2) in white on black beside its box's
+    top right corner, kept inside the RGB uint8 HxWx3 ``canvas`` (drawn in place)."""
+    _, v0, u1, _ = pothole.bbox_px
+    text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
+    x = int(min(max(u1 + 4, 0), max(canvas.shape[1] - tw - 2, 0)))
+    y = int(min(max(v0 + th + 2, th + 2), canvas.shape[0] - 2))
+    cv2.rectangle(canvas, (x - 2, y - th - 4), (x + tw + 2, y + 4), (0, 0, 0), -1)
+    cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
+                (255, 255, 255), thickness, cv2.LINE_AA)
 
 
 def write_rgb(path: str | Path, image: np.ndarray) -> None:

@@ -27,10 +27,10 @@ def test_the_overlay_shades_the_road_beyond_the_observed_and_the_searched_road()
 
 def _overlay_whole_image(image, labels, potholes, observed, searched):
     """The overlay as whole-image array code: each pothole's mask, tint and outline over the
-    whole image, the shading by boolean indexing."""
+    whole image, the shading by boolean indexing (the labels' text by the same helper)."""
     import cv2
 
-    from pothole_detector.imageio import PALETTE
+    from pothole_detector.imageio import PALETTE, write_label
     canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
     beyond = searched & ~observed
     canvas[~searched] = (canvas[~searched] * UNSEARCHED_SHADE).astype(np.uint8)
@@ -44,14 +44,7 @@ def _overlay_whole_image(image, labels, potholes, observed, searched):
         contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
                                        cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)
-        _, v0, u1, _ = pothole.bbox_px
-        text = f"#{pothole.label} {pothole.max_depth_m * 100:.1f} cm {pothole.area_m2:.3f} m2"
-        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, thickness)
-        x = int(min(max(u1 + 4, 0), max(image.shape[1] - tw - 2, 0)))
-        y = int(min(max(v0 + th + 2, th + 2), image.shape[0] - 2))
-        cv2.rectangle(canvas, (x - 2, y - th - 4), (x + tw + 2, y + 4), (0, 0, 0), -1)
-        cv2.putText(canvas, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale,
-                    (255, 255, 255), thickness, cv2.LINE_AA)
+        write_label(canvas, pothole, scale, thickness)
     return canvas
 
 
