@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from pothole_detector.survey.motion import Pose2, RoadFrame
 from pothole_detector.stages.measure import Pothole
@@ -136,7 +137,8 @@ def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():
     labels[290:340, 300:340] = 1
     labels[200:230, 10:20] = 2  # above the horizon: never meets the road
     labels[180:260, 500:520] = 4  # across the horizon: only its rows below it reach the road
-    found, outlines = footprints(labels, 5, plane, calibration)
+    found, outlines = footprints(labels, ndimage.find_objects(labels, max_label=5), plane,
+                                calibration)
     np.testing.assert_allclose(found[0], [500 / 99, 500 / 50, -19 / 50, 20 / 50])
     assert np.isnan(found[1:3]).all() and np.isnan(found[4]).all()
     np.testing.assert_allclose(found[3], [500 / 19, 500 / 1, -199 / 1, -180 / 19])
@@ -153,9 +155,31 @@ def test_footprint_extents_are_those_of_every_pixel_projected(demo_sample):
         [[0.0, -0.5, 0.866], [-1.0, 0.0, 0.0], [0.0, -0.866, -0.5]]))
     labels = demo_sample.labels.astype(np.int32)
     count = int(labels.max())
-    found, _ = footprints(labels, count, plane, calibration)
+    found, _ = footprints(labels, ndimage.find_objects(labels), plane, calibration)
     for label in range(1, count + 1):
         rows, cols = np.nonzero(labels == label)
         reach, _ = on_road(cols.astype(float), rows.astype(float), plane, calibration)
         np.testing.assert_allclose(found[label - 1], [reach[:, 0].min(), reach[:, 0].max(),
                                                       reach[:, 1].min(), reach[:, 1].max()])
+
+
+def test_a_sighting_s_footprint_is_read_in_its_pothole_s_box(demo_sample):
+    """sightings_of reads each label within its pothole's box: the footprints of the boxes
+    ndimage.find_objects finds over the whole label image."""
+    from pothole_detector.params import Config
+    from pothole_detector.pipeline import Pipeline
+    from pothole_detector.survey.motion import road_frame
+
+    result = Pipeline(Config(), demo_sample.calibration).run(demo_sample.left,
+                                                             demo_sample.right)
+    labels = result.host("labels")
+    height, width = labels.shape
+    plane = road_frame(result.road, demo_sample.calibration, width, height)
+    seen = sightings_of(1, result, plane, width, height, demo_sample.calibration)
+    extents, outlines = footprints(labels, ndimage.find_objects(labels), plane,
+                                   demo_sample.calibration)
+    assert len(seen) == len(result.potholes) == len(outlines) > 0
+    for pothole, sighting in zip(result.potholes, seen):
+        np.testing.assert_array_equal(sighting.extent_m, extents[pothole.label - 1])
+        np.testing.assert_array_equal(np.reshape(sighting.outline_m, (-1, 2)),
+                                      outlines[pothole.label - 1])

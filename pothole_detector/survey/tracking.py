@@ -12,7 +12,6 @@ from typing import Any, Callable, Sequence
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 from ..calibration import StereoCalibration
 from .motion import Pose2, RoadFrame
@@ -72,10 +71,13 @@ def on_road(cols: np.ndarray, rows: np.ndarray, plane: RoadFrame,
     return plane.from_camera(rays[ahead] * reach[ahead, None])[:, :2], ahead
 
 
-def footprints(labels: np.ndarray, count: int, plane: RoadFrame,
-               calibration: StereoCalibration) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Per pothole label 1..``count`` of the int HxW ``labels``, its footprint on the road
-    plane of ``plane`` (each pixel's ray meeting the plane: the opening the pothole makes in
+def footprints(labels: np.ndarray, boxes: Sequence[tuple[slice, slice] | None],
+               plane: RoadFrame, calibration: StereoCalibration
+               ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per pothole label 1..count of the int HxW ``labels``, read within its box (``boxes``:
+    count (rows, columns) slices that hold every pixel of labels 1, 2, ..., as
+    ndimage.find_objects gives them or Pothole.window; None: no pixel), its footprint on the
+    road plane of ``plane`` (each pixel's ray meeting the plane: the opening the pothole makes in
     the road, free of the disparity noise):
 
     - where it reaches: float64 (count, 4), least and largest forward, least and largest left
@@ -85,17 +87,14 @@ def footprints(labels: np.ndarray, count: int, plane: RoadFrame,
       pixels where its region reaches past the horizon);
     - its outline: the boundary of its largest region (OpenCV's contour, simplified to within
       OUTLINE_TOLERANCE_PX), float64 (N, 2) (forward, left) points, m; empty where fewer than
-      three meet the plane ahead.
-
-    Each label is read within its bounding box only."""
-    extents = np.full((count, 4), np.nan)
+      three meet the plane ahead."""
+    extents = np.full((len(boxes), 4), np.nan)
     outlines: list[np.ndarray] = []
-    boxes = ndimage.find_objects(labels, max_label=count) if count else []
     for label, box in enumerate(boxes, 1):
-        if box is None:
+        mask = (labels[box] == label).astype(np.uint8) if box is not None else None
+        if mask is None or not mask.any():
             outlines.append(np.empty((0, 2)))
             continue
-        mask = (labels[box] == label).astype(np.uint8)
         offset = (box[1].start, box[0].start)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE,
                                        offset=offset)
@@ -112,7 +111,6 @@ def footprints(labels: np.ndarray, count: int, plane: RoadFrame,
                                     True).reshape(-1, 2).astype(np.float64)
         points, _ = on_road(boundary[:, 0], boundary[:, 1], plane, calibration)
         outlines.append(points if len(points) >= 3 else np.empty((0, 2)))
-    outlines += [np.empty((0, 2))] * (count - len(outlines))
     return extents, outlines
 
 
@@ -121,13 +119,15 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
     """The sightings of a PipelineResult's potholes, in its order, on the road frame
     ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
     position, which matches no track); with the result's ``calibration``, their footprints'
-    extents and outlines (:func:`footprints`, from the
-    labels read back)."""
+    extents and outlines (:func:`footprints`, from the labels read back, each within its
+    pothole's box)."""
     near, far = result.observed_range_m
     extents = outlines = None
     if calibration is not None and result.potholes:
         labels = result.host("labels")
-        extents, outlines = footprints(labels, len(result.potholes), plane, calibration)
+        windows = {p.label: p.window(labels.shape) for p in result.potholes}
+        extents, outlines = footprints(labels, [windows.get(label) for label in range(
+            1, len(result.potholes) + 1)], plane, calibration)
     made = []
     for pothole in result.potholes:
         centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
