@@ -305,3 +305,25 @@ def test_the_near_rim_hides_floor_seen_edge_on_and_the_volume_estimate_takes_it_
     (seen,) = measure.measure_potholes(CPU, labels, 1, smoothed, road, sample.calibration)
     assert seen.volume_m3 < estimated.volume_m3 < sample.potholes[0].volume_m3
     assert estimated.max_depth_m == seen.max_depth_m and estimated.area_m2 == seen.area_m2
+
+
+def test_the_extremes_are_each_label_s_box_and_deepest_point_as_ndimage_finds_them(demo_sample):
+    """Labels with a gap (a label without pixels: zeros, as ndimage gives) and the demo's
+    potholes: the box columns are each label's least and greatest column and row, the largest
+    depth column the float32 bits of the greatest depth under the opening."""
+    from scipy import ndimage
+
+    disparity = demo_sample.disparity.astype(np.float32)
+    road = fit_road(np, disparity, stride=2)
+    labels = demo_sample.labels.astype(np.int32)
+    count = int(labels.max())
+    labels[labels == 2] = 0
+    _, extremes = measure(CPU, labels, count, disparity, road, demo_sample.calibration)
+    index = np.arange(1, count + 1)
+    rows, cols = np.mgrid[0:labels.shape[0], 0:labels.shape[1]]
+    for column, function, values in ((Extreme.U_MIN, ndimage.minimum, cols),
+                                     (Extreme.V_MIN, ndimage.minimum, rows),
+                                     (Extreme.U_MAX, ndimage.maximum, cols),
+                                     (Extreme.V_MAX, ndimage.maximum, rows)):
+        np.testing.assert_array_equal(extremes[1:, column], function(values, labels, index))
+    assert (extremes[2, :] == 0).all() and (extremes[1, Extreme.LARGEST_DEPTH] > 0)

@@ -230,7 +230,7 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
         return _measure_on_device(backend, labels, capacity, disparity,
                                   device_params(backend, road), calibration, sums, extremes,
                                   corners, superpixel_labels, significant)
-    xp, ndimage = backend.xp, backend.ndimage
+    xp = backend.xp
     sums = np.zeros((capacity + 1, MEASURE_SUMS)) if sums is None else sums
     extremes = np.zeros((capacity + 1, MEASURE_EXTREMES), np.int32) if extremes is None \
         else extremes
@@ -247,7 +247,6 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     floor = xp.where(valid, floor, 0.0)
     volume_depth = hidden_floor_depth(xp, labels, rows, cols, label, depth, edge_on & valid,
                                       disparity, road, calibration)
-    index = xp.arange(1, count + 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         x, y, z = calibration.back_project(cols, rows, pixel_disparity)
 
@@ -258,8 +257,16 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     cornered = none if corners is None else in_far_corner(corners, rows, cols)
     flagged = none if significant is None else significant[superpixel_labels[rows, cols]]
 
-    def extreme(function: Any, values: Any) -> Any:
-        return xp.asarray(function(values, label, index)).reshape(count)
+    present = np.bincount(label, minlength=count + 1)[1:] > 0
+
+    def extreme(reduction: np.ufunc, values: np.ndarray) -> np.ndarray:
+        """Per label 1..count the least (np.minimum) or greatest (np.maximum) of ``values`` at
+        its pixels, 0 for a label without any (as ndimage.minimum and maximum give)."""
+        kind = np.finfo if values.dtype.kind == "f" else np.iinfo
+        start = kind(values.dtype).max if reduction is np.minimum else kind(values.dtype).min
+        found = np.full(count + 1, start, dtype=values.dtype)
+        reduction.at(found, label, values)
+        return np.where(present, found[1:], 0)
 
     columns = {
         Sum.PIXELS: xp.ones_like(footprint), Sum.AREA: footprint,
@@ -271,14 +278,14 @@ def measure(backend: Backend, labels: Any, capacity: int, disparity: Any,
     sums[1:count + 1] = xp.stack([total(columns[column]) for column in Sum], axis=1)
     opening = under_opening(xp, labels, rows, cols, label, depth, disparity,
                             road_normal(road, calibration), calibration)
-    largest = extreme(ndimage.maximum, xp.where(valid & opening, depth, -xp.inf)
+    largest = extreme(np.maximum, xp.where(valid & opening, depth, -xp.inf)
                       ).astype(xp.float32)
     extremes[1:count + 1, Extreme.LARGEST_DEPTH] = _ordered_bits(largest.view(xp.int32))
-    for column, function, values in ((Extreme.U_MIN, ndimage.minimum, cols),
-                                     (Extreme.V_MIN, ndimage.minimum, rows),
-                                     (Extreme.U_MAX, ndimage.maximum, cols),
-                                     (Extreme.V_MAX, ndimage.maximum, rows)):
-        extremes[1:count + 1, column] = extreme(function, values)
+    for column, reduction, values in ((Extreme.U_MIN, np.minimum, cols),
+                                      (Extreme.V_MIN, np.minimum, rows),
+                                      (Extreme.U_MAX, np.maximum, cols),
+                                      (Extreme.V_MAX, np.maximum, rows)):
+        extremes[1:count + 1, column] = extreme(reduction, values)
     return sums, extremes
 
 
