@@ -84,10 +84,11 @@ class BagWriter:
                                  or self._waiting[0][0].done()):
             written, size = self._waiting.popleft()
             self.waiting_bytes -= size
-            if written.exception() is not None:
+            error = written.exception()
+            if error is not None:
                 for later, _ in self._waiting:
                     later.cancel()
                 self._waiting.clear()
                 self.waiting_bytes = 0
-                raise written.exception()
+                raise error
 

@@ -99,6 +99,12 @@ def transform_right(xp: Any, image: Any, shifts: Any) -> Any:
     return xp.where(inside, shifted, 0).astype(image.dtype)
 
 
+@numba.njit(inline="always")
+def _kappa(base: int, step: int, column: int) -> int:
+    """shift_at in the host kernels: kappa (px) at an integer ``column`` of a row's line."""
+    return max((base + step * column) >> SHIFT_BITS, 0)
+
+
 @numba.njit(parallel=True, cache=True)
 def _transform_rows(image: np.ndarray, base: np.ndarray, step: np.ndarray) -> np.ndarray:
     """transform_right's kernel for an HxW image on the host."""
@@ -106,7 +112,7 @@ def _transform_rows(image: np.ndarray, base: np.ndarray, step: np.ndarray) -> np
     out = np.empty_like(image)
     for v in numba.prange(height):
         for x in range(width):
-            source = x - max((base[v] + step[v] * x) >> SHIFT_BITS, 0)
+            source = x - _kappa(base[v], step[v], x)
             out[v, x] = image[v, source] if source >= 0 else 0
     return out
 
@@ -135,8 +141,8 @@ def _add_shifts(d0: np.ndarray, base: np.ndarray, step: np.ndarray) -> np.ndarra
             left = np.floor(column)
             fraction = column - left
             left_column = np.int64(left)
-            lower = max((base[v] + step[v] * left_column) >> SHIFT_BITS, 0)
-            upper = max((base[v] + step[v] * (left_column + 1)) >> SHIFT_BITS, 0)
+            lower = _kappa(base[v], step[v], left_column)
+            upper = _kappa(base[v], step[v], left_column + 1)
             shift = np.float32(lower) + fraction * np.float32(upper - lower)
             out[v, u] = d0[v, u] + shift
     return out
