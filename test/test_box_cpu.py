@@ -51,3 +51,19 @@ def test_the_gather_is_take_along_axis():
     columns = rng.integers(0, 30, (20, 30)).astype(np.int32)
     np.testing.assert_array_equal(box_cpu.gather_columns(image, columns),
                                   np.take_along_axis(image, columns, axis=1))
+
+
+@pytest.mark.parametrize("size", (1, 3, 5, 33))
+def test_the_square_maximum_is_scipys(size):
+    rng = np.random.default_rng(size)
+    depths = rng.normal(0.0, 2.0, (41, 67)).astype(np.float32)
+    depths[rng.random(depths.shape) < 0.2] = -np.inf
+    cells = (rng.random((23, 9)) < 0.1).astype(np.uint8)
+    labels = (rng.integers(1, 4000, (30, 50)) * (rng.random((30, 50)) < 0.05)).astype(np.int32)
+    np.testing.assert_array_equal(box_cpu.square_maximum(depths, size),
+                                  scipy.ndimage.maximum_filter(depths, size, mode="nearest"))
+    np.testing.assert_array_equal(box_cpu.square_maximum(cells, size),
+                                  scipy.ndimage.maximum_filter(cells, size, mode="reflect"))
+    np.testing.assert_array_equal(
+        box_cpu.square_maximum(labels.astype(np.float32), size).astype(np.int32),
+        scipy.ndimage.maximum_filter(labels, size, mode="constant"))

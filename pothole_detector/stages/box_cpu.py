@@ -1,12 +1,13 @@
-"""The mean over a square on the CPU, compiled with Numba: scipy.ndimage.uniform_filter's
-arithmetic (a pass down the columns, then one along the rows, each a running sum in float64 of
-the window's values, divided by its size and written as float32), with the columns of a pass
-and the rows of the next on Numba's threads. Compiled once and cached beside this file (or in
-the user's cache folder).
+"""The mean and the maximum over a square on the CPU. The mean compiled with Numba:
+scipy.ndimage.uniform_filter's arithmetic (a pass down the columns, then one along the rows,
+each a running sum in float64 of the window's values, divided by its size and written as
+float32), with the columns of a pass and the rows of the next on Numba's threads; compiled once
+and cached beside this file (or in the user's cache folder). The maximum by OpenCV's dilation.
 """
 
 from __future__ import annotations
 
+import cv2
 import numba
 import numpy as np
 
@@ -97,3 +98,11 @@ def gather_columns(image: np.ndarray, columns: np.ndarray) -> np.ndarray:
         for u in range(width):
             out[v, u] = image[v, columns[v, u]]
     return out
+
+
+def square_maximum(image: np.ndarray, size: int) -> np.ndarray:
+    """The maximum over the ``size`` x ``size`` square about each pixel of a uint8 or float32
+    HxW image, the square clipped to the image (OpenCV's dilation, a separable pass each way):
+    what scipy.ndimage.maximum_filter gives with mode "nearest" or "reflect", and for values
+    >= 0 with mode "constant" (labels below 2^24 are exact in float32)."""
+    return cv2.dilate(image, cv2.getStructuringElement(cv2.MORPH_RECT, (size, size)))

@@ -9,6 +9,7 @@ import numba
 import numpy as np
 
 from ..backend import Backend, to_host
+from . import box_cpu
 from .superpixels import upsample_labels
 
 EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
@@ -255,6 +256,8 @@ def _cells_on(labels: np.ndarray, factor: int) -> np.ndarray:
 def _dilated(backend: Backend, cells: Any, reach: int) -> Any:
     """``cells`` (uint8 2D) dilated by a square of ``reach`` cells each way."""
     size = 2 * reach + 1
+    if not backend.is_gpu:
+        return box_cpu.square_maximum(np.ascontiguousarray(cells, dtype=np.uint8), size)
     return backend.ndimage.maximum_filter1d(
         backend.ndimage.maximum_filter1d(cells, size, axis=0), size, axis=1)
 

@@ -79,7 +79,7 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
     (kernels/refine.cu)."""
     if fraction <= 0 or radius_px <= 0:
         return labels
-    xp, ndimage = backend.xp, backend.ndimage
+    xp = backend.xp
     if backend.is_gpu:
         height, width = labels.shape
         out = xp.empty((height, width), dtype=xp.int32)
@@ -105,16 +105,17 @@ def refine_labels(backend: Backend, labels: Any, filled: Any, road: RoadModel | 
     reach = _around(box[0].start, box[0].stop - 1, box[1].start, box[1].stop - 1,
                     RIM_REACH_PX, height, width)
     below_reach = xp.float32(road_level) - transform_on_host(filled, road, road_level, reach)
-    deepest = ndimage.maximum_filter(
-        xp.where(xp.isfinite(below_reach), below_reach, -xp.inf), size=2 * RIM_REACH_PX + 1,
-        mode="nearest")
+    deepest = box_cpu.square_maximum(
+        xp.where(xp.isfinite(below_reach), below_reach, -xp.inf).astype(xp.float32),
+        2 * RIM_REACH_PX + 1)
     within = (slice(box[0].start - reach[0].start, box[0].stop - reach[0].start),
               slice(box[1].start - reach[1].start, box[1].stop - reach[1].start))
     below = below_reach[within]
     off_step = below < xp.float32(0.5) * deepest[within]
     inside = superpixel_labels[box]
     deep = (below > fraction * xp.take(drops, inside)) & xp.take(observed, inside) & ~off_step
-    near = ndimage.maximum_filter(out[box], size=2 * radius_px + 1, mode="constant")
+    near = box_cpu.square_maximum(out[box].astype(xp.float32), 2 * radius_px + 1
+                                  ).astype(xp.int32)
     out[box] = xp.where(labelled[box], xp.where(off_step, 0, out[box]),
                         xp.where(deep, near, 0))
     return out

@@ -1,5 +1,5 @@
 """SLIC's iterations on the CPU, compiled with Numba: the assignment of every pixel to the
-nearest of the nine centres around its grid cell (rows on Numba's threads) and the centres'
+nearest of the nine centres around its grid cell (grid rows on Numba's threads) and the centres'
 update, in one pass each over the map instead of an array pass per neighbour; and the
 superpixels' sums. The same float32
 distances, ties and float64 sums, in the same order, as the array form they replace, so the
@@ -21,36 +21,45 @@ def _assign(filled: np.ndarray, valid: np.ndarray, step: int, cells_x: int, cell
             centre_v: np.ndarray, centre_u: np.ndarray, centre_d: np.ndarray,
             spatial_weight: np.float32, labels: np.ndarray) -> None:
     """Each pixel's nearest centre of the 3 x 3 cells about its own (the first of equals in
-    row-major order of the neighbours)."""
+    row-major order of the neighbours). The rows of a grid row of cells on one thread: the
+    nine neighbours' centres (row, column, value, label) are laid out once per column for
+    them, so that each neighbour's distances over a whole row are one loop of vectors."""
     height, width = filled.shape
-    for v in numba.prange(height):
-        cell_i = v // step
-        row = np.float32(v)
-        for u in range(width):
-            cell_j = u // step
-            column = np.float32(u)
-            value = filled[v, u]
-            weight = np.float32(1.0) if valid[v, u] else np.float32(0.0)
-            best = np.float32(np.inf)
-            choice = 0
-            for k in range(9):
-                i = cell_i + k // 3 - 1
-                j = cell_j + k % 3 - 1
+    for cell_i in numba.prange(cells_y):
+        near_v = np.empty((9, width), np.float32)
+        near_u = np.empty((9, width), np.float32)
+        near_d = np.empty((9, width), np.float32)
+        near_label = np.empty((9, width), np.int32)
+        for k in range(9):
+            i = cell_i + k // 3 - 1
+            for u in range(width):
+                j = u // step + k % 3 - 1
+                near_label[k, u] = i * cells_x + j
                 if 0 <= i < cells_y and 0 <= j < cells_x:
                     index = i * cells_x + j
-                    cv, cu, cd = centre_v[index], centre_u[index], centre_d[index]
+                    near_v[k, u] = centre_v[index]
+                    near_u[k, u] = centre_u[index]
+                    near_d[k, u] = centre_d[index]
                 else:
-                    cv, cu, cd = FAR, FAR, np.float32(0.0)
-                distance = value - cd
-                distance = distance * distance
-                distance = distance * weight
-                dv = row - cv
-                du = column - cu
-                distance = distance + spatial_weight * (dv * dv + du * du)
-                if distance < best:
-                    best = distance
-                    choice = k
-            labels[v, u] = (cell_i + choice // 3 - 1) * cells_x + cell_j + choice % 3 - 1
+                    near_v[k, u], near_u[k, u], near_d[k, u] = FAR, FAR, np.float32(0.0)
+        best = np.empty(width, np.float32)
+        for v in range(cell_i * step, min((cell_i + 1) * step, height)):
+            row = np.float32(v)
+            values, valids, out = filled[v], valid[v], labels[v]
+            best[:] = np.float32(np.inf)
+            for k in range(9):
+                cv, cu, cd, label = near_v[k], near_u[k], near_d[k], near_label[k]
+                for u in range(width):
+                    weight = np.float32(1.0) if valids[u] else np.float32(0.0)
+                    distance = values[u] - cd[u]
+                    distance = distance * distance
+                    distance = distance * weight
+                    dv = row - cv[u]
+                    du = np.float32(u) - cu[u]
+                    distance = distance + spatial_weight * (dv * dv + du * du)
+                    if distance < best[u]:
+                        best[u] = distance
+                        out[u] = label[u]
 
 
 @numba.njit(cache=True)
