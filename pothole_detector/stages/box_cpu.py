@@ -13,7 +13,7 @@ import numpy as np
 
 # how the square reaches past the border: the border pixel repeated, or zeros
 MODES = ("nearest", "constant")
-# columns of one thread's share of the pass down the columns
+# the fewest columns of one thread's share of the pass down the columns
 _COLUMN_CHUNK = 64
 
 
@@ -28,13 +28,17 @@ def _outside(row: int, height: int, nearest: bool) -> int:
 
 
 @numba.njit(parallel=True, cache=True)
-def _down_columns(image: np.ndarray, size: int, nearest: bool, out: np.ndarray) -> None:
+def _down_columns(image: np.ndarray, size: int, nearest: bool, threads: int,
+                  out: np.ndarray) -> None:
+    """The pass down the columns: each of ``threads`` threads a run of whole columns, row after
+    row (each row's share read as one stretch)."""
     height, width = image.shape
     before = size // 2
-    chunks = (width + _COLUMN_CHUNK - 1) // _COLUMN_CHUNK
-    for chunk in numba.prange(chunks):
-        start = chunk * _COLUMN_CHUNK
-        stop = min(start + _COLUMN_CHUNK, width)
+    chunk = max(_COLUMN_CHUNK, -(-width // threads))
+    chunks = (width + chunk - 1) // chunk
+    for index in numba.prange(chunks):
+        start = index * chunk
+        stop = min(start + chunk, width)
         running = np.zeros(stop - start, dtype=np.float64)
         for k in range(size):
             source = _outside(k - before, height, nearest)
@@ -55,22 +59,34 @@ def _down_columns(image: np.ndarray, size: int, nearest: bool, out: np.ndarray) 
 
 @numba.njit(parallel=True, cache=True)
 def _along_rows(image: np.ndarray, size: int, nearest: bool, out: np.ndarray) -> None:
+    """The pass along the rows: two rows a thread at a time, their running sums in one loop
+    (two independent chains of additions), then divided in a loop of vectors."""
     height, width = image.shape
     before = size // 2
-    for v in numba.prange(height):
-        running = 0.0
-        for k in range(size):
-            source = _outside(k - before, width, nearest)
-            if source >= 0:
-                running += np.float64(image[v, source])
-        out[v, 0] = np.float32(running / size)
+    for pair in numba.prange((height + 1) // 2):
+        first, second = 2 * pair, min(2 * pair + 1, height - 1)
+        sums = np.empty((2, width))
+        for row, v in enumerate((first, second)):
+            running = 0.0
+            for k in range(size):
+                source = _outside(k - before, width, nearest)
+                if source >= 0:
+                    running += np.float64(image[v, source])
+            sums[row, 0] = running
+        running_first, running_second = sums[0, 0], sums[1, 0]
         for u in range(1, width):
             entering = _outside(u + size - 1 - before, width, nearest)
             leaving = _outside(u - 1 - before, width, nearest)
-            new = np.float64(image[v, entering]) if entering >= 0 else 0.0
-            old = np.float64(image[v, leaving]) if leaving >= 0 else 0.0
-            running += new - old
-            out[v, u] = np.float32(running / size)
+            new = np.float64(image[first, entering]) if entering >= 0 else 0.0
+            old = np.float64(image[first, leaving]) if leaving >= 0 else 0.0
+            running_first += new - old
+            new = np.float64(image[second, entering]) if entering >= 0 else 0.0
+            old = np.float64(image[second, leaving]) if leaving >= 0 else 0.0
+            running_second += new - old
+            sums[0, u], sums[1, u] = running_first, running_second
+        for row, v in enumerate((first, second)):
+            for u in range(width):
+                out[v, u] = np.float32(sums[row, u] / size)
 
 
 def box_mean(image: np.ndarray, size: int, mode: str) -> np.ndarray:
@@ -83,7 +99,7 @@ def box_mean(image: np.ndarray, size: int, mode: str) -> np.ndarray:
     between = np.empty_like(source)
     out = np.empty_like(source)
     if source.size:
-        _down_columns(source, size, mode == "nearest", between)
+        _down_columns(source, size, mode == "nearest", numba.get_num_threads(), between)
         _along_rows(between, size, mode == "nearest", out)
     return out
 
