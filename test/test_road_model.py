@@ -95,6 +95,19 @@ def test_row_extremes_match_brute_force():
     np.testing.assert_allclose(high, full.max(axis=1), atol=1e-3)
 
 
+@pytest.mark.parametrize("kind", ["planar", "quadratic"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_host_grid_is_the_array_form_to_the_bit(kind, dtype):
+    rng = np.random.default_rng(5)
+    for a0 in (-30.0, 4.0, 60.0):
+        model = RoadModel(np.float64(a0), np.float64(rng.uniform(-0.2, 0.3)),
+                          rng.uniform(-0.1, 0.1), tuple(rng.normal(0.0, 2.0, 6)), kind=kind)
+        rows, cols = np.arange(37.0)[:, None], np.arange(83.0)[None, :]
+        grid = model.disparity(np, 37, 83, dtype)
+        assert grid.dtype == dtype
+        np.testing.assert_array_equal(grid, model.at(np, cols, rows).astype(dtype))
+
+
 def test_no_valid_pixels_raise_no_road():
     with pytest.raises(NoRoadError):
         fit_road(np, np.full((20, 20), np.nan, np.float32))

@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..backend import Backend, to_host
@@ -97,7 +98,14 @@ class RoadModel:
                               v / CURVATURE_SCALE_PX, planar)
 
     def disparity(self, xp: Any, height: int, width: int, dtype: Any = np.float32) -> Any:
-        """Road disparity f(u, v) over an HxW grid (px), as ``dtype``."""
+        """Road disparity f(u, v) over an HxW grid (px), as ``dtype``; on the host a Numba
+        kernel with :meth:`at`'s float64 arithmetic (the same bits)."""
+        if xp is np:
+            grid = np.empty((height, width), dtype=dtype)
+            _grid_on_host(float(self.a0), float(self.a1), math.cos(self.roll_rad),
+                          math.sin(self.roll_rad), self.kind != "planar",
+                          np.asarray(self.curvature, dtype=np.float64), grid)
+            return grid
         v = xp.arange(height, dtype=xp.float64)[:, None]
         u = xp.arange(width, dtype=xp.float64)[None, :]
         return self.at(xp, u, v).astype(dtype)
@@ -133,6 +141,27 @@ class RoadModel:
         return {"a0": self.a0, "a1": self.a1, "roll_deg": self.roll_deg,
                 "inlier_fraction": self.inlier_fraction, "sigma_px": self.sigma_px,
                 "model": self.kind, "curvature": list(self.curvature)}
+
+
+@numba.njit(parallel=True, cache=True)
+def _grid_on_host(a0: float, a1: float, cos_roll: float, sin_roll: float, curved: bool,
+                  c: np.ndarray, out: np.ndarray) -> None:
+    """RoadModel.at over every pixel of ``out`` (HxW), rows on Numba's threads: the plane
+    a0 + a1 (v cos - u sin), plus for a curved model the correction of :func:`_poly`, in
+    float64, written as ``out``'s dtype."""
+    height, width = out.shape
+    for v in numba.prange(height):
+        along = np.float64(v) * cos_roll
+        y = np.float64(v) / CURVATURE_SCALE_PX
+        for u in range(width):
+            planar = a0 + a1 * (along - np.float64(u) * sin_roll)
+            if curved:
+                x = np.float64(u) / CURVATURE_SCALE_PX
+                floor = planar if not planar < MIN_ROAD_DISPARITY_PX else MIN_ROAD_DISPARITY_PX
+                inverse = INVERSE_SCALE_PX / floor
+                planar = planar + (c[0] + x * c[1] + y * c[2]
+                                   + inverse * (c[5] + x * (c[4] + x * c[3])))
+            out[v, u] = planar
 
 
 def _inverse(xp: Any, planar: Any) -> Any:
