@@ -131,13 +131,20 @@ def superpixel_sums(values: np.ndarray, labels: np.ndarray,
 @numba.njit(parallel=True, cache=True)
 def upsample(labels: np.ndarray, factor: int, height: int, width: int) -> np.ndarray:
     """superpixels.upsample_labels on the host: pixel (v, u) of the height x width result takes
-    ``labels`` (2D, any dtype) at (min(v // factor, rows - 1), min(u // factor, cols - 1))."""
+    ``labels`` (2D, any dtype) at (min(v // factor, rows - 1), min(u // factor, cols - 1)):
+    each source column's value written over its ``factor`` columns, the columns past the
+    last source column's taking its value."""
     rows, cols = labels.shape
     out = np.empty((height, width), dtype=labels.dtype)
+    spread = min(cols, -(-width // factor))
     for v in numba.prange(height):
-        source = min(v // factor, rows - 1)
-        for u in range(width):
-            out[v, u] = labels[source, min(u // factor, cols - 1)]
+        source, row = labels[min(v // factor, rows - 1)], out[v]
+        for column in range(spread):
+            value = source[column]
+            for u in range(column * factor, min((column + 1) * factor, width)):
+                row[u] = value
+        for u in range(spread * factor, width):
+            row[u] = source[cols - 1]
     return out
 
 
