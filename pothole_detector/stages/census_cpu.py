@@ -162,11 +162,14 @@ def _add_crossing_paths(cost: np.ndarray, total: np.ndarray, p1: int, p2: int,
 
 @numba.njit(parallel=True, cache=True)
 def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> np.ndarray:
-    """select_disparities' kernel: rows on the threads. A row's right view's winners come from
-    one pass over its pixels: pixel u's sums at levels d = 0, 1, ... are candidates of right
+    """select_disparities' kernel: rows on the threads. One pass over a row's pixels finds
+    each pixel's least sum, winner and uniqueness and, in the same loop over its levels, the
+    right view's winners: pixel u's sums at levels d = 0, 1, ... are candidates of right
     pixels u, u - 1, ..., kept mirrored (right pixel x at width - 1 - x) so that each pixel's
-    levels meet them in order, as vectors. Minima are branch-free uint16 reductions (sums
-    are at most 8 x 127), a winner the first level at its minimum (the lowest d of ties)."""
+    levels meet them in order, as vectors; a second pass, once every right pixel's winner is
+    known, makes the left-right check and the subpixel offset. Minima are branch-free uint16
+    reductions (sums are at most 8 x 127), a winner the first level at its minimum (the
+    lowest d of ties)."""
     height, width, levels = total.shape
     none = np.uint16(_NO_SUM)
     raw = np.empty((height, width), dtype=np.float32)
@@ -174,21 +177,23 @@ def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> 
         row = total[v]
         mirrored_least = np.full(width, none, dtype=np.uint16)
         mirrored_best = np.zeros(width, dtype=np.uint16)
+        winners = np.empty(width, dtype=np.int64)
+        leasts = np.empty(width, dtype=np.int64)
+        unique = np.empty(width, dtype=np.bool_)
         for u in range(width):
             sums = row[u]
             first = width - 1 - u
             count = min(levels, u + 1)
             right_least = mirrored_least[first:first + count]
             right_best = mirrored_best[first:first + count]
+            least = none
             for d in range(count):
                 value = sums[d]
                 better = value < right_least[d]
                 right_best[d] = np.uint16(d) if better else right_best[d]
                 right_least[d] = value if better else right_least[d]
-        for u in range(width):
-            sums = row[u]
-            least = none
-            for d in range(levels):
+                least = min(least, value)
+            for d in range(count, levels):
                 least = min(least, sums[d])
             first_least = none
             for d in range(levels):
@@ -197,17 +202,20 @@ def _select(total: np.ndarray, uniqueness_percent: int, lr_max_diff_px: int) -> 
             second = none
             for d in range(levels):
                 second = min(second, sums[d] if abs(d - best) > 1 else none)
-            valid = uniqueness_percent == 0 or second == none \
+            winners[u], leasts[u] = best, least
+            unique[u] = uniqueness_percent == 0 or second == none \
                 or 100 * np.int64(least) < (100 - uniqueness_percent) * np.int64(second)
+        for u in range(width):
+            best = winners[u]
             target = u - best
-            valid = valid and target >= 0
+            valid = unique[u] and target >= 0
             if valid and lr_max_diff_px >= 0:
                 valid = abs(np.int64(mirrored_best[width - 1 - target]) - best) <= lr_max_diff_px
             if not valid:
                 raw[v, u] = -1.0
             elif 0 < best < levels - 1:
-                below, above = np.int64(sums[best - 1]), np.int64(sums[best + 1])
-                denominator = max(below + above - 2 * np.int64(least), 1)
+                below, above = np.int64(row[u, best - 1]), np.int64(row[u, best + 1])
+                denominator = max(below + above - 2 * leasts[u], 1)
                 raw[v, u] = np.float32(best) + np.float32(below - above) / (
                     np.float32(2) * np.float32(denominator))
             else:
