@@ -9,7 +9,10 @@ import math
 import pickle
 import sys
 import time
+from collections import deque
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field, fields
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Iterable, Iterator, TextIO
 
@@ -720,9 +723,6 @@ def _render_all(scenes: list, cache: Path | None, jobs: int) -> Iterator[Any]:
     if jobs <= 1:
         yield from (_rendered(scene, cache) for scene in scenes)
         return
-    from collections import deque
-    from concurrent.futures import ProcessPoolExecutor
-    from multiprocessing import get_context
 
     # started afresh, not forked: a fork of a process whose matcher's threads ran is unsafe
     with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:

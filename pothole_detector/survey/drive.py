@@ -10,9 +10,13 @@ with rosbags."""
 
 from __future__ import annotations
 
+import csv
 import datetime
+import json
 import math
+import multiprocessing
 import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -33,7 +37,7 @@ from ..recordings.messages import stamp_ns
 from ..recordings.writing import GNSS_TYPE, ODOMETRY_TYPE
 from ..replay import FailureTally, ProcessSummary, frame_results
 from ..recordings.topics import StereoTopics, find_stereo_topics
-from ..stages.matching import to_gray8
+from ..stages.matching import set_host_threads, to_gray8
 from ..params import Config
 from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, result_patch,
                       road_map, sample_pixels)
@@ -844,11 +848,6 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
     """:func:`observe_chunk` of every (bag, topics, chunk spans) plan, a task per chunk in
     ``jobs`` worker processes on this machine (started afresh, each with its own pipeline on the
     configured backend: several share one GPU); per bag, in chunk order."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    from ..stages.matching import set_host_threads
-
     values = config.as_dict()
     threads = max(1, (os.cpu_count() or 1) // jobs)
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
@@ -928,8 +927,6 @@ def write_summary(surveys: Sequence[DriveSurvey], path: str | Path) -> dict[str,
     and failed, the failures by kind of reason (count, first reason, first stamp) and each
     failed frame (stamp, seconds into the drive, motion-frame x, y), or why the bag could not
     be read; and the totals. Returns the document."""
-    import json
-
     def finite(value: float) -> float | None:
         return float(value) if math.isfinite(value) else None
 
@@ -960,8 +957,6 @@ def write_summary(surveys: Sequence[DriveSurvey], path: str | Path) -> dict[str,
 
 def write_csv(surveys: Sequence[DriveSurvey], path: str | Path) -> None:
     """survey.csv: one row per physical pothole, the columns of CSV_COLUMNS."""
-    import csv
-
     with open(path, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
         writer.writeheader()
@@ -982,8 +977,6 @@ def write_geojson(surveys: Sequence[DriveSurvey], path: str | Path) -> bool:
     """survey.geojson: a point per pothole with GNSS position and, where measured, a polygon
     of its outline on the road, the row as the properties of both; False (nothing written)
     when no bag has GNSS."""
-    import json
-
     features = []
     for drive in surveys:
         for pothole in drive.potholes:
