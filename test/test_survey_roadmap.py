@@ -13,8 +13,8 @@ from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.survey.motion import road_frame
 from pothole_detector.survey.roadmap import (TILE_CELLS, VIEW_SHARE, RoadMap, Tile,
-                                             near_potholes, result_patch, road_map, road_patch,
-                                             sample_pixels)
+                                             near_potholes, result_patches, road_map,
+                                             road_patch, sample_pixels)
 
 
 def flat_map(**changes) -> RoadMap:
@@ -185,7 +185,7 @@ def test_samples_lie_under_half_a_cell_apart_on_the_road(demo_sample):
 
 def test_a_frame_of_the_demo_road_gives_its_potholes_depths(demo_sample):
     """road_patch of the rendered disparity with the pipeline's road: the road's cells lie at
-    the road, and each pothole's deepest cell at about its depth; result_patch reads the
+    the road, and each pothole's deepest cell at about its depth; result_patches reads the
     pipeline's own disparity at the sampled pixels, as the host arrays give it."""
     config = Config({"backend": "cpu"})
     result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
@@ -210,9 +210,12 @@ def test_a_frame_of_the_demo_road_gives_its_potholes_depths(demo_sample):
                                   result.host("observed").ravel()[pixels])
     measured = result.host("disparity").ravel()[pixels]
     keep = result.host("observed").ravel()[pixels] & (measured > 0)
-    assert result_patch(result, pixels, plane, demo_sample.calibration, 0.02) == road_patch(
-        rows[keep], cols[keep], measured[keep], result.road, plane, demo_sample.calibration,
-        0.02)
+    assert result_patches(result, [(pixels, 0.02)], plane, demo_sample.calibration) == [
+        road_patch(rows[keep], cols[keep], measured[keep], result.road, plane,
+                   demo_sample.calibration, 0.02)]
+    halves = [(pixels[:len(pixels) // 2], 0.02), (pixels[len(pixels) // 2:], 0.05)]
+    assert result_patches(result, halves, plane, demo_sample.calibration) == [
+        result_patches(result, [half], plane, demo_sample.calibration)[0] for half in halves]
 
 
 def test_the_map_follows_the_parameters():

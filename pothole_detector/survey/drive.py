@@ -39,7 +39,7 @@ from ..replay import FailureTally, ProcessSummary, frame_results
 from ..recordings.topics import StereoTopics, find_stereo_topics
 from ..stages.matching import set_host_threads, to_gray8
 from ..params import Config
-from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, result_patch,
+from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, result_patches,
                       road_map, sample_pixels)
 from .tracking import (PotholeTracker, Sighting, Track, joined, linked_groups, merge_overlapping,
                        sightings_of)
@@ -234,13 +234,15 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
 def frame_patches(result: Any, plane: RoadFrame, calibration: StereoCalibration,
                   config: Config) -> tuple[RoadPatch, RoadPatch]:
     """A frame's road samples for the survey's maps: at map_cell_m around its potholes, at
-    map_overview_cell_m over all its observed road (roadmap.result_patch)."""
+    map_overview_cell_m over all its observed road (roadmap.result_patches)."""
     shape = result.disparity.shape
     fine = sample_pixels(shape, result.road, calibration, config.map_cell_m)
     fine = fine[near_potholes(fine, shape[1], [p.bbox_px for p in result.potholes])]
     coarse = sample_pixels(shape, result.road, calibration, config.map_overview_cell_m)
-    return (result_patch(result, fine, plane, calibration, config.map_cell_m),
-            result_patch(result, coarse, plane, calibration, config.map_overview_cell_m))
+    fine_patch, overview = result_patches(
+        result, [(fine, config.map_cell_m), (coarse, config.map_overview_cell_m)], plane,
+        calibration)
+    return fine_patch, overview
 
 
 def _until_damaged(results: Iterable[tuple[bags.BagFrame, Any]],

@@ -104,16 +104,24 @@ def near_potholes(pixels: np.ndarray, width: int,
     return near
 
 
-def result_patch(result: Any, pixels: np.ndarray, plane: RoadFrame,
-                 calibration: StereoCalibration, cell_m: float) -> RoadPatch:
-    """The road patch (:func:`road_patch`) of a PipelineResult at ``pixels`` (flat indices),
-    those of the road searched for potholes with a disparity: only they are read back from the
-    backend."""
+def result_patches(result: Any, parts: Sequence[tuple[np.ndarray, float]], plane: RoadFrame,
+                   calibration: StereoCalibration) -> list[RoadPatch]:
+    """The road patches (:func:`road_patch`) of a PipelineResult, one per (pixels: flat
+    indices, cell_m) of ``parts``, of the pixels of the road searched for potholes with a
+    disparity: the values at every part's pixels read back from the backend together."""
     width = result.disparity.shape[1]
+    pixels = np.concatenate([np.zeros(0, np.int64)] + [part for part, _ in parts])
     disparity = result.at("disparity", pixels)
     keep = result.at("searched", pixels) & (disparity > 0)
-    rows, cols = np.divmod(pixels[keep], width)
-    return road_patch(rows, cols, disparity[keep], result.road, plane, calibration, cell_m)
+    patches, start = [], 0
+    for part, cell_m in parts:
+        stop = start + len(part)
+        kept = keep[start:stop]
+        rows, cols = np.divmod(part[kept], width)
+        patches.append(road_patch(rows, cols, disparity[start:stop][kept], result.road, plane,
+                                  calibration, cell_m))
+        start = stop
+    return patches
 
 
 def road_patch(rows: np.ndarray, cols: np.ndarray, disparity: np.ndarray, road: RoadModel,
@@ -584,9 +592,8 @@ class LiveMap:
             pose = self.pose.compose(step) if step is not None else self.pose
         self.pose = pose
         cell_m = self.config.map_cell_m
-        patch = result_patch(result, sample_pixels(result.disparity.shape, result.road,
-                                                   calibration, cell_m),
-                             plane, calibration, cell_m)
+        pixels = sample_pixels(result.disparity.shape, result.road, calibration, cell_m)
+        patch, = result_patches(result, [(pixels, cell_m)], plane, calibration)
         self.roadmap.add(pose.apply(patch.xy), patch.depth, patch.sigma)
         self.roadmap.forget_beyond((pose.x, pose.y),
                                    self.config.map_radius_m + self.roadmap.tile_m)
