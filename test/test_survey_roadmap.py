@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from pothole_detector.backend import gpu_available
+from pothole_detector.backend import get_backend, gpu_available
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.survey.motion import road_frame
@@ -224,13 +224,26 @@ def test_the_map_follows_the_parameters():
     assert roadmap.tile_m == pytest.approx(0.03 * TILE_CELLS)
 
 
+def _reads_agree(result, calibration) -> None:
+    """A result's values at sampled pixels and within a window are its host arrays' there."""
+    pixels = sample_pixels(result.disparity.shape, result.road, calibration, 0.02)
+    window = (slice(40, 120), slice(100, 300))
+    for name in ("observed", "searched", "disparity", "labels"):
+        host = result.host(name)
+        np.testing.assert_array_equal(result.at(name, pixels), host.ravel()[pixels])
+        np.testing.assert_array_equal(result.window(name, window), host[window])
+    assert result.host("labels")[window].any()
+
+
+def test_the_result_gives_the_sampled_pixels_and_windows_its_host_arrays_give(demo_sample):
+    _reads_agree(Pipeline(Config(), demo_sample.calibration).run(
+        demo_sample.left, demo_sample.right), demo_sample.calibration)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
 def test_the_gpu_result_gives_the_sampled_pixels_its_host_arrays_give(demo_sample):
-    result = Pipeline(Config({"backend": "gpu"}), demo_sample.calibration).run(
-        demo_sample.left, demo_sample.right)
-    pixels = sample_pixels(demo_sample.disparity.shape, result.road, demo_sample.calibration,
-                           0.02)
-    for name in ("observed", "disparity", "labels"):
-        np.testing.assert_array_equal(result.at(name, pixels),
-                                      result.host(name).ravel()[pixels])
+    result = Pipeline(Config({"backend": "gpu"}), demo_sample.calibration,
+                      get_backend("gpu")).run(demo_sample.left, demo_sample.right)
+    assert result.backend == "gpu"
+    _reads_agree(result, demo_sample.calibration)
