@@ -86,15 +86,6 @@ class PipelineResult:
             return to_host(getattr(self, name))[to_host(self.superpixels)]
         return to_host(getattr(self, name))
 
-    def window(self, name: str, window: tuple[slice, slice]) -> np.ndarray:
-        """Array ``name`` (one of ARRAY_FIELDS) within ``window`` (rows, columns slices) as a
-        NumPy array: only that part copied to the host on the GPU."""
-        if name not in ARRAY_FIELDS:
-            raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
-        if name in SUPERPIXEL_FIELDS:
-            return to_host(getattr(self, name)[self.superpixels[window]])
-        return to_host(getattr(self, name)[window])
-
     def at(self, name: str, pixels: np.ndarray) -> np.ndarray:
         """Array ``name`` (one of ARRAY_FIELDS) at pixels ``pixels`` (int (K,), flat indices
         row * width + column) as a NumPy (K,) array: gathered on the backend, only those

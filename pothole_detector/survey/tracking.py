@@ -119,16 +119,13 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
     """The sightings of a PipelineResult's potholes, in its order, on the road frame
     ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
     position, which matches no track); with the result's ``calibration``, their footprints'
-    extents and outlines (:func:`footprints`, each label read back within its pothole's box
-    only)."""
+    extents and outlines (:func:`footprints`, from the labels read back, each within its
+    pothole's box)."""
     near, far = result.observed_range_m
     extents = outlines = None
     if calibration is not None and result.potholes:
-        shape = (height, width)
-        windows = {p.label: p.window(shape) for p in result.potholes}
-        labels = np.zeros(shape, dtype=np.int32)
-        for window in windows.values():
-            labels[window] = result.window("labels", window)
+        labels = result.host("labels")
+        windows = {p.label: p.window(labels.shape) for p in result.potholes}
         extents, outlines = footprints(labels, [windows.get(label) for label in range(
             1, len(result.potholes) + 1)], plane, calibration)
     made = []
