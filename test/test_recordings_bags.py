@@ -7,6 +7,7 @@ and damaged or corrupt bags read up to where they break."""
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -211,6 +212,51 @@ def test_a_bag_cut_off_mid_chunk_keeps_the_frames_before_the_cut(tmp_path, drive
                 summary.frames
         finally:
             again.close()
+
+
+def _is_open(reader):
+    """Whether ``reader`` is open (a closed AnyReader holds no connections)."""
+    return bool(reader.connections)
+
+
+def test_readers_are_kept_for_the_next_read_of_the_same_bag(tmp_path, drive):
+    """Opening a bag reads its whole index, so this process keeps the readers it gave back:
+    a reader taken is its taker's alone, the read threads give theirs back, a bag written
+    anew at the same path is opened anew, a reader whose read raised is closed, and only the
+    most recently read bags keep readers."""
+    source = tmp_path / "source"
+    frames = [(START + i * 100_000_000, s) for i, s in enumerate(drive[1] * 3)]
+    write_stereo_bag(source, frames, ground_truth=False)
+    topics = StereoTopics("/stereo/left/image_rect", "/stereo/right/image_rect",
+                          "/stereo/left/camera_info", "/stereo/right/camera_info")
+    with bags.reading(source) as first, bags.reading(source) as second:
+        assert first is not second
+    with bags.reading(source) as again:
+        assert again in (first, second)
+        assert len(list(bags.read_sets_ahead(again, topics, CPU, None, 2))) == len(frames)
+    assert bags.READERS.idle(source) >= 2
+    with pytest.raises(RuntimeError), bags.reading(source) as failing:
+        raise RuntimeError("a read that fails")
+    assert not _is_open(failing)
+
+    shutil.rmtree(source)
+    write_stereo_bag(source, frames[:1], ground_truth=False)
+    with bags.reading(source) as anew:
+        assert anew not in (first, second) and not _is_open(first) and not _is_open(second)
+        assert bags.message_count(anew, topics.left) == 1
+
+    pool = bags.ReaderPool(per_bag=1, bags=1)
+    other = tmp_path / "other"
+    write_stereo_bag(other, frames[:1], ground_truth=False)
+    kept, identity = pool.take(source)
+    extra, _ = pool.take(source)
+    pool.give(source, kept, identity)
+    pool.give(source, extra, identity)
+    assert pool.idle(source) == 1 and _is_open(kept) and not _is_open(extra)
+    pool.give(other, *pool.take(other))
+    assert pool.idle(source) == 0 and not _is_open(kept) and pool.idle(other) == 1
+    pool.clear()
+    assert pool.idle(other) == 0
 
 
 def test_sets_in_one_pass_by_span_and_in_threads(tmp_path, drive):

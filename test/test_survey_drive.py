@@ -14,13 +14,14 @@ import pytest
 from conftest import SURVEY_ORIGIN_LATLON
 
 from pothole_detector.geodesy import enu_of, latlon_of
+from pothole_detector.recordings import bags as recorded
 from pothole_detector.survey.motion import Pose2
 from pothole_detector.params import Config
 from pothole_detector.survey.drive import (CSV_COLUMNS, FrameCamera, FrameObservation,
                                            MapFrame, MotionSeries, Sighting, assemble,
                                            chunk_spans, drive_topics, map_only_entries,
-                                           severity, survey, survey_pothole, track, utc_time,
-                                           write_csv, write_geojson)
+                                           observe, severity, survey, survey_pothole, track,
+                                           utc_time, write_csv, write_geojson)
 from pothole_detector.survey.roadmap import MapPothole, RoadMap, RoadPatch, merged
 from pothole_detector.survey.tracking import Track
 
@@ -228,11 +229,15 @@ def test_visual_odometry_drift_on_the_drive(survey_drive_bags):
 
 
 @pytest.mark.parametrize("motion", ["none", "odom"])
-def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags, motion):
-    """Chunks read their own part of the bag, odometry included."""
+def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags, motion, monkeypatch):
+    """Chunks read their own part of the bag, odometry included, with the readers of the
+    reads before them: the chunked survey after the whole one opens the bag no more."""
     bags, _, _ = survey_drive_bags
     whole = survey([bags[motion]], Config({"backend": "cpu"}))[0]
+    opened = []
+    monkeypatch.setattr(recorded, "open_bag", lambda path: opened.append(path))
     split = survey([bags[motion]], Config({"backend": "cpu", "chunk_frames": 17}))[0]
+    assert opened == []
     assert split.motion_source == whole.motion_source
     np.testing.assert_allclose(split.route_xy, whole.route_xy, atol=0.02)
     assert_same_potholes(split, whole)
@@ -243,9 +248,6 @@ def test_reading_ahead_observes_what_one_reader_does(survey_drive_bags, motion, 
     """A chunk (24 frames) read in blocks of five frames by three threads, and by two worker
     processes: the same frames, sightings and motion messages as read in the pipeline's
     thread."""
-    from pothole_detector.recordings import bags as recorded
-    from pothole_detector.survey.drive import chunk_spans, drive_topics, observe
-
     monkeypatch.setattr(recorded, "READ_BLOCK_FRAMES", 5)
     bags, _, _ = survey_drive_bags
     topics = drive_topics(bags[motion])

@@ -4,12 +4,14 @@ were taken with), in one pass or ahead of the caller in threads; the bag's other
 
 from __future__ import annotations
 
+import atexit
 import bisect
 import logging
 import math
 import threading
-from collections import deque
+from collections import OrderedDict, deque
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
@@ -65,6 +67,109 @@ def _opened(path: Path) -> AnyReader:
     reader = AnyReader([path], default_typestore=typestore())
     reader.open()
     return reader
+
+
+# Idle open readers that this process keeps per bag for its next reads, and the bags it keeps
+# them for (the most recently used).
+POOLED_READERS_PER_BAG = 8
+POOLED_BAGS = 2
+
+
+class ReaderPool:
+    """Open readers of bags kept for reuse: opening a bag reads its whole index, which for an
+    mcap recording is a record per chunk of it (about a tenth of a second per 4 GB), so a
+    survey's chunks, each read by its own readers, would read a long recording's index again
+    and again. A reader taken is the caller's alone until given back. Readers are kept per bag
+    as it is on disk (its files' sizes, modification times and inodes): a bag written anew at
+    the same path is opened anew."""
+
+    def __init__(self, per_bag: int = POOLED_READERS_PER_BAG, bags: int = POOLED_BAGS) -> None:
+        self.per_bag, self.bags = per_bag, bags
+        self._lock = threading.Lock()
+        self._idle: OrderedDict[Path, tuple[tuple, list[AnyReader]]] = OrderedDict()
+
+    def take(self, path: str | Path) -> tuple[AnyReader, tuple]:
+        """An open reader of the bag at ``path`` (an idle one, else :func:`open_bag`) and the
+        bag's identity to give it back with."""
+        path = Path(path).absolute()
+        identity = _identity(path)
+        stale: list[AnyReader] = []
+        reader = None
+        with self._lock:
+            kept = self._idle.get(path)
+            if kept is not None and kept[0] != identity:
+                stale = self._idle.pop(path)[1]
+            elif kept is not None and kept[1]:
+                reader = kept[1].pop()
+                self._idle.move_to_end(path)
+        _close_all(stale)
+        return (reader if reader is not None else open_bag(path)), identity
+
+    def give(self, path: str | Path, reader: AnyReader, identity: tuple) -> None:
+        """Keep ``reader``, taken with ``identity``, idle for the next :meth:`take` of the bag
+        (or close it where the pool holds enough of that bag's or the bag has changed since)."""
+        path = Path(path).absolute()
+        closing: list[AnyReader] = []
+        with self._lock:
+            kept = self._idle.get(path)
+            if kept is None or kept[0] != identity:
+                if kept is not None:
+                    closing += kept[1]
+                kept = self._idle[path] = (identity, [])
+            if len(kept[1]) < self.per_bag and identity == _identity(path):
+                kept[1].append(reader)
+            else:
+                closing.append(reader)
+            self._idle.move_to_end(path)
+            while len(self._idle) > self.bags:
+                closing += self._idle.popitem(last=False)[1][1]
+        _close_all(closing)
+
+    def idle(self, path: str | Path) -> int:
+        """How many idle readers of the bag at ``path`` the pool keeps."""
+        kept = self._idle.get(Path(path).absolute())
+        return len(kept[1]) if kept is not None else 0
+
+    def clear(self) -> None:
+        """Close every idle reader."""
+        with self._lock:
+            closing = [reader for _, readers in self._idle.values() for reader in readers]
+            self._idle.clear()
+        _close_all(closing)
+
+
+def _identity(path: Path) -> tuple:
+    """The bag at ``path`` as it is on disk: (name, size, modification time ns, inode) of the
+    file or of each file of the directory; () where there is none."""
+    try:
+        files = sorted(path.iterdir()) if path.is_dir() else [path]
+        return tuple((f.name, *(lambda st: (st.st_size, st.st_mtime_ns, st.st_ino))(f.stat()))
+                     for f in files)
+    except OSError:
+        return ()
+
+
+def _close_all(readers: Iterable[AnyReader]) -> None:
+    for reader in readers:
+        reader.close()
+
+
+READERS = ReaderPool()
+atexit.register(READERS.clear)
+
+
+@contextmanager
+def reading(path: str | Path) -> Iterator[AnyReader]:
+    """An open reader of the bag at ``path`` from this process's :class:`ReaderPool`, given
+    back to it after the block (closed instead where the block raised or was left by a
+    generator's close)."""
+    reader, identity = READERS.take(path)
+    try:
+        yield reader
+    except BaseException:
+        reader.close()
+        raise
+    READERS.give(path, reader, identity)
 
 
 _CONVERTERS: dict[tuple[str, str], Callable[[bytes], Any]] = {}
@@ -324,10 +429,11 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                     ) -> Iterator[tuple[int, int, Any, Any, Any, Any]]:
     """The sets of :func:`stereo_sets` over ``span`` (or the whole bag) in order, and its
     ``others`` messages into ``collected``, read by ``threads`` threads ahead of the caller,
-    each with its own reader on the bag: the span's log time is cut into blocks of about
-    READ_BLOCK_FRAMES sets (at the bag's mean rate), a thread reads a block with a lead of two
-    frames and the sync tolerance on both sides (for partners logged across its edges) and
-    keeps the sets whose left image was logged in it (the first block also its span's lead).
+    each with its own reader on the bag (from :data:`READERS`): the span's log time is cut
+    into blocks of about READ_BLOCK_FRAMES sets (at the bag's mean rate), a thread reads a
+    block with a lead of two frames and the sync tolerance on both sides (for partners logged
+    across its edges) and keeps the sets whose left image was logged in it (the first block
+    also its span's lead).
     The bag's decompression, which releases the GIL, runs beside the pipeline; at most
     ``threads`` + 1 blocks are held. Unpaired images are not counted; corrupt messages are,
     in ``counts``."""
@@ -335,12 +441,12 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
     blocks, _ = read_blocks(reader, topics, config, span)
     path = list(reader.paths)[0]
     local = threading.local()
-    opened: list[AnyReader] = []
+    held: list[tuple[AnyReader, tuple]] = []
 
     def read(block: LogSpan, first: bool) -> tuple[list, list, SetCounts]:
         if not hasattr(local, "reader"):
-            local.reader = open_bag(path)
-            opened.append(local.reader)
+            local.reader, identity = READERS.take(path)
+            held.append((local.reader, identity))
         extras: list = []
         found = SetCounts()
         return list(block_sets(local.reader, topics, config, block, first, others,
@@ -354,6 +460,7 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
             counts.add(found)
         return sets
 
+    read_through = False
     try:
         with ThreadPoolExecutor(threads, thread_name_prefix="bag-read") as pool:
             pending: deque = deque()
@@ -363,18 +470,19 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
                     yield from take(pending.popleft())
             while pending:
                 yield from take(pending.popleft())
+        read_through = True
     finally:
-        for own in opened:
-            own.close()
+        for own, identity in held:
+            if read_through:
+                READERS.give(path, own, identity)
+            else:
+                own.close()
 
 
 def topics_of(bag: str | Path) -> dict[str, str]:
     """Topic name -> type of a bag."""
-    reader = open_bag(bag)
-    try:
+    with reading(bag) as reader:
         return {c.topic: c.msgtype for c in reader.connections}
-    finally:
-        reader.close()
 
 
 def read_messages(bag: str | Path, topics: Iterable[str] | None = None,
@@ -382,8 +490,7 @@ def read_messages(bag: str | Path, topics: Iterable[str] | None = None,
     """(topic, bag time ns, message) of a bag, or of those logged in a span (its lead
     left out), in time order."""
 
-    reader = open_bag(bag)
-    try:
+    with reading(bag) as reader:
         wanted = None if topics is None else set(topics)
         connections = [c for c in reader.connections if wanted is None or c.topic in wanted]
         window = {} if span is None else {"start": span.start_ns, "stop": span.stop_ns}
@@ -391,8 +498,6 @@ def read_messages(bag: str | Path, topics: Iterable[str] | None = None,
                                                               **window):
             yield connection.topic, timestamp, deserialize(
                 cdr_bytes(reader, connection, rawdata), connection.msgtype)
-    finally:
-        reader.close()
 
 
 def left_view_at(bag: str | Path, topics: StereoTopics, stamp: int, config: Config
@@ -400,8 +505,7 @@ def left_view_at(bag: str | Path, topics: StereoTopics, stamp: int, config: Conf
     """The left image of ``bag`` stamped ``stamp`` (ns) in the frame results are in:
     rectified (the ``rectify`` parameter) with the camera_info of the set where it comes raw.
     Raises InputError where the bag has no such image."""
-    reader = open_bag(bag)
-    try:
+    with reading(bag) as reader:
         sides = {topics.left: "left", topics.left_info: "left_info",
                  topics.right_info: "right_info"}
         connections = [c for c in reader.connections if c.topic in sides]
@@ -424,8 +528,6 @@ def left_view_at(bag: str | Path, topics: StereoTopics, stamp: int, config: Conf
                 break
         else:
             raise InputError(f"{bag} has no left image at {stamp}")
-    finally:
-        reader.close()
     image = decode(found["left"], topics.image_type)
     if "left_info" not in found or "right_info" not in found:
         return image

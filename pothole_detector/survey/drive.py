@@ -190,16 +190,15 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     damage, and the damage counts as a failed frame after them."""
     if config.read_processes > 0:
         readahead.start(config.read_processes)
-    reader = bags.open_bag(bag)
-    odometry = StereoOdometry()
-    has_odometry = bool(topics.odometry) and bags.message_count(reader, topics.odometry) > 0
-    observations: list[FrameObservation] = []
-    motion_messages: list[tuple[str, int, Any]] = []
-    results = frame_results(
-        reader, topics.stereo, config, get_backend(config.backend), ProcessSummary(),
-        progress, span, config.read_threads, topics.motion_topics(), motion_messages,
-        config.read_processes)
-    try:
+    with bags.reading(bag) as reader:
+        odometry = StereoOdometry()
+        has_odometry = bool(topics.odometry) and bags.message_count(reader, topics.odometry) > 0
+        observations: list[FrameObservation] = []
+        motion_messages: list[tuple[str, int, Any]] = []
+        results = frame_results(
+            reader, topics.stereo, config, get_backend(config.backend), ProcessSummary(),
+            progress, span, config.read_threads, topics.motion_topics(), motion_messages,
+            config.read_processes)
         for frame, outcome in _until_damaged(results, observations, span):
             kept = span is None or frame.logged_ns >= span.start_ns
             try:
@@ -226,8 +225,6 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
                     tuple(float(v) for v in outcome.observed_range_m), step,
                     camera=FrameCamera.of(plane, frame.calibration, width, height),
                     patch=patch, overview=overview))
-    finally:
-        reader.close()
     return observations, motion_samples(motion_messages, topics)
 
 
@@ -800,13 +797,10 @@ def chunk_spans(bag: str | Path, topics: DriveTopics, config: Config
     log time split evenly into spans of about ``chunk_frames`` frames, each read with a lead of
     ``chunk_overlap_frames`` + 2 frames (at the bag's mean rate) and the sync tolerance. A
     chunk seeks to its span: no frame before it is read."""
-    reader = bags.open_bag(bag)
-    try:
+    with bags.reading(bag) as reader:
         count = bags.message_count(reader, topics.stereo.left)
         start, end = (reader.start_time, reader.end_time) if count else (0, 0)
         period_ns = bags.mean_period_ns(reader, topics.stereo.left) if count else 0.0
-    finally:
-        reader.close()
     pieces = max(1, math.ceil(count / config.chunk_frames))
     lead_ns = math.ceil(period_ns * (config.chunk_overlap_frames + 2)
                         + config.approximate_sync_tolerance_seconds * 1e9)
