@@ -75,17 +75,16 @@ def bench(bag: Path, config: Config, ray_gpus: int | None, jobs: int, out: Path
           ) -> tuple[float, float, int, int]:
     """Survey ``bag`` into ``out``: in ``jobs`` processes, or, where ``ray_gpus`` is not
     None, as tasks on a local Ray cluster of that many GPUs (-1: the machine's), started
-    before the clock. Returns (seconds, of which observing the chunks, frames, potholes); the
-    rest is this process's: planning, assembling (poses, tracking, the road maps, the rows),
-    survey.csv and report.html."""
+    before the clock. Returns (seconds, of which observing the chunks: until the last chunk's
+    result, frames, potholes); the rest is this process's: planning, assembling (poses,
+    tracking, the road maps, the rows), survey.csv and report.html."""
     runner = ray_chunks() if ray_gpus is not None else chunk_runner(jobs)
     observing: list[float] = []
 
     def timed(plans: Any, values: Config, progress: Any) -> Any:
         start = time.perf_counter()
-        chunked = runner(plans, values, progress)
+        yield from runner(plans, values, progress)
         observing.append(time.perf_counter() - start)
-        return chunked
 
     if ray_gpus is not None:
         ray.init(num_gpus=None if ray_gpus < 0 else ray_gpus, include_dashboard=False,

@@ -15,13 +15,15 @@ from conftest import SURVEY_ORIGIN_LATLON
 
 from pothole_detector.geodesy import enu_of, latlon_of
 from pothole_detector.recordings import bags as recorded
+from pothole_detector.survey import drive as drive_module
 from pothole_detector.survey.motion import Pose2
 from pothole_detector.params import Config
 from pothole_detector.survey.drive import (CSV_COLUMNS, FrameCamera, FrameObservation,
                                            MapFrame, MotionSeries, Sighting, assemble,
                                            chunk_spans, drive_topics, map_only_entries,
-                                           observe, severity, survey, survey_pothole, track,
-                                           utc_time, write_csv, write_geojson)
+                                           in_plan_order, observe, observe_here, severity,
+                                           survey, survey_pothole, track, utc_time, write_csv,
+                                           write_geojson)
 from pothole_detector.survey.roadmap import MapPothole, RoadMap, RoadPatch, merged
 from pothole_detector.survey.tracking import Track
 
@@ -241,6 +243,47 @@ def test_chunked_survey_gives_the_unchunked_one(survey_drive_bags, motion, monke
     assert split.motion_source == whole.motion_source
     np.testing.assert_allclose(split.route_xy, whole.route_xy, atol=0.02)
     assert_same_potholes(split, whole)
+
+
+def test_chunk_runners_give_each_plan_once_its_chunks_are_done():
+    """Plans of 2, 0, 1 and 2 chunks (numbered plan after plan) whose chunks finish in the
+    order 0, 3, 1, 2, 4: plan 0 comes (with the empty plan 1 after it) as soon as chunk 1 is
+    done, before chunk 2 is; plan 2 then, plan 3 last."""
+    pulled, given = [], []
+
+    def finished():
+        for chunk in (0, 3, 1, 2, 4):
+            pulled.append(chunk)
+            yield chunk
+
+    for plan in in_plan_order([2, 0, 1, 2], finished()):
+        given.append((plan, tuple(pulled)))
+    assert given == [(0, (0, 3, 1)), (1, (0, 3, 1)), (2, (0, 3, 1, 2)), (3, (0, 3, 1, 2, 4))]
+    assert list(in_plan_order([0, 0], iter(()))) == [0, 1]
+
+
+def test_a_bag_is_assembled_while_the_bags_after_it_are_observed(survey_drive_bags,
+                                                                  monkeypatch):
+    """survey takes each bag's results from its chunk runner as they come: the first bag is
+    assembled before the runner observes the second; the runner is run to its end."""
+    bags, _, _ = survey_drive_bags
+    events = []
+    assembling = drive_module.assemble
+    monkeypatch.setattr(drive_module, "assemble", lambda bag, *rest, **named: (
+        events.append(("assembled", bag)), assembling(bag, *rest, **named))[1])
+
+    def runner(plans, config, progress):
+        for plan in plans:
+            events.append(("observed", plan.bag))
+            yield next(observe_here([plan], config, progress))
+        events.append(("ended", None))
+
+    drives = [bags["odom"], bags["none"]]
+    surveyed = survey(drives, Config({"backend": "cpu"}), chunks=runner)
+    assert [event for event, _ in events] == ["observed", "assembled", "observed",
+                                              "assembled", "ended"]
+    assert [bag for _, bag in events[:4]] == [drives[0]] * 2 + [drives[1]] * 2
+    assert [len(d.potholes) for d in surveyed] == [6, 6]
 
 
 @pytest.mark.parametrize("motion", ["odom", "gnss"])

@@ -826,9 +826,28 @@ class Plan(NamedTuple):
 
 ChunkResult = tuple[list[FrameObservation], MotionSamples]
 # runs the chunks of every plan with the config, reporting (done, total) to the progress
-# callback; per bag, its chunks' results in order
+# callback; yields each plan's chunks' results (in chunk order), plan after plan, as soon as
+# that plan's chunks are all observed, so that a survey assembles a bag while the chunks of the
+# bags after it are observed
 ChunkRunner = Callable[[Sequence[Plan], Config, Callable[[int, int], None] | None],
-                       list[list[ChunkResult]]]
+                       Iterator[list[ChunkResult]]]
+
+
+def in_plan_order(counts: Sequence[int], finished: Iterable[int]) -> Iterator[int]:
+    """The plans (indices into ``counts``, each plan's number of chunks, the chunks numbered
+    plan after plan), in order, each as soon as all its chunks are among the chunk indices
+    ``finished`` yields (in the order they finish): what a ChunkRunner gives its caller."""
+    starts = np.cumsum([0, *counts])
+    left = list(counts)
+    plan = 0
+    while plan < len(counts) and left[plan] == 0:
+        yield plan
+        plan += 1
+    for chunk in finished:
+        left[int(np.searchsorted(starts, chunk, side="right")) - 1] -= 1
+        while plan < len(counts) and left[plan] == 0:
+            yield plan
+            plan += 1
 
 
 def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
@@ -840,10 +859,11 @@ def observe_chunk(bag: str, topics: DriveTopics, values: dict[str, Any],
 
 def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
                          progress: Callable[[int, int], None] | None = None
-                         ) -> list[list[ChunkResult]]:
+                         ) -> Iterator[list[ChunkResult]]:
     """:func:`observe_chunk` of every (bag, topics, chunk spans) plan, a task per chunk in
     ``jobs`` worker processes on this machine (started afresh, each with its own pipeline on the
-    configured backend: several share one GPU); per bag, in chunk order."""
+    configured backend: several share one GPU); per bag, in chunk order, each bag as soon as
+    its chunks are done (the processes work on while the caller takes it)."""
     values = config.as_dict()
     threads = max(1, (os.cpu_count() or 1) // jobs)
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
@@ -851,19 +871,29 @@ def observe_in_processes(plans: Sequence[Plan], config: Config, jobs: int,
         futures = [[pool.submit(observe_chunk, str(bag), topics, values, span)
                     for span in spans] for bag, topics, spans, _ in plans]
         flat = [future for per_bag in futures for future in per_bag]
-        for done, _ in enumerate(as_completed(flat), 1):
-            if progress is not None:
-                progress(done, len(flat))
-        return [[future.result() for future in per_bag] for per_bag in futures]
+        number = {future: index for index, future in enumerate(flat)}
+
+        def finished() -> Iterator[int]:
+            for done, future in enumerate(as_completed(flat), 1):
+                if progress is not None:
+                    progress(done, len(flat))
+                yield number[future]
+
+        try:
+            for plan in in_plan_order([len(per_bag) for per_bag in futures], finished()):
+                yield [future.result() for future in futures[plan]]
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
 
 
 def observe_here(plans: Sequence[Plan], config: Config,
                  progress: Callable[[int, int], None] | None = None
-                 ) -> list[list[ChunkResult]]:
+                 ) -> Iterator[list[ChunkResult]]:
     """:func:`observe` of every plan's chunks, one after the other in this process; per bag,
     in chunk order. ``progress(done, total)`` counts frames."""
     total = sum(plan.left_images for plan in plans)
-    chunked, done = [], 0
+    done = 0
     for bag, topics, spans, _ in plans:
         per_bag: list[ChunkResult] = []
         for span in spans:
@@ -873,10 +903,9 @@ def observe_here(plans: Sequence[Plan], config: Config,
             observed, samples = observe(bag, topics, config, span, step)
             per_bag.append((observed, samples))
             done += len(observed)
-        chunked.append(per_bag)
+        yield per_bag
     if progress is not None:
         progress(total, total)
-    return chunked
 
 
 def chunk_runner(jobs: int) -> ChunkRunner:
@@ -894,7 +923,8 @@ def survey(bags: Iterable[str | Path], config: Config,
     observed by the ChunkRunner ``chunks`` (fleet.ray_chunks: on Ray's workers); without one,
     with ``jobs`` > 1, each as a task of one of ``jobs`` worker processes here
     (:func:`observe_in_processes`), else one after the other here (:func:`observe_here`);
-    then each bag's observations are assembled here (:func:`assemble`)."""
+    each bag's observations are assembled here (:func:`assemble`) as soon as they are all
+    there, while the bags after it are observed."""
     plans: list[Plan] = []
     unreadable: dict[int, DriveSurvey] = {}
     for index, bag in enumerate(bags):
@@ -905,14 +935,21 @@ def survey(bags: Iterable[str | Path], config: Config,
             unreadable[index] = DriveSurvey.unreadable(bag, str(exc))
             continue
         plans.append(Plan(Path(bag), topics, spans, left_images))
-    chunked = (chunks or chunk_runner(jobs))(plans, config, progress)
+    chunked = iter((chunks or chunk_runner(jobs))(plans, config, progress))
     surveys, next_id = [], 1
-    for (bag, topics, _, _), per_bag in zip(plans, chunked):
-        observations = [o for observed, _ in per_bag for o in observed]
-        motion = motion_series((samples for _, samples in per_bag), topics)
-        drive = assemble(bag, observations, motion, config, next_id, topics)
-        next_id += len(drive.potholes)
-        surveys.append(drive)
+    try:
+        for (bag, topics, _, _), per_bag in zip(plans, chunked):
+            observations = [o for observed, _ in per_bag for o in observed]
+            motion = motion_series((samples for _, samples in per_bag), topics)
+            drive = assemble(bag, observations, motion, config, next_id, topics)
+            next_id += len(drive.potholes)
+            surveys.append(drive)
+        for _ in chunked:  # the runner's end: its last progress, its workers stopped
+            pass
+    finally:
+        close = getattr(chunked, "close", None)
+        if close is not None:
+            close()
     for index in sorted(unreadable):
         surveys.insert(index, unreadable[index])
     return surveys

@@ -4,13 +4,15 @@ cluster at an address or a local one. Ray is an optional extra: ``pip install .[
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+import queue
+import threading
+from typing import Any, Callable, Iterator, Sequence
 
 from ..recordings.bags import LogSpan
 from ..errors import InputError
 from ..params import Config
 from ..stages.matching import set_host_threads
-from .drive import ChunkResult, ChunkRunner, DriveTopics, Plan, observe_chunk
+from .drive import ChunkResult, ChunkRunner, DriveTopics, Plan, in_plan_order, observe_chunk
 
 
 def ray_chunks(address: str | None = None) -> ChunkRunner:
@@ -24,14 +26,16 @@ IN_FLIGHT = 2
 
 def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = None,
                    progress: Callable[[int, int], None] | None = None
-                   ) -> list[list[ChunkResult]]:
+                   ) -> Iterator[list[ChunkResult]]:
     """:func:`~pothole_detector.survey.observe_chunk` of every (bag, topics, chunk spans)
-    plan on Ray; per bag, in chunk order. One :class:`ChunkWorker` actor per GPU of the
-    cluster (per CPU core on the CPU backend) takes the chunks in turn, IN_FLIGHT of them
-    queued at a time, so that a worker's next chunk is there when one ends: a worker keeps
-    its process, GPU, compiled kernels and memory pool from one chunk to the next (a Ray task
-    that holds a GPU gets a fresh process each time). The bags must be readable at the same
-    path on every node."""
+    plan on Ray; per bag, in chunk order, each bag as soon as its chunks are done. One
+    :class:`ChunkWorker` actor per GPU of the cluster (per CPU core on the CPU backend) takes
+    the chunks in turn, IN_FLIGHT of them queued at a time, so that a worker's next chunk is
+    there when one ends: a worker keeps its process, GPU, compiled kernels, memory pool and
+    bag readers from one chunk to the next (a Ray task that holds a GPU gets a fresh process
+    each time). The chunks are handed out by a thread of this process, so that the workers
+    are kept busy while the caller works on the bags given so far. The bags must be readable
+    at the same path on every node."""
     try:
         import ray
     except ImportError:
@@ -50,54 +54,88 @@ def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = 
         cores = cores_per_gpu(ray.nodes()) if on_gpu else 1
         chunks = [(str(bag), topics, span) for bag, topics, spans, _ in plans
                   for span in spans]
+        counts = [len(spans) for _, _, spans, _ in plans]
         if not chunks:
-            return [[] for _ in plans]
+            yield from ([] for _ in plans)
+            return
         slots = gpus if on_gpu else int(resources.get("CPU", 1))
         actor = ray.remote(num_gpus=1 if on_gpu else 0, num_cpus=cores)(ChunkWorker)
         workers = [actor.remote(cores) for _ in range(max(1, min(slots, len(chunks))))]
+        dispatch = Dispatch(ray, workers, chunks, values, progress)
         try:
-            results = _dispatch(ray, workers, chunks, values, progress)
+            starts = [sum(counts[:plan]) for plan in range(len(plans))]
+            for plan in in_plan_order(counts, dispatch.finished()):
+                yield dispatch.results[starts[plan]:starts[plan] + counts[plan]]
         finally:
+            dispatch.stop()
             for worker in workers:
                 ray.kill(worker)
-        per_bag, at = [], 0
-        for _, _, spans, _ in plans:
-            per_bag.append(results[at:at + len(spans)])
-            at += len(spans)
-        return per_bag
+            dispatch.join()
     finally:
         if started_here:
             ray.shutdown()
 
 
-def _dispatch(ray: Any, workers: Sequence[Any], chunks: Sequence[tuple[str, DriveTopics,
-                                                                       LogSpan]],
-              values: dict[str, Any], progress: Callable[[int, int], None] | None
-              ) -> list[ChunkResult]:
-    """The results of ``chunks`` (bag, topics, span) on the ChunkWorker actors ``workers``,
-    in order: each worker has up to IN_FLIGHT chunks queued and takes the next one left as
-    one of its own ends."""
-    results: list[Any] = [None] * len(chunks)
-    waiting = list(range(len(chunks)))[::-1]
-    running: dict[Any, tuple[int, Any]] = {}
+class Dispatch:
+    """The chunks (bag, topics, span) handed to the ChunkWorker actors ``workers`` by a thread
+    of its own: each worker has up to IN_FLIGHT chunks queued and takes the next one left as
+    one of its own ends; ``results`` (in chunk order) fill in as they come."""
 
-    def feed(worker: Any) -> None:
-        if waiting:
-            index = waiting.pop()
-            bag, topics, span = chunks[index]
-            running[worker.observe.remote(bag, topics, values, span)] = (index, worker)
+    def __init__(self, ray: Any, workers: Sequence[Any],
+                 chunks: Sequence[tuple[str, DriveTopics, LogSpan]], values: dict[str, Any],
+                 progress: Callable[[int, int], None] | None) -> None:
+        self.results: list[Any] = [None] * len(chunks)
+        self._ray, self._workers, self._chunks = ray, workers, chunks
+        self._values, self._progress = values, progress
+        self._done: queue.Queue = queue.Queue()
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ray-dispatch", daemon=True)
+        self._thread.start()
 
-    for _ in range(IN_FLIGHT):
-        for worker in workers:
-            feed(worker)
-    while running:
-        (ready,), _ = ray.wait(list(running), num_returns=1)
-        index, worker = running.pop(ready)
-        results[index] = ray.get(ready)
-        if progress is not None:
-            progress(len(chunks) - len(waiting) - len(running), len(chunks))
-        feed(worker)
-    return results
+    def finished(self) -> Iterator[int]:
+        """The chunks' indices as their results come; raises what stopped the hand-out."""
+        for _ in self._chunks:
+            index = self._done.get()
+            if isinstance(index, BaseException):
+                raise index
+            yield index
+
+    def stop(self) -> None:
+        """Hand out no more chunks."""
+        self._stopping.set()
+
+    def join(self, timeout_s: float = 30.0) -> None:
+        """Wait (at most ``timeout_s``) for the thread to end: all results in, or the workers
+        gone."""
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        ray = self._ray
+        waiting = list(range(len(self._chunks)))[::-1]
+        running: dict[Any, tuple[int, Any]] = {}
+
+        def feed(worker: Any) -> None:
+            if waiting and not self._stopping.is_set():
+                index = waiting.pop()
+                bag, topics, span = self._chunks[index]
+                running[worker.observe.remote(bag, topics, self._values, span)] = (index,
+                                                                                   worker)
+
+        try:
+            for _ in range(IN_FLIGHT):
+                for worker in self._workers:
+                    feed(worker)
+            while running and not self._stopping.is_set():
+                (ready,), _ = ray.wait(list(running), num_returns=1)
+                index, worker = running.pop(ready)
+                self.results[index] = ray.get(ready)
+                if self._progress is not None:
+                    self._progress(len(self._chunks) - len(waiting) - len(running),
+                                   len(self._chunks))
+                self._done.put(index)
+                feed(worker)
+        except BaseException as exc:  # noqa: BLE001 (handed to the caller's thread)
+            self._done.put(exc)
 
 
 class ChunkWorker:
