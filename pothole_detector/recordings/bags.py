@@ -143,10 +143,10 @@ def _identity(path: Path) -> tuple:
     file or of each file of the directory; () where there is none."""
     try:
         files = sorted(path.iterdir()) if path.is_dir() else [path]
-        return tuple((f.name, *(lambda st: (st.st_size, st.st_mtime_ns, st.st_ino))(f.stat()))
-                     for f in files)
+        stats = [(file.name, file.stat()) for file in files]
     except OSError:
         return ()
+    return tuple((name, stat.st_size, stat.st_mtime_ns, stat.st_ino) for name, stat in stats)
 
 
 def _close_all(readers: Iterable[AnyReader]) -> None:

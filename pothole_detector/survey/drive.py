@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import itertools
 import json
 import math
 import multiprocessing
@@ -837,14 +838,12 @@ def in_plan_order(counts: Sequence[int], finished: Iterable[int]) -> Iterator[in
     """The plans (indices into ``counts``, each plan's number of chunks, the chunks numbered
     plan after plan), in order, each as soon as all its chunks are among the chunk indices
     ``finished`` yields (in the order they finish): what a ChunkRunner gives its caller."""
-    starts = np.cumsum([0, *counts])
+    owner = np.repeat(np.arange(len(counts)), counts)
     left = list(counts)
     plan = 0
-    while plan < len(counts) and left[plan] == 0:
-        yield plan
-        plan += 1
-    for chunk in finished:
-        left[int(np.searchsorted(starts, chunk, side="right")) - 1] -= 1
+    for chunk in itertools.chain([None], finished):
+        if chunk is not None:
+            left[owner[chunk]] -= 1
         while plan < len(counts) and left[plan] == 0:
             yield plan
             plan += 1

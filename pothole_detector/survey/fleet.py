@@ -4,6 +4,7 @@ cluster at an address or a local one. Ray is an optional extra: ``pip install .[
 
 from __future__ import annotations
 
+import itertools
 import queue
 import threading
 from typing import Any, Callable, Iterator, Sequence
@@ -63,7 +64,7 @@ def observe_on_ray(plans: Sequence[Plan], config: Config, address: str | None = 
         workers = [actor.remote(cores) for _ in range(max(1, min(slots, len(chunks))))]
         dispatch = Dispatch(ray, workers, chunks, values, progress)
         try:
-            starts = [sum(counts[:plan]) for plan in range(len(plans))]
+            starts = list(itertools.accumulate(counts, initial=0))
             for plan in in_plan_order(counts, dispatch.finished()):
                 yield dispatch.results[starts[plan]:starts[plan] + counts[plan]]
         finally:
