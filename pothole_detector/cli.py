@@ -109,7 +109,8 @@ def _parser() -> argparse.ArgumentParser:
                                  "worker processes here (default 1: in this process)")
     survey_cmd.add_argument("--read-processes", type=int, metavar="N",
                             help="read and decode the bags in N worker processes ahead of the "
-                                 "pipeline (the read_processes parameter; 0: in threads)")
+                                 "pipeline (the read_processes parameter; 0: in threads; default: "
+                                 "-1, processes for a GPU pipeline)")
     survey_cmd.add_argument("--odometry-topic", help="nav_msgs/Odometry topic (default: the "
                                                      "bag's only one; else /tf, GNSS or "
                                                      "visual odometry)")

@@ -339,11 +339,12 @@ PARAMETERS: tuple[Param, ...] = (
           "Survey: threads that read and decompress the bag ahead of the pipeline, each a "
           "slice of a few dozen frames at a time (where camera_info comes with every image); "
           "1 reads in the pipeline's thread.", 1, 64, group="survey"),
-    Param("read_processes", int, 0,
+    Param("read_processes", int, -1,
           "Survey: worker processes that read, decompress and decode the bag ahead of the "
-          "pipeline instead of the read threads (the pixels come back through shared memory); "
-          "for a GPU pipeline that would otherwise wait on decoding. 0: the read threads.",
-          0, 64, group="survey"),
+          "pipeline instead of the read threads (the pixels come back through shared memory), "
+          "so that a GPU pipeline's process keeps its interpreter. 0: the read threads; -1: on "
+          "the GPU backend one per 4 of the process's host cores (at most 4), on the CPU "
+          "none.", -1, 64, group="survey"),
     Param("chunk_overlap_frames", int, 2,
           "Survey: frames that a chunk also processes before its start (two more, at the "
           "bag's mean frame rate), so that visual odometry runs on across chunk boundaries.",

@@ -284,3 +284,29 @@ def test_sets_in_one_pass_by_span_and_in_threads(tmp_path, drive):
         bags.open_bag(tmp_path / "nope")
     np.testing.assert_array_equal(
         bags.left_view_at(source, topics, frames[1][0], CPU), samples[1].left)
+
+
+def test_a_span_is_read_in_blocks_that_start_short(tmp_path, drive, monkeypatch):
+    """The first blocks of a reading are short and each twice the one before, up to
+    READ_BLOCK_FRAMES, so that the first set comes after a few sets' reading; the blocks
+    cover the span edge to edge and the sets read ahead in them are the bag's."""
+    monkeypatch.setattr(bags, "FIRST_READ_BLOCK_FRAMES", 1)
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 4)
+    source = tmp_path / "source"
+    frames = [(START + i * 100_000_000, s) for i, s in enumerate(drive[1] * 8)]
+    write_stereo_bag(source, frames, ground_truth=False)
+    topics = StereoTopics("/stereo/left/image_rect", "/stereo/right/image_rect",
+                          "/stereo/left/camera_info", "/stereo/right/camera_info")
+    with bags.reading(source) as reader:
+        span = bags.LogSpan(reader.start_time + 150_000_000, reader.end_time + 1, 250_000_000)
+        blocks, period_ns = bags.read_blocks(reader, topics, CPU, span)
+        assert period_ns == pytest.approx(100_000_000, rel=0.01)
+        lengths = [(block.stop_ns - block.start_ns) / period_ns for block in blocks]
+        assert lengths[:-1] == pytest.approx([1, 2, 4, 4][:len(lengths) - 1], abs=0.01)
+        assert 0 < lengths[-1] <= 4.01
+        assert blocks[0].start_ns == span.start_ns and blocks[-1].stop_ns == span.stop_ns
+        assert all(a.stop_ns == b.start_ns for a, b in zip(blocks, blocks[1:]))
+        assert blocks[0].lead_ns >= span.lead_ns
+        ahead = [s[0] for s in bags.read_sets_ahead(reader, topics, CPU, span, 3)]
+        alone = [s[0] for s in bags.stereo_sets(reader, topics, CPU, bags.SetCounts(), span)]
+    assert ahead == alone and ahead[0] < span.start_ns and len(ahead) >= 14

@@ -94,12 +94,22 @@ def fresh_decoders():
     readahead._close_decoders()
 
 
+@pytest.fixture
+def decoders_up(fresh_decoders):
+    """Two worker processes, each started and ready to decode."""
+    decoders = readahead.start(2)
+    for started in decoders._started:
+        started.result(timeout=120)
+    return decoders
+
+
 @pytest.mark.parametrize("colour", [False, True], ids=["mono8", "rgb8"])
 def test_worker_processes_give_the_frames_one_reader_gives(tmp_path, samples, colour,
-                                                           monkeypatch, fresh_decoders):
-    """Twenty sets read in blocks of three by two worker processes, of the whole bag and of a
-    span with its lead: the sets, pixels and calibrations one reader gives, in order, each
-    set's pixels on a slot of the ring; every slot is back once the frames are gone."""
+                                                           monkeypatch, decoders_up):
+    """Twenty sets read in blocks of two, then three, by two worker processes that are up, of
+    the whole bag and of a span with its lead: the sets, pixels and calibrations one reader
+    gives, in order, each set's pixels on a slot of the ring; every slot is back once the
+    frames are gone."""
     monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
     reader = bags.open_bag(_bag(tmp_path, samples, 20, colour))
     try:
@@ -156,7 +166,7 @@ def test_a_set_without_camera_info_comes_back_as_its_error(tmp_path, samples, mo
 
 
 def test_a_reading_stopped_early_gives_its_slots_back(tmp_path, samples, monkeypatch,
-                                                      fresh_decoders):
+                                                      decoders_up):
     """Two frames taken of twenty, then the reading is closed: the blocks read ahead give
     their slots back as they finish."""
     monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
@@ -175,3 +185,37 @@ def test_a_reading_stopped_early_gives_its_slots_back(tmp_path, samples, monkeyp
         assert taken == [START, START + PERIOD_NS]
     finally:
         reader.close()
+
+
+def test_blocks_taken_before_the_workers_are_up_are_read_here(tmp_path, samples, monkeypatch,
+                                                               fresh_decoders):
+    """The first three blocks (2, 3 and 3 frames long) are taken while no worker is up: this
+    process reads them, the workers the rest; the frames are those one reader gives, in order, the
+    later ones on slots of the ring."""
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
+    asked = []
+    monkeypatch.setattr(readahead.Decoders, "ready", lambda self: asked.append(1) or
+                        len(asked) > 3)
+    reader = bags.open_bag(_bag(tmp_path, samples, 20))
+    try:
+        got, on_slots = [], []
+        for frame in readahead.decoded_frames(reader, TOPICS, Config(), None, 2):
+            ring = readahead._DECODERS[0].ring
+            on_slots.append(frame.left.base is frame.right.base is not None
+                            and frame.left.base.size == ring.slot_bytes)
+            got.append((frame.stamp, frame.logged_ns, frame.left.copy(), frame.right.copy(),
+                        frame.camera))
+        _assert_same(got, _one_reader(reader, None))
+        fourth = bags.read_blocks(reader, TOPICS, Config(), None)[0][3]
+        read_here = sum(logged < fourth.start_ns for _, logged, *_ in got)
+        assert read_here >= 8 and on_slots == [False] * read_here + [True] * (20 - read_here)
+    finally:
+        reader.close()
+
+
+@pytest.mark.parametrize("setting, backend, cores, expected", [
+    (3, "cpu", 16, 3), (0, "gpu", 16, 0), (-1, "gpu", 16, 4), (-1, "gpu", 64, 4),
+    (-1, "gpu", 8, 2), (-1, "gpu", 3, 0), (-1, "cpu", 64, 0)])
+def test_decoding_processes_by_default_only_for_a_gpu_pipeline(setting, backend, cores,
+                                                                 expected):
+    assert readahead.processes_for(setting, backend, cores) == expected

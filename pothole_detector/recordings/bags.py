@@ -361,6 +361,10 @@ def stereo_sets(reader: AnyReader, topics: StereoTopics, config: Config,
 
 # Sets per slice of log time that a read thread takes at a time (read_sets_ahead).
 READ_BLOCK_FRAMES = 24
+# Sets of a span's first slice; each slice after it twice as long, up to READ_BLOCK_FRAMES,
+# so that the pipeline's first set comes after a few sets' reading, not a whole slice's
+# beside the other readers' slices.
+FIRST_READ_BLOCK_FRAMES = 2
 
 
 def message_count(reader: AnyReader, topic: str) -> int:
@@ -375,18 +379,22 @@ def mean_period_ns(reader: AnyReader, topic: str) -> float:
 
 def read_blocks(reader: AnyReader, topics: StereoTopics, config: Config,
                 span: LogSpan | None) -> tuple[list[LogSpan], float]:
-    """``span``'s log time (or the whole bag's) cut into blocks of about READ_BLOCK_FRAMES
-    sets at the bag's mean rate, each with a lead of two frames and the sync tolerance (for
-    partners logged across its edges; the first block at least the span's own lead), and the
-    mean period (ns) of the left images."""
+    """``span``'s log time (or the whole bag's) cut into blocks of sets at the bag's mean rate
+    (FIRST_READ_BLOCK_FRAMES, then each block twice as many up to READ_BLOCK_FRAMES), each
+    with a lead of two frames and the sync tolerance (for partners logged across its edges;
+    the first block at least the span's own lead), and the mean period (ns) of the left
+    images."""
     outer = span or LogSpan(reader.start_time, reader.end_time + 1, 0)
     period_ns = mean_period_ns(reader, topics.left)
-    block_ns = max(1, math.ceil(period_ns * READ_BLOCK_FRAMES))
     lead_ns = math.ceil(2 * period_ns + config.approximate_sync_tolerance_seconds * 1e9)
-    starts = list(range(outer.start_ns, outer.stop_ns, block_ns)) or [outer.start_ns]
-    return [LogSpan(first, min(first + block_ns, outer.stop_ns),
-                    max(outer.lead_ns, lead_ns) if index == 0 else lead_ns)
-            for index, first in enumerate(starts)], max(period_ns, 1.0)
+    blocks: list[LogSpan] = []
+    first, frames = outer.start_ns, min(FIRST_READ_BLOCK_FRAMES, READ_BLOCK_FRAMES)
+    while first < outer.stop_ns or not blocks:
+        stop = min(first + max(1, math.ceil(period_ns * frames)), outer.stop_ns)
+        blocks.append(LogSpan(first, stop, max(outer.lead_ns, lead_ns) if not blocks
+                              else lead_ns))
+        first, frames = stop, min(2 * frames, READ_BLOCK_FRAMES)
+    return blocks, max(period_ns, 1.0)
 
 
 def block_sets(reader: AnyReader, topics: StereoTopics, config: Config, block: LogSpan,
@@ -430,7 +438,7 @@ def read_sets_ahead(reader: AnyReader, topics: StereoTopics, config: Config,
     """The sets of :func:`stereo_sets` over ``span`` (or the whole bag) in order, and its
     ``others`` messages into ``collected``, read by ``threads`` threads ahead of the caller,
     each with its own reader on the bag (from :data:`READERS`): the span's log time is cut
-    into blocks of about READ_BLOCK_FRAMES sets (at the bag's mean rate), a thread reads a
+    into blocks of sets (read_blocks: a few, then up to READ_BLOCK_FRAMES), a thread reads a
     block with a lead of two frames and the sync tolerance on both sides (for partners logged
     across its edges) and keeps the sets whose left image was logged in it (the first block
     also its span's lead).

@@ -14,12 +14,12 @@ import multiprocessing.util
 import shutil
 import weakref
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -27,11 +27,15 @@ from ..errors import PotholeError
 from .messages import deserialize, header_at, serialize
 from ..params import Config
 from .bags import (BagFrame, LogSpan, SetCounts, block_sets, cdr_bytes, convert_set, open_bag,
-                   read_blocks)
+                   read_blocks, reading)
 from .images import decode
 from .topics import StereoTopics
 
 SLOT_ALIGN_BYTES = 64
+# read_processes -1 (the default) on the GPU backend: a decoding process per this many of the
+# pipeline process's host cores, at most MOST_DECODERS
+CORES_PER_DECODER = 4
+MOST_DECODERS = 4
 # The share of the free shared memory (/dev/shm) that the ring may take.
 SHARED_MEMORY_SHARE = 0.5
 
@@ -40,6 +44,16 @@ SHARED_MEMORY_SHARE = 0.5
 DecodedSet = tuple[int, int, str, Any, Any, PotholeError | None]
 
 _WORKER: dict[str, Any] = {}
+
+
+def processes_for(setting: int, backend: str, cores: int) -> int:
+    """The decoding processes of a ``read_processes`` ``setting``: itself where it is 0 or
+    more; for -1, with a pipeline on the ``backend`` named ``gpu`` one per CORES_PER_DECODER of
+    the ``cores`` its process has (at most MOST_DECODERS; 0: the read threads), on the CPU none
+    (its pipeline takes the cores, and decoding is a small share of its frame)."""
+    if setting >= 0:
+        return setting
+    return min(MOST_DECODERS, cores // CORES_PER_DECODER) if backend == "gpu" else 0
 
 
 def _aligned(size: int) -> int:
@@ -66,23 +80,17 @@ def _worker_ring(name: str) -> memoryview:
     return _WORKER["ring"].buf
 
 
-def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
-                 block: LogSpan, first: bool, others: Sequence[str], ring: str,
-                 slot_bytes: int, slots: Sequence[int]
-                 ) -> tuple[list[DecodedSet], list[tuple[str, int, bytes]], list[int],
-                            SetCounts]:
-    """A worker's task: the sets whose left image was logged in ``block`` (the first block
-    also its lead), converted, their pixels written into the granted ``slots`` of the ring
-    (each ``slot_bytes`` long) while they last; the ``others`` messages logged in the block as
-    (topic, log time ns, CDR bytes); the slots left unused; and the corrupt messages
+def _converted_sets(reader: Any, topics: StereoTopics, config: Config, block: LogSpan,
+                    first: bool, others: Sequence[str],
+                    place: Callable[[np.ndarray, np.ndarray], Any]
+                    ) -> tuple[list[DecodedSet], list[tuple[str, int, Any]], SetCounts]:
+    """The sets whose left image was logged in ``block`` (the first block also its lead),
+    converted, each set's pixels as ``place(left, right)`` gives them; the ``others`` messages
+    logged in the block as (topic, log time ns, message); and the corrupt messages
     counted."""
-    reader = _worker_reader(path)
-    types = {connection.topic: connection.msgtype for connection in reader.connections}
-    free = deque(slots)
     decoded: list[DecodedSet] = []
     extras: list[tuple[str, int, Any]] = []
     counts = SetCounts()
-    config = Config(values)
     for stamp, logged, left_msg, right_msg, left_info, right_info in block_sets(
             reader, topics, config, block, first, others, extras, counts):
         frame_id = left_msg.header.frame_id
@@ -92,18 +100,48 @@ def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
         except PotholeError as exc:
             decoded.append((stamp, logged, frame_id, None, None, exc))
             continue
-        pixels: Any = (left, right)
-        if free and _aligned(left.nbytes) + right.nbytes <= slot_bytes:
-            slot = free.popleft()
-            buffer = _worker_ring(ring)
-            offset = slot * slot_bytes
-            for part, start in ((left, offset), (right, offset + _aligned(left.nbytes))):
-                np.ndarray(part.nbytes, np.uint8, buffer, start)[:] = part.reshape(-1).view(
-                    np.uint8)
-            pixels = (slot, left.shape, left.dtype.str, right.shape, right.dtype.str)
-        decoded.append((stamp, logged, frame_id, pixels, calibration, None))
+        decoded.append((stamp, logged, frame_id, place(left, right), calibration, None))
+    return decoded, extras, counts
+
+
+def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
+                 block: LogSpan, first: bool, others: Sequence[str], ring: str,
+                 slot_bytes: int, slots: Sequence[int]
+                 ) -> tuple[list[DecodedSet], list[tuple[str, int, bytes]], list[int],
+                            SetCounts]:
+    """A worker's task: the converted sets of ``block`` (:func:`_converted_sets`), their
+    pixels written into the granted ``slots`` of the ring (each ``slot_bytes`` long) while
+    they last; the ``others`` messages logged in the block as (topic, log time ns, CDR bytes);
+    the slots left unused; and the corrupt messages counted."""
+    reader = _worker_reader(path)
+    types = {connection.topic: connection.msgtype for connection in reader.connections}
+    free = deque(slots)
+
+    def place(left: np.ndarray, right: np.ndarray) -> Any:
+        if not free or _aligned(left.nbytes) + right.nbytes > slot_bytes:
+            return left, right
+        slot = free.popleft()
+        buffer = _worker_ring(ring)
+        offset = slot * slot_bytes
+        for part, start in ((left, offset), (right, offset + _aligned(left.nbytes))):
+            np.ndarray(part.nbytes, np.uint8, buffer, start)[:] = part.reshape(-1).view(np.uint8)
+        return slot, left.shape, left.dtype.str, right.shape, right.dtype.str
+
+    decoded, extras, counts = _converted_sets(reader, topics, Config(values), block, first,
+                                              others, place)
     messages = [(topic, logged, serialize(msg, types[topic])) for topic, logged, msg in extras]
     return decoded, messages, list(free), counts
+
+
+def _read_here(path: str, topics: StereoTopics, config: Config, block: LogSpan, first: bool,
+               others: Sequence[str]
+               ) -> tuple[list[DecodedSet], list[tuple[str, int, Any]], list[int], SetCounts]:
+    """:func:`decode_block` in a thread of this process, with a reader of its pool, before the
+    workers are up: the pixels as arrays, the messages as messages, no slots."""
+    with reading(path) as reader:
+        decoded, extras, counts = _converted_sets(reader, topics, config, block, first, others,
+                                                  lambda left, right: (left, right))
+    return decoded, extras, [], counts
 
 
 def _ready() -> None:
@@ -174,9 +212,13 @@ class Decoders:
     def __init__(self, processes: int) -> None:
         self.processes = processes
         self.pool = ProcessPoolExecutor(processes, mp_context=get_context("spawn"))
-        for _ in range(processes):
-            self.pool.submit(_ready)
+        self._started = [self.pool.submit(_ready) for _ in range(processes)]
         self.ring: Ring | None = None
+
+    def ready(self) -> bool:
+        """Whether a worker has started and imported what decoding needs (a worker's start,
+        a new interpreter's imports, takes about a second or more)."""
+        return any(started.done() for started in self._started)
 
     def ring_of(self, slot_bytes: int, slots: int) -> Ring:
         """This process's ring, made anew where it holds fewer or smaller slots."""
@@ -237,30 +279,38 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
     """The frames of the sets of ``span`` (or the whole bag) in order, converted as
     :func:`.bags.convert_set` does (without the colour image), read and decoded by
     ``processes`` worker processes a block at a time (the blocks of :func:`.bags.read_blocks`),
-    at most ``processes`` + 1 blocks ahead; the ``others`` messages logged in the span go
-    into ``collected``, the corrupt messages into ``counts``."""
+    at most ``processes`` + 1 blocks ahead; the blocks taken before any worker is up (its
+    start takes a second or more) are read by read_threads threads of this process instead.
+    The ``others`` messages logged in the span go into ``collected``, the corrupt messages
+    into ``counts``."""
     blocks, period_ns = read_blocks(reader, topics, config, span)
     lead_sets = math.ceil(blocks[0].lead_ns / period_ns) + 2
-    per_block = math.ceil((blocks[0].stop_ns - blocks[0].start_ns) / period_ns) + 2
+    sets_in = [math.ceil((block.stop_ns - block.start_ns) / period_ns) + 2
+               for block in blocks]
     decoders = start(processes)
     ring = decoders.ring_of(_pair_bytes(reader, topics),
-                            (processes + 2) * per_block + lead_sets)
+                            (processes + 2) * max(sets_in) + lead_sets)
     path = str(Path(list(reader.paths)[0]))
     values = config.as_dict()
+    here = ThreadPoolExecutor(config.read_threads, thread_name_prefix="bag-read")
 
-    def submit(index: int, block: LogSpan) -> tuple[Future, list[int]]:
-        slots = ring.grant(per_block + (lead_sets if index == 0 else 0))
+    def submit(index: int, block: LogSpan) -> tuple[Future, list[int], bool]:
+        if not decoders.ready():
+            return here.submit(_read_here, path, topics, config, block, index == 0,
+                               tuple(others)), [], False
+        slots = ring.grant(sets_in[index] + (lead_sets if index == 0 else 0))
         return decoders.pool.submit(decode_block, path, topics, values, block, index == 0,
-                                    tuple(others), ring.name, ring.slot_bytes, slots), slots
+                                    tuple(others), ring.name, ring.slot_bytes, slots), \
+            slots, True
 
-    def take(future: Future) -> Iterator[BagFrame | tuple]:
+    def take(future: Future, serialized: bool) -> Iterator[BagFrame | tuple]:
         decoded, messages, unused, found = future.result()
         ring.free.extend(unused)
         if counts is not None:
             counts.add(found)
         if collected is not None:
-            collected.extend((topic, logged, deserialize(data, types[topic]))
-                             for topic, logged, data in messages)
+            collected.extend((topic, logged, deserialize(data, types[topic]) if serialized
+                              else data) for topic, logged, data in messages)
         remaining = deque(decoded)
         try:
             while remaining:
@@ -270,20 +320,23 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
                              if pixels is not None and isinstance(pixels[0], int))
 
     types = {connection.topic: connection.msgtype for connection in reader.connections}
-    pending: deque[tuple[Future, list[int]]] = deque()
+    pending: deque[tuple[Future, list[int], bool]] = deque()
     try:
         for index, block in enumerate(blocks):
             pending.append(submit(index, block))
             if len(pending) > processes:
-                yield from take(pending.popleft()[0])
+                future, _, serialized = pending.popleft()
+                yield from take(future, serialized)
         while pending:
-            yield from take(pending.popleft()[0])
+            future, _, serialized = pending.popleft()
+            yield from take(future, serialized)
     except BrokenProcessPool:
         if decoders in _DECODERS:
             _DECODERS.remove(decoders)
             decoders.close()
         raise
     finally:
-        for future, slots in pending:
+        for future, slots, _ in pending:
             future.cancel()
             future.add_done_callback(lambda _, taken=slots: ring.free.extend(taken))
+        here.shutdown(wait=False, cancel_futures=True)

@@ -178,6 +178,12 @@ def set_host_threads(count: int) -> None:
     census_cpu.set_threads(count)
 
 
+def host_threads() -> int:
+    """The threads this process's host matchers run on: its share of the cores
+    (:func:`set_host_threads`; OpenCV's count, all the cores unless set)."""
+    return cv2.getNumThreads()
+
+
 def downsample(xp: Any, image: Any, factor: int) -> Any:
     """Area-averaged reduction of a uint8 image by an integer factor (H//factor x W//factor):
     the block mean rounded half up, the same on both backends."""

@@ -38,7 +38,7 @@ from ..recordings.messages import stamp_ns
 from ..recordings.writing import GNSS_TYPE, ODOMETRY_TYPE
 from ..replay import FailureTally, ProcessSummary, frame_results
 from ..recordings.topics import StereoTopics, find_stereo_topics
-from ..stages.matching import set_host_threads, to_gray8
+from ..stages.matching import host_threads, set_host_threads, to_gray8
 from ..params import Config
 from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, result_patches,
                       road_map, sample_pixels)
@@ -189,17 +189,18 @@ def observe(bag: str | Path, topics: DriveTopics, config: Config,
     odometry, and are not returned); and read its motion messages (those logged in the
     span), in the same pass over the bag. A bag damaged part way keeps the frames before the
     damage, and the damage counts as a failed frame after them."""
-    if config.read_processes > 0:
-        readahead.start(config.read_processes)
+    backend = get_backend(config.backend)
+    processes = readahead.processes_for(config.read_processes, backend.name, host_threads())
+    if processes > 0:
+        readahead.start(processes)
     with bags.reading(bag) as reader:
         odometry = StereoOdometry()
         has_odometry = bool(topics.odometry) and bags.message_count(reader, topics.odometry) > 0
         observations: list[FrameObservation] = []
         motion_messages: list[tuple[str, int, Any]] = []
         results = frame_results(
-            reader, topics.stereo, config, get_backend(config.backend), ProcessSummary(),
-            progress, span, config.read_threads, topics.motion_topics(), motion_messages,
-            config.read_processes)
+            reader, topics.stereo, config, backend, ProcessSummary(), progress, span,
+            config.read_threads, topics.motion_topics(), motion_messages, processes)
         for frame, outcome in _until_damaged(results, observations, span):
             kept = span is None or frame.logged_ns >= span.start_ns
             try:
