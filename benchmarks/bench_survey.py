@@ -121,9 +121,11 @@ def main() -> None:
     parser.add_argument("--form", choices=("rectified", "raw-jpeg"), default="rectified",
                         help="how the drive is recorded (raw-jpeg: raw distorted images, "
                              "JPEG-compressed)")
-    parser.add_argument("--read-processes", type=int, nargs="+", default=[0],
+    parser.add_argument("--read-processes", type=int, nargs="+",
+                        default=[PARAMETER_BY_NAME["read_processes"].default],
                         help="worker processes that read and decode the bag ahead instead of "
-                             "the threads (0: the threads; several: a row each)")
+                             "the threads (0: the threads; -1: the parameter's default, by "
+                             "the backend; several: a row each)")
     parser.add_argument("--map-cell-m", type=float, nargs="+",
                         default=[PARAMETER_BY_NAME["map_cell_m"].default],
                         help="the road map's cell (0: no map; several: a row each)")
@@ -165,7 +167,8 @@ def main() -> None:
                     for jobs in args.jobs + ([-1] if args.ray else [])
                     for threads, readers in [(t, 0) for t in args.read_threads
                                              if 0 in args.read_processes]
-                    + [(1, p) for p in args.read_processes if p > 0]
+                    + [(args.read_threads[0] if p < 0 else 1, p)
+                       for p in args.read_processes if p != 0]
                     for cell in args.map_cell_m]
             runs = [(jobs, gpus, threads, readers, cell)
                     for jobs, threads, readers, cell in runs
@@ -180,8 +183,10 @@ def main() -> None:
                       "CPU cores" if gpus == 0 else f"{gpus} GPU{'s' if gpus != 1 else ''}")
                 mode = f"Ray on {on}, chunks of {args.chunk_frames}" if jobs < 0 else (
                     f"{jobs} (chunks of {args.chunk_frames})" if jobs > 1 else "1")
-                reading = (f"{readers} processes" if readers else
+                reading = (f"{readers} processes" if readers > 0 else
                            f"{threads} thread{'s' if threads > 1 else ''}")
+                if readers < 0:
+                    reading = f"default ({reading} on the CPU, processes on a GPU)"
                 print(f"| {size} | {mode} | {reading} | "
                       f"{f'{cell * 100:g} cm' if cell else 'none'} | {frames} | "
                       f"{potholes} | {seconds:.1f} | {observing:.1f} | {frames / seconds:.1f} |",
