@@ -12,9 +12,10 @@ from pothole_detector.backend import get_backend, gpu_available
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
 from pothole_detector.survey.motion import road_frame
-from pothole_detector.survey.roadmap import (TILE_CELLS, VIEW_SHARE, RoadMap, Tile,
-                                             near_potholes, result_patches, road_map,
-                                             road_patch, sample_pixels)
+from pothole_detector.survey.roadmap import (MIN_NOISE_PX, TILE_CELLS, VIEW_SHARE, RoadMap,
+                                             RoadPatch, Tile, near_potholes, result_patches,
+                                             road_map, road_patch, sample_pixel_sets,
+                                             sample_pixels)
 
 
 def flat_map(**changes) -> RoadMap:
@@ -181,6 +182,87 @@ def test_samples_lie_under_half_a_cell_apart_on_the_road(demo_sample):
     spacing = np.diff(columns) * demo_sample.calibration.fb / np.nanmedian(
         demo_sample.disparity[row]) / demo_sample.calibration.f
     assert spacing.max() <= 0.05 + 1e-9
+
+
+def _sample_pixels_reference(shape, road, calibration, cell_m):
+    """sample_pixels as array expressions: the reference its kernel gives the bits of."""
+    height, width = shape
+    row_road = np.asarray(road.at(np, np.full(height, calibration.cx),
+                                  np.arange(height, dtype=np.float64)), np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        across = 0.5 * cell_m * row_road / calibration.baseline
+        along = 0.5 * cell_m / np.abs(np.gradient(calibration.fb
+                                                  / np.where(row_road > 0, row_road, np.nan)))
+    column_stride = np.clip(np.nan_to_num(np.floor(across), nan=1.0), 1, 64).astype(np.int64)
+    row_stride = np.clip(np.nan_to_num(np.floor(along), nan=1.0), 1, 64).astype(np.int64)
+    kept_rows = np.nonzero(np.arange(height) % row_stride == 0)[0]
+    parts = [np.zeros(0, np.int64)]
+    for stride in np.unique(column_stride[kept_rows]):
+        these = kept_rows[column_stride[kept_rows] == stride]
+        parts.append((these[:, None] * width + np.arange(0, width, stride)[None, :]).ravel())
+    return np.concatenate(parts)
+
+
+def _road_patch_reference(rows, cols, disparity, road, plane, calibration, cell_m):
+    """road_patch as array expressions (bincounts per cell)."""
+    f, fb = calibration.f, calibration.fb
+    d = np.asarray(disparity, dtype=np.float64)
+    u, v = np.asarray(cols, np.float64), np.asarray(rows, np.float64)
+    points = np.stack(calibration.back_project(u, v, d), axis=-1)
+    normal = -plane.axes[2]
+    incidence = ((u - calibration.cx) / f * normal[0] + (v - calibration.cy) / f * normal[1]
+                 + normal[2])
+    road_d = np.asarray(road.at(np, u, v), dtype=np.float64)
+    keep = (road_d > 0) & (incidence > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = (fb / d - fb / road_d) * incidence
+    z = fb / d
+    sigma = z * z * incidence / fb * max(road.sigma_px, MIN_NOISE_PX)
+    on_road = plane.from_camera(points[keep])[:, :2]
+    depth, sigma = depth[keep], sigma[keep]
+    if not len(depth):
+        return RoadPatch.empty(cell_m)
+    cells = np.floor(on_road / cell_m).astype(np.int64)
+    low = cells.min(axis=0)
+    span = cells.max(axis=0) - low + 1
+    flat = (cells[:, 0] - low[0]) * span[1] + (cells[:, 1] - low[1])
+    weight = 1.0 / (sigma * sigma)
+    total = np.bincount(flat, weight)
+    used = np.nonzero(total)[0]
+    mean = np.bincount(flat, weight * depth)[used] / total[used]
+    mean_sigma = np.bincount(flat, sigma)[used] / np.bincount(flat)[used]
+    cells = np.stack([used // span[1] + low[0], used % span[1] + low[1]], axis=1)
+    inside = np.all(np.abs(cells) < np.iinfo(np.int16).max, axis=1)
+    return RoadPatch(cells[inside].astype(np.int16), cell_m, mean[inside].astype(np.float16),
+                     mean_sigma[inside].astype(np.float16))
+
+
+def test_samples_and_patches_as_their_array_expressions_give_them(demo_sample):
+    """sample_pixels (and sample_pixel_sets, the road's rows worked out once for several
+    cells) and road_patch give what their array forms give, pixel for pixel and cell for
+    cell, on the demo frame's measured disparity, its road and a sparse and a far subset."""
+    config = Config({"backend": "cpu"})
+    result = Pipeline(config, demo_sample.calibration).run(demo_sample.left, demo_sample.right)
+    height, width = shape = result.disparity.shape
+    calibration = demo_sample.calibration
+    plane = road_frame(result.road, calibration, width, height)
+    cells = (0.02, 0.05, 0.1, 0.3)
+    sets = sample_pixel_sets(shape, result.road, calibration, cells)
+    measured = result.host("disparity").ravel()
+    for cell_m, pixels in zip(cells, sets):
+        np.testing.assert_array_equal(pixels, _sample_pixels_reference(
+            shape, result.road, calibration, cell_m))
+        np.testing.assert_array_equal(pixels, sample_pixels(shape, result.road, calibration,
+                                                            cell_m))
+        d = measured[pixels]
+        good = np.isfinite(d) & (d > 0)
+        rows, cols = np.divmod(pixels[good], width)
+        for subset in (slice(None), slice(None, None, 7), rows < height // 2):
+            args = (rows[subset], cols[subset], d[good][subset], result.road, plane,
+                    calibration, cell_m)
+            assert road_patch(*args) == _road_patch_reference(*args)
+    assert road_patch(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0),
+                      result.road, plane, calibration, 0.02) == RoadPatch.empty(0.02)
 
 
 def test_a_frame_of_the_demo_road_gives_its_potholes_depths(demo_sample):

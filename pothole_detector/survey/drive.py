@@ -41,7 +41,7 @@ from ..recordings.topics import StereoTopics, find_stereo_topics
 from ..stages.matching import host_threads, set_host_threads, to_gray8
 from ..params import Config
 from .roadmap import (MapPothole, RoadMap, RoadPatch, merged, near_potholes, result_patches,
-                      road_map, sample_pixels)
+                      road_map, sample_pixel_sets)
 from .tracking import (PotholeTracker, Sighting, Track, joined, linked_groups, merge_overlapping,
                        sightings_of)
 
@@ -235,9 +235,9 @@ def frame_patches(result: Any, plane: RoadFrame, calibration: StereoCalibration,
     """A frame's road samples for the survey's maps: at map_cell_m around its potholes, at
     map_overview_cell_m over all its observed road (roadmap.result_patches)."""
     shape = result.disparity.shape
-    fine = sample_pixels(shape, result.road, calibration, config.map_cell_m)
+    fine, coarse = sample_pixel_sets(shape, result.road, calibration,
+                                     (config.map_cell_m, config.map_overview_cell_m))
     fine = fine[near_potholes(fine, shape[1], [p.bbox_px for p in result.potholes])]
-    coarse = sample_pixels(shape, result.road, calibration, config.map_overview_cell_m)
     fine_patch, overview = result_patches(
         result, [(fine, config.map_cell_m), (coarse, config.map_overview_cell_m)], plane,
         calibration)

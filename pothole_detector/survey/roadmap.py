@@ -72,22 +72,49 @@ def sample_pixels(shape: tuple[int, int], road: RoadModel, calibration: StereoCa
     whose road samples fill cells of ``cell_m`` m: rows and columns at the largest strides
     that keep them under half a cell apart on the road, along and across (from the road's
     disparity in each row)."""
+    return sample_pixel_sets(shape, road, calibration, (cell_m,))[0]
+
+
+def sample_pixel_sets(shape: tuple[int, int], road: RoadModel, calibration: StereoCalibration,
+                      cells_m: Sequence[float]) -> list[np.ndarray]:
+    """:func:`sample_pixels` for each cell size of ``cells_m`` (m), the road's rows worked
+    out once: per row the strides, then the pixels, grouped by column stride (rising), row
+    after row within a group."""
     height, width = shape
     rows_v = np.arange(height, dtype=np.float64)
     row_road = np.asarray(road.at(np, np.full(height, calibration.cx), rows_v), np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        across = 0.5 * cell_m * row_road / calibration.baseline
-        along = 0.5 * cell_m / np.abs(np.gradient(calibration.fb
-                                                  / np.where(row_road > 0, row_road, np.nan)))
-    column_stride = np.clip(np.nan_to_num(np.floor(across), nan=1.0), 1, 64).astype(np.int64)
-    row_stride = np.clip(np.nan_to_num(np.floor(along), nan=1.0), 1, 64).astype(np.int64)
-    kept_rows = np.nonzero(np.arange(height) % row_stride == 0)[0]
-    parts = [np.zeros(0, np.int64)]
-    for stride in np.unique(column_stride[kept_rows]):
-        these = kept_rows[column_stride[kept_rows] == stride]
-        columns = np.arange(0, width, stride)
-        parts.append((these[:, None] * width + columns[None, :]).ravel())
-    return np.concatenate(parts)
+        slope = np.abs(np.gradient(calibration.fb / np.where(row_road > 0, row_road, np.nan)))
+    sets = []
+    for cell_m in cells_m:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            across = 0.5 * cell_m * row_road / calibration.baseline
+            along = 0.5 * cell_m / slope
+        column_stride = np.clip(np.nan_to_num(np.floor(across), nan=1.0), 1, 64).astype(np.int64)
+        row_stride = np.clip(np.nan_to_num(np.floor(along), nan=1.0), 1, 64).astype(np.int64)
+        sets.append(_strided_pixels(row_stride, column_stride, width))
+    return sets
+
+
+@numba.njit(cache=True)
+def _strided_pixels(row_stride: np.ndarray, column_stride: np.ndarray, width: int
+                    ) -> np.ndarray:
+    """The flat indices of the rows v with v % row_stride[v] == 0, each at the columns 0,
+    column_stride[v], 2 column_stride[v], ... below ``width``: the rows of the least column
+    stride first, then those of the next, each group's rows in order."""
+    kept = np.arange(len(row_stride))[np.arange(len(row_stride)) % row_stride == 0]
+    count = 0
+    for v in kept:
+        count += (width + column_stride[v] - 1) // column_stride[v]
+    pixels = np.empty(count, np.int64)
+    at = 0
+    for stride in np.unique(column_stride[kept]):
+        for v in kept:
+            if column_stride[v] == stride:
+                for u in range(0, width, stride):
+                    pixels[at] = v * width + u
+                    at += 1
+    return pixels
 
 
 def near_potholes(pixels: np.ndarray, width: int,
@@ -136,36 +163,75 @@ def road_patch(rows: np.ndarray, cols: np.ndarray, disparity: np.ndarray, road: 
     pixels is no surer than one)."""
     if not len(rows):
         return RoadPatch.empty(cell_m)
-    f, fb = calibration.f, calibration.fb
-    d = np.asarray(disparity, dtype=np.float64)
     u, v = np.asarray(cols, np.float64), np.asarray(rows, np.float64)
-    points = np.stack(calibration.back_project(u, v, d), axis=-1)
-    normal = -plane.axes[2]
-    incidence = ((u - calibration.cx) / f * normal[0] + (v - calibration.cy) / f * normal[1]
-                 + normal[2])
     road_d = np.asarray(road.at(np, u, v), dtype=np.float64)
-    keep = (road_d > 0) & (incidence > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = (fb / d - fb / road_d) * incidence
-    z = fb / d
-    sigma = z * z * incidence / fb * max(road.sigma_px, MIN_NOISE_PX)
-    on_road = plane.from_camera(points[keep])[:, :2]
-    depth, sigma = depth[keep], sigma[keep]
-    if not len(depth):
-        return RoadPatch.empty(cell_m)
-    cells = np.floor(on_road / cell_m).astype(np.int64)
-    low = cells.min(axis=0)
-    span = cells.max(axis=0) - low + 1
-    flat = (cells[:, 0] - low[0]) * span[1] + (cells[:, 1] - low[1])
-    weight = 1.0 / (sigma * sigma)
-    total = np.bincount(flat, weight)
+    cells, depth, sigma = _binned_samples(
+        u, v, np.asarray(disparity, dtype=np.float64),
+        np.ascontiguousarray(np.broadcast_to(road_d, u.shape)),
+        calibration.f, calibration.cx, calibration.cy, calibration.fb,
+        np.asarray(plane.origin, np.float64), np.asarray(plane.axes, np.float64),
+        max(road.sigma_px, MIN_NOISE_PX), cell_m)
+    return RoadPatch(cells.astype(np.int16), cell_m, depth.astype(np.float16),
+                     sigma.astype(np.float16))
+
+
+@numba.njit(cache=True)
+def _binned_samples(u: np.ndarray, v: np.ndarray, d: np.ndarray, road_d: np.ndarray, f: float,
+                    cx: float, cy: float, fb: float, origin: np.ndarray, axes: np.ndarray,
+                    noise_px: float, cell_m: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """road_patch's samples, pixel by pixel in order: those with a road disparity whose ray
+    meets the road from above, each as its cell (forward, left) in ``plane``'s road frame,
+    its height below the road and its sigma; then per occupied cell, in the order of the
+    cells (forward, then left), the inverse-variance weighted mean height and the mean sigma:
+    int64 (K, 2) cells within int16's range, float64 (K,) heights and sigmas (m)."""
+    count = len(u)
+    normal = -axes[2]
+    kept = np.zeros(count, np.bool_)
+    forward = np.empty(count, np.int64)
+    left = np.empty(count, np.int64)
+    depth = np.empty(count)
+    sigma = np.empty(count)
+    for i in range(count):
+        incidence = ((u[i] - cx) / f * normal[0] + (v[i] - cy) / f * normal[1] + normal[2])
+        if not (road_d[i] > 0 and incidence > 0):
+            continue
+        z = fb / d[i]
+        point = ((u[i] - cx) * z / f - origin[0], (v[i] - cy) * z / f - origin[1],
+                 z - origin[2])
+        ahead = point[0] * axes[0, 0] + point[1] * axes[0, 1] + point[2] * axes[0, 2]
+        aside = point[0] * axes[1, 0] + point[1] * axes[1, 1] + point[2] * axes[1, 2]
+        kept[i] = True
+        forward[i] = math.floor(ahead / cell_m)
+        left[i] = math.floor(aside / cell_m)
+        depth[i] = (fb / d[i] - fb / road_d[i]) * incidence
+        sigma[i] = z * z * incidence / fb * noise_px
+    if not kept.any():
+        return np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0)
+    low_f, low_l = forward[kept].min(), left[kept].min()
+    span_l = left[kept].max() - low_l + 1
+    bins = (forward[kept].max() - low_f + 1) * span_l
+    total = np.zeros(bins)
+    weighted = np.zeros(bins)
+    sigmas = np.zeros(bins)
+    counts = np.zeros(bins, np.int64)
+    for i in range(count):
+        if kept[i]:
+            flat = (forward[i] - low_f) * span_l + (left[i] - low_l)
+            weight = 1.0 / (sigma[i] * sigma[i])
+            total[flat] += weight
+            weighted[flat] += weight * depth[i]
+            sigmas[flat] += sigma[i]
+            counts[flat] += 1
     used = np.nonzero(total)[0]
-    mean = np.bincount(flat, weight * depth)[used] / total[used]
-    mean_sigma = np.bincount(flat, sigma)[used] / np.bincount(flat)[used]
-    cells = np.stack([used // span[1] + low[0], used % span[1] + low[1]], axis=1)
-    inside = np.all(np.abs(cells) < np.iinfo(np.int16).max, axis=1)
-    return RoadPatch(cells[inside].astype(np.int16), cell_m, mean[inside].astype(np.float16),
-                     mean_sigma[inside].astype(np.float16))
+    cells = np.empty((len(used), 2), np.int64)
+    inside = np.zeros(len(used), np.bool_)
+    for j in range(len(used)):
+        cells[j, 0] = used[j] // span_l + low_f
+        cells[j, 1] = used[j] % span_l + low_l
+        inside[j] = abs(cells[j, 0]) < 32767 and abs(cells[j, 1]) < 32767
+    return (cells[inside], (weighted[used] / total[used])[inside],
+            (sigmas[used] / counts[used])[inside])
 
 
 @dataclass

@@ -140,7 +140,7 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
             (math.nan,) * 4 if extents is None
             else tuple(float(v) for v in extents[pothole.label - 1]),
             () if outlines is None
-            else tuple((float(f), float(lt)) for f, lt in outlines[pothole.label - 1])))
+            else tuple(map(tuple, outlines[pothole.label - 1].tolist()))))
     return tuple(made)
 
 
