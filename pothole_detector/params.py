@@ -373,10 +373,16 @@ class Config:
         object.__setattr__(self, "_values", merged)
 
     def __getattr__(self, name: str) -> Any:
+        if name == "_values":  # not set yet: a copy being made
+            raise AttributeError(name)
         try:
             return self._values[name]
         except KeyError:
             raise AttributeError(name) from None
+
+    def __reduce__(self) -> tuple[Any, tuple[dict[str, Any]]]:
+        """Pickled as its values: a worker process gets the same Config."""
+        return _config_of, (dict(self._values),)
 
     def __setattr__(self, name: str, value: Any) -> None:
         raise AttributeError("Config is immutable: use replace()")
@@ -393,6 +399,13 @@ class Config:
 
     def __repr__(self) -> str:
         return f"Config({self._values!r})"
+
+
+def _config_of(values: dict[str, Any]) -> Config:
+    """The Config of values that were validated when it was first made (unpickling)."""
+    config = object.__new__(Config)
+    object.__setattr__(config, "_values", values)
+    return config
 
 
 def parameters(group: str | None = None) -> Iterable[Param]:

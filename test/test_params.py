@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import copy
+import pickle
 from pathlib import Path
 
 import pytest
@@ -45,6 +47,13 @@ def test_replace_validates_and_keeps_the_original():
     assert changed.delta_pd_px == 3.0 and config.delta_pd_px == 2.36
     with pytest.raises(ConfigError):
         config.replace(slic_iterations=0)
+
+
+def test_a_config_pickles_and_copies_as_itself():
+    for config in (Config({"delta_pd_px": 3, "read_processes": 2}), Config(group="node")):
+        for copied in (pickle.loads(pickle.dumps(config)), copy.deepcopy(config)):
+            assert copied == config and copied.as_dict() == config.as_dict()
+    assert pickle.loads(pickle.dumps(Config({"delta_pd_px": 3}))).delta_pd_px == 3.0
 
 
 def test_flat_yaml_and_missing_file(tmp_path):
