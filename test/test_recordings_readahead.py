@@ -213,6 +213,58 @@ def test_blocks_taken_before_the_workers_are_up_are_read_here(tmp_path, samples,
         reader.close()
 
 
+def test_a_decoder_that_dies_leaves_the_reading_to_threads_here(tmp_path, samples,
+                                                                monkeypatch, decoders_up,
+                                                                caplog):
+    """The workers are killed after the first frame: the reading goes on in this process's
+    threads, with a warning, and gives every frame one reader gives; new workers take the
+    next reading."""
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 3)
+    reader = bags.open_bag(_bag(tmp_path, samples, 20))
+    try:
+        frames = readahead.decoded_frames(reader, TOPICS, Config(), None, 2)
+        got = [next(frames)]
+        killed = decoders_up.pool
+        for process in list(killed._processes.values()):
+            process.kill()
+            process.join()
+        got.extend(frames)
+        _assert_same(_as_sets(got), _one_reader(reader, None))
+        assert "a decoding process stopped" in caplog.text
+        assert readahead._DECODERS == [decoders_up] and decoders_up.pool is not killed
+        del got
+        gc.collect()
+        assert len(decoders_up.ring.free) == decoders_up.ring.slots
+        for started in decoders_up._started:
+            started.result(timeout=120)
+        again = list(readahead.decoded_frames(reader, TOPICS, Config(), None, 2))
+        _assert_same(_as_sets(again), _one_reader(reader, None))
+        ring = decoders_up.ring
+        assert all(frame.left.base is frame.right.base
+                   and frame.left.base.size == ring.slot_bytes for frame in again)
+    finally:
+        reader.close()
+
+
+def test_without_shared_memory_the_pixels_come_pickled(tmp_path, samples, monkeypatch,
+                                                       decoders_up, caplog):
+    """Where shared memory cannot be made (no /dev/shm, say), the ring has no slots and the
+    workers' pixels come back pickled, with a warning."""
+    def refused(*args, **kwargs):
+        raise PermissionError("no /dev/shm here")
+
+    monkeypatch.setattr(bags, "READ_BLOCK_FRAMES", 4)
+    monkeypatch.setattr(readahead, "SharedMemory", refused)
+    reader = bags.open_bag(_bag(tmp_path, samples, 9))
+    try:
+        frames = list(readahead.decoded_frames(reader, TOPICS, Config(), None, 2))
+        assert readahead._DECODERS[0].ring.memory is None
+        assert "no shared memory" in caplog.text
+        _assert_same(_as_sets(frames), _one_reader(reader, None))
+    finally:
+        reader.close()
+
+
 @pytest.mark.parametrize("setting, backend, cores, expected", [
     (3, "cpu", 16, 3), (0, "gpu", 16, 0), (-1, "gpu", 16, 4), (-1, "gpu", 64, 4),
     (-1, "gpu", 8, 2), (-1, "gpu", 3, 0), (-1, "cpu", 64, 0)])

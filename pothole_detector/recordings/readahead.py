@@ -9,6 +9,7 @@ one, the pixels come back pickled instead."""
 
 from __future__ import annotations
 
+import logging
 import math
 import multiprocessing.util
 import shutil
@@ -30,6 +31,8 @@ from .bags import (BagFrame, LogSpan, SetCounts, block_sets, cdr_bytes, convert_
                    read_blocks, reading)
 from .images import decode
 from .topics import StereoTopics
+
+_log = logging.getLogger(__name__)
 
 SLOT_ALIGN_BYTES = 64
 # read_processes -1 (the default) on the GPU backend: a decoding process per this many of the
@@ -150,7 +153,7 @@ def _ready() -> None:
 
 class Ring:
     """A ring of ``slots`` shared-memory slots of ``slot_bytes`` each (fewer, or none, where
-    shared memory is short) and which of them are free."""
+    shared memory is short or cannot be made) and which of them are free."""
 
     def __init__(self, slot_bytes: int, slots: int) -> None:
         self.slot_bytes, self.wanted = slot_bytes, slots
@@ -159,8 +162,14 @@ class Ring:
         except OSError:
             free_bytes = slot_bytes * slots
         self.slots = max(0, min(slots, int(free_bytes * SHARED_MEMORY_SHARE) // slot_bytes))
-        self.memory = (SharedMemory(create=True, size=slot_bytes * self.slots)
-                       if self.slots > 0 else None)
+        self.memory: SharedMemory | None = None
+        if self.slots > 0:
+            try:
+                self.memory = SharedMemory(create=True, size=slot_bytes * self.slots)
+            except OSError as exc:
+                _log.warning(f"no shared memory for the decoded images ({exc}): they come "
+                             "back pickled")
+                self.slots = 0
         self.free: deque[int] = deque(range(self.slots))
 
     @property
@@ -211,9 +220,18 @@ class Decoders:
 
     def __init__(self, processes: int) -> None:
         self.processes = processes
-        self.pool = ProcessPoolExecutor(processes, mp_context=get_context("spawn"))
-        self._started = [self.pool.submit(_ready) for _ in range(processes)]
         self.ring: Ring | None = None
+        self._start()
+
+    def _start(self) -> None:
+        self.pool = ProcessPoolExecutor(self.processes, mp_context=get_context("spawn"))
+        self._started = [self.pool.submit(_ready) for _ in range(self.processes)]
+
+    def restart(self) -> None:
+        """New workers in place of a pool that a worker died in; the ring stays (the sets
+        decoded before lie on it)."""
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self._start()
 
     def ready(self) -> bool:
         """Whether a worker has started and imported what decoding needs (a worker's start,
@@ -280,9 +298,10 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
     :func:`.bags.convert_set` does (without the colour image), read and decoded by
     ``processes`` worker processes a block at a time (the blocks of :func:`.bags.read_blocks`),
     at most ``processes`` + 1 blocks ahead; the blocks taken before any worker is up (its
-    start takes a second or more) are read by read_threads threads of this process instead.
-    The ``others`` messages logged in the span go into ``collected``, the corrupt messages
-    into ``counts``."""
+    start takes a second or more) are read by read_threads threads of this process instead,
+    and so are the block a worker died on and every block after it (with a warning). The
+    ``others`` messages logged in the span go into ``collected``, the corrupt messages into
+    ``counts``."""
     blocks, period_ns = read_blocks(reader, topics, config, span)
     lead_sets = math.ceil(blocks[0].lead_ns / period_ns) + 2
     sets_in = [math.ceil((block.stop_ns - block.start_ns) / period_ns) + 2
@@ -294,17 +313,42 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
     values = config.as_dict()
     here = ThreadPoolExecutor(config.read_threads, thread_name_prefix="bag-read")
 
-    def submit(index: int, block: LogSpan) -> tuple[Future, list[int], bool]:
-        if not decoders.ready():
-            return here.submit(_read_here, path, topics, config, block, index == 0,
-                               tuple(others)), [], False
-        slots = ring.grant(sets_in[index] + (lead_sets if index == 0 else 0))
-        return decoders.pool.submit(decode_block, path, topics, values, block, index == 0,
-                                    tuple(others), ring.name, ring.slot_bytes, slots), \
-            slots, True
+    broken: list[BrokenProcessPool] = []
 
-    def take(future: Future, serialized: bool) -> Iterator[BagFrame | tuple]:
-        decoded, messages, unused, found = future.result()
+    def read_here(index: int) -> Future:
+        return here.submit(_read_here, path, topics, config, blocks[index], index == 0,
+                           tuple(others))
+
+    def stopped(exc: BrokenProcessPool) -> None:
+        """A worker died: new workers start for the next reading, and this one goes on in
+        threads here."""
+        if not broken:
+            broken.append(exc)
+            _log.warning(f"a decoding process stopped ({exc}): reading the rest of the bag "
+                         "in this process's threads")
+            decoders.restart()
+
+    def submit(index: int) -> tuple[Future, list[int], bool, int]:
+        if not broken and decoders.ready():
+            slots = ring.grant(sets_in[index] + (lead_sets if index == 0 else 0))
+            try:
+                return decoders.pool.submit(decode_block, path, topics, values, blocks[index],
+                                            index == 0, tuple(others), ring.name,
+                                            ring.slot_bytes, slots), slots, True, index
+            except BrokenProcessPool as exc:
+                ring.free.extend(slots)
+                stopped(exc)
+        return read_here(index), [], False, index
+
+    def take(future: Future, slots: list[int], serialized: bool, index: int
+             ) -> Iterator[BagFrame | tuple]:
+        try:
+            decoded, messages, unused, found = future.result()
+        except BrokenProcessPool as exc:
+            ring.free.extend(slots)
+            stopped(exc)
+            decoded, messages, unused, found = read_here(index).result()
+            serialized = False
         ring.free.extend(unused)
         if counts is not None:
             counts.add(found)
@@ -320,23 +364,16 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
                              if pixels is not None and isinstance(pixels[0], int))
 
     types = {connection.topic: connection.msgtype for connection in reader.connections}
-    pending: deque[tuple[Future, list[int], bool]] = deque()
+    pending: deque[tuple[Future, list[int], bool, int]] = deque()
     try:
-        for index, block in enumerate(blocks):
-            pending.append(submit(index, block))
+        for index in range(len(blocks)):
+            pending.append(submit(index))
             if len(pending) > processes:
-                future, _, serialized = pending.popleft()
-                yield from take(future, serialized)
+                yield from take(*pending.popleft())
         while pending:
-            future, _, serialized = pending.popleft()
-            yield from take(future, serialized)
-    except BrokenProcessPool:
-        if decoders in _DECODERS:
-            _DECODERS.remove(decoders)
-            decoders.close()
-        raise
+            yield from take(*pending.popleft())
     finally:
-        for future, slots, _ in pending:
+        for future, slots, _, _ in pending:
             future.cancel()
             future.add_done_callback(lambda _, taken=slots: ring.free.extend(taken))
         here.shutdown(wait=False, cancel_futures=True)
