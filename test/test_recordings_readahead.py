@@ -265,6 +265,25 @@ def test_without_shared_memory_the_pixels_come_pickled(tmp_path, samples, monkey
         reader.close()
 
 
+def test_a_closed_ring_keeps_its_memory_while_a_frame_lies_on_it():
+    """A ring closed (a new one made, the workers stopped) while a frame lies on one of its
+    slots: the frame's pixels stay readable; the memory goes with the frame."""
+    ring = readahead.Ring(128, 4)
+    slot, = ring.grant(1)
+    np.ndarray(128, np.uint8, ring.memory.buf, slot * 128)[:] = np.arange(128, dtype=np.uint8)
+    frame = ring.frame((START, START, "left", (slot, (8, 8), "|u1", (4, 8), "|u1"), None, None))
+    shared = ring.memory
+    ring.close()
+    del ring
+    gc.collect()
+    assert shared.buf is not None
+    np.testing.assert_array_equal(frame.left.ravel(), np.arange(64))
+    np.testing.assert_array_equal(frame.right.ravel(), np.arange(64, 96))
+    del frame
+    gc.collect()
+    assert shared.buf is None
+
+
 @pytest.mark.parametrize("setting, backend, cores, expected", [
     (3, "cpu", 16, 3), (0, "gpu", 16, 0), (-1, "gpu", 16, 4), (-1, "gpu", 64, 4),
     (-1, "gpu", 8, 2), (-1, "gpu", 3, 0), (-1, "cpu", 64, 0)])

@@ -20,7 +20,7 @@ from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -171,6 +171,7 @@ class Ring:
                              "back pickled")
                 self.slots = 0
         self.free: deque[int] = deque(range(self.slots))
+        self._closing = False
 
     @property
     def name(self) -> str:
@@ -182,6 +183,12 @@ class Ring:
         while self.free and len(taken) < count:
             taken.append(self.free.popleft())
         return taken
+
+    def give_back(self, slots: Iterable[int]) -> None:
+        """Return ``slots`` to the ring (a closing ring lets its memory go with the last)."""
+        self.free.extend(slots)
+        if self._closing and len(self.free) == self.slots:
+            self._unmap()
 
     def frame(self, decoded: DecodedSet) -> BagFrame | tuple[BagFrame, PotholeError]:
         """The frame of a decoded set, its arrays on its slot (which returns to the ring when
@@ -197,7 +204,7 @@ class Ring:
             assert self.memory is not None
             whole = np.ndarray(self.slot_bytes, np.uint8, self.memory.buf,
                                slot * self.slot_bytes)
-            weakref.finalize(whole, self.free.append, slot)
+            weakref.finalize(whole, self.give_back, (slot,))
             left_bytes = math.prod(left_shape) * np.dtype(left_dtype).itemsize
             right_bytes = math.prod(right_shape) * np.dtype(right_dtype).itemsize
             start = _aligned(left_bytes)
@@ -206,13 +213,20 @@ class Ring:
         return BagFrame(stamp, header, left, right, calibration, logged)
 
     def close(self) -> None:
-        """Free the ring (its memory goes when no array is left on it)."""
-        if self.memory is not None:
+        """Free the ring: its name now, its memory once every slot is back (NumPy arrays on
+        a slot do not keep the mapping; each keeps the ring until it is gone)."""
+        if self.memory is not None and not self._closing:
+            self._closing = True
             self.memory.unlink()
-            try:
-                self.memory.close()
-            except BufferError:
-                pass
+            if len(self.free) == self.slots:
+                self._unmap()
+
+    def _unmap(self) -> None:
+        assert self.memory is not None
+        try:
+            self.memory.close()
+        except BufferError:
+            pass
 
 
 class Decoders:
@@ -336,7 +350,7 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
                                             index == 0, tuple(others), ring.name,
                                             ring.slot_bytes, slots), slots, True, index
             except BrokenProcessPool as exc:
-                ring.free.extend(slots)
+                ring.give_back(slots)
                 stopped(exc)
         return read_here(index), [], False, index
 
@@ -345,11 +359,11 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
         try:
             decoded, messages, unused, found = future.result()
         except BrokenProcessPool as exc:
-            ring.free.extend(slots)
+            ring.give_back(slots)
             stopped(exc)
             decoded, messages, unused, found = read_here(index).result()
             serialized = False
-        ring.free.extend(unused)
+        ring.give_back(unused)
         if counts is not None:
             counts.add(found)
         if collected is not None:
@@ -360,7 +374,7 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
             while remaining:
                 yield ring.frame(remaining.popleft())
         finally:
-            ring.free.extend(pixels[0] for *_, pixels, _, _ in remaining
+            ring.give_back(pixels[0] for *_, pixels, _, _ in remaining
                              if pixels is not None and isinstance(pixels[0], int))
 
     types = {connection.topic: connection.msgtype for connection in reader.connections}
@@ -375,5 +389,5 @@ def decoded_frames(reader: Any, topics: StereoTopics, config: Config, span: LogS
     finally:
         for future, slots, _, _ in pending:
             future.cancel()
-            future.add_done_callback(lambda _, taken=slots: ring.free.extend(taken))
+            future.add_done_callback(lambda _, taken=slots: ring.give_back(taken))
         here.shutdown(wait=False, cancel_futures=True)
