@@ -1,6 +1,7 @@
 """Reading a bag ahead of the pipeline in worker processes (the ``read_processes`` parameter).
 
-Each worker opens the bag itself and reads, decompresses and decodes blocks of its log time
+Each worker reads the bag with readers of its own (kept from block to block, as every
+process keeps them: :data:`.bags.READERS`) and decompresses and decodes blocks of its log time
 (as the read threads of :func:`.bags.read_sets_ahead` do); it writes each set's pixels
 into a slot of a ring of shared memory that this process reads in place, so the process that
 runs the pipeline takes no part in decoding and copies no pixels. A slot returns to the ring
@@ -27,7 +28,7 @@ import numpy as np
 from ..errors import PotholeError
 from .messages import deserialize, header_at, serialize
 from ..params import Config
-from .bags import (BagFrame, LogSpan, SetCounts, block_sets, cdr_bytes, convert_set, open_bag,
+from .bags import (BagFrame, LogSpan, SetCounts, block_sets, cdr_bytes, convert_set,
                    read_blocks, reading)
 from .images import decode
 from .topics import StereoTopics
@@ -61,16 +62,6 @@ def processes_for(setting: int, backend: str, cores: int) -> int:
 
 def _aligned(size: int) -> int:
     return -(-size // SLOT_ALIGN_BYTES) * SLOT_ALIGN_BYTES
-
-
-def _worker_reader(path: str) -> Any:
-    """This worker's open reader of ``path`` (the previous bag's is closed)."""
-    if _WORKER.get("path") != path:
-        if "reader" in _WORKER:
-            _WORKER.pop("reader").close()
-        _WORKER["reader"] = open_bag(path)
-        _WORKER["path"] = path
-    return _WORKER["reader"]
 
 
 def _worker_ring(name: str) -> memoryview:
@@ -116,8 +107,6 @@ def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
     pixels written into the granted ``slots`` of the ring (each ``slot_bytes`` long) while
     they last; the ``others`` messages logged in the block as (topic, log time ns, CDR bytes);
     the slots left unused; and the corrupt messages counted."""
-    reader = _worker_reader(path)
-    types = {connection.topic: connection.msgtype for connection in reader.connections}
     free = deque(slots)
 
     def place(left: np.ndarray, right: np.ndarray) -> Any:
@@ -130,8 +119,10 @@ def decode_block(path: str, topics: StereoTopics, values: dict[str, Any],
             np.ndarray(part.nbytes, np.uint8, buffer, start)[:] = part.reshape(-1).view(np.uint8)
         return slot, left.shape, left.dtype.str, right.shape, right.dtype.str
 
-    decoded, extras, counts = _converted_sets(reader, topics, Config(values), block, first,
-                                              others, place)
+    with reading(path) as reader:
+        types = {connection.topic: connection.msgtype for connection in reader.connections}
+        decoded, extras, counts = _converted_sets(reader, topics, Config(values), block, first,
+                                                  others, place)
     messages = [(topic, logged, serialize(msg, types[topic])) for topic, logged, msg in extras]
     return decoded, messages, list(free), counts
 
