@@ -261,13 +261,18 @@ static_assert(!PADDED || (PACKED && LEVELS % 2 == 0), "padding needs packed even
 #if PACKED
 #define LANE_FIRST_LEVEL(sub) ((sub) * PER_LANE)
 #define LEVEL_STEP 1
-#define OLD_WORDS PAIRS
+// LANE_WORD: a lane holds two pairs (four levels), so its bytes of a pixel are one aligned
+// 32-bit word (PATH_LEVELS is a multiple of 16), loaded and stored whole, the first pass's
+// sums added to it by one 32-bit add (each byte's sum is below 256: no carry between them)
+#define LANE_WORD (PAIRS == 2)
+#define OLD_WORDS (LANE_WORD ? 1 : PAIRS)
 // a lane's first path byte in a pixel and the halfwords between its pairs, by layout
 #define LANE_OFFSET(interleaved, sub) ((interleaved) ? 2 * (sub) : LANE_FIRST_LEVEL(sub))
 #define PAIR_STRIDE(interleaved) ((interleaved) ? LANES : 1)
 #else
 #define LANE_FIRST_LEVEL(sub) (sub)
 #define LEVEL_STEP LANES
+#define LANE_WORD 0
 #define OLD_WORDS PER_LANE
 #define LANE_OFFSET(interleaved, sub) LANE_FIRST_LEVEL(sub)
 #define PAIR_STRIDE(interleaved) 1
@@ -316,10 +321,11 @@ static_assert(SUMS_RING == 0 || (SUMS_COPY_AHEAD >= 1 && SUMS_COPY_AHEAD < SUMS_
 // at byte 2 * LANES * p + 2 * sub (each of a group's pair stores 2 * LANES contiguous bytes, whole
 // 32-byte sectors, instead of 2 bytes every PER_LANE); the second pass reads them from its ring in
 // that layout (each pixel there whole before any lane writes it) and writes its sums in the winner
-// search's, lane by lane. Where the lanes hold two or more pairs and the second pass has the ring.
-#define INTERLEAVED_PAIRS (SUMS_RING && PER_LANE >= 4)
-static_assert(!INTERLEAVED_PAIRS || (SUMS_RING && PER_LANE >= 4),
-              "INTERLEAVED_PAIRS: the second pass's ring and two or more pairs a lane");
+// search's, lane by lane. Where the lanes hold three or more pairs and the second pass has the
+// ring (with two, LANE_WORD: a group's word stores are contiguous already).
+#define INTERLEAVED_PAIRS (SUMS_RING && PER_LANE >= 6)
+static_assert(!INTERLEAVED_PAIRS || (SUMS_RING && PER_LANE >= 6),
+              "INTERLEAVED_PAIRS: the second pass's ring and three or more pairs a lane");
 static_assert(SUMS_RING == 0
                   || (SUMS_COPY_AHEAD >= PREFETCH_STEPS
                       && SUMS_COPY_AHEAD + PREFETCH_STEPS <= SUMS_RING),
@@ -450,7 +456,9 @@ __device__ __forceinline__ void copy_sums(unsigned ring, const unsigned char* ce
 __device__ __forceinline__ void load_sums(const unsigned char* cells, unsigned pixel,
                                           StepData& data) {
     const unsigned char* cell = cells + (size_t)pixel * PATH_LEVELS;
-#if PACKED
+#if LANE_WORD
+    data.old[0] = __ldcs(reinterpret_cast<const unsigned*>(cell));
+#elif PACKED
 #pragma unroll
     for (int p = 0; p < PAIRS; ++p)
         data.old[p] = __ldcs(reinterpret_cast<const unsigned short*>(cell) + p);
@@ -470,12 +478,18 @@ __device__ __forceinline__ unsigned ordered_bytes(const unsigned (&current)[PAIR
 }
 
 // A step's stores: the lane's PER_LANE bytes of the pixel at `cell` as PAIRS halfwords,
-// PAIR_STRIDE(STORED) halfwords apart; ADD: plus the first pass's bytes in `old` (the same
-// halfwords).
+// PAIR_STRIDE(STORED) halfwords apart (LANE_WORD: as one word); ADD: plus the first pass's bytes
+// in `old` (the same halfwords, or word).
 template <bool ADD, bool STORED>
-__device__ __forceinline__ void store_halfwords(const unsigned (&current)[PAIRS],
-                                                const unsigned (&old)[OLD_WORDS],
-                                                unsigned char* cell) {
+__device__ __forceinline__ void store_path_bytes(const unsigned (&current)[PAIRS],
+                                                 const unsigned (&old)[OLD_WORDS],
+                                                 unsigned char* cell) {
+#if LANE_WORD
+    // levels first to first + 3: the low bytes of pairs 0 and 1, then their third bytes
+    unsigned word = __byte_perm(current[0], current[PAIRS - 1], 0x6240);
+    if (ADD) word += old[0];
+    __stcs(reinterpret_cast<unsigned*>(cell), word);
+#else
 #pragma unroll
     for (int h = 0; h < PAIRS; ++h) {
         unsigned bytes = ordered_bytes(current, h);
@@ -483,6 +497,7 @@ __device__ __forceinline__ void store_halfwords(const unsigned (&current)[PAIRS]
         __stcs(reinterpret_cast<unsigned short*>(cell) + PAIR_STRIDE(STORED) * h,
                (unsigned short)bytes);
     }
+#endif
 }
 #endif
 
@@ -633,10 +648,14 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             }
             const unsigned at = ring + (step & (SUMS_RING - 1)) * PATH_LEVELS
                                 + LANE_OFFSET(INTERLEAVED_PAIRS, sub);
+#if LANE_WORD
+            asm volatile("ld.shared.u32 %0, [%1];" : "=r"(old[0]) : "r"(at));
+#else
 #pragma unroll
             for (int w = 0; w < OLD_WORDS; ++w)
                 asm volatile("ld.shared.u16 %0, [%1];"
                              : "=r"(old[w]) : "r"(at + 2 * PAIR_STRIDE(INTERLEAVED_PAIRS) * w));
+#endif
             if (FAST) {
                 asm volatile("cp.async.commit_group;");
             } else {
@@ -725,9 +744,9 @@ __device__ __forceinline__ void walk_line(const unsigned* __restrict__ census_le
             least = __vminu2(least, __byte_perm(least, 0u, 0x1032));
         }
         if (store) {
-            // halfword h: levels first + 2h and first + 2h + 1 as bytes (every value is below
-            // 128, the second pass's sum below 256)
-            store_halfwords<ADD, STORED>(current, old, cell);
+            // the lane's levels in order as bytes (every value is below 128, the second
+            // pass's sum below 256)
+            store_path_bytes<ADD, STORED>(current, old, cell);
         }
 #pragma unroll
         for (int p = 0; p < PAIRS; ++p) previous[p] = current[p];
