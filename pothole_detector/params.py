@@ -373,8 +373,6 @@ class Config:
         object.__setattr__(self, "_values", merged)
 
     def __getattr__(self, name: str) -> Any:
-        if name == "_values":  # not set yet: a copy being made
-            raise AttributeError(name)
         try:
             return self._values[name]
         except KeyError:
