@@ -486,7 +486,7 @@ __device__ __forceinline__ void store_path_bytes(const unsigned (&current)[PAIRS
                                                  unsigned char* cell) {
 #if LANE_WORD
     // levels first to first + 3: the low bytes of pairs 0 and 1, then their third bytes
-    unsigned word = __byte_perm(current[0], current[PAIRS - 1], 0x6240);
+    unsigned word = __byte_perm(current[0], current[1], 0x6240);
     if (ADD) word += old[0];
     __stcs(reinterpret_cast<unsigned*>(cell), word);
 #else
