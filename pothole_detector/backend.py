@@ -123,6 +123,13 @@ class Backend:
         target.data.copy_from_device_async(_cupy.ascontiguousarray(source).data,
                                            source.nbytes, stream=_cupy.cuda.get_current_stream())
 
+    def copy(self, source: Any) -> Any:
+        """A new contiguous copy of the backend array ``source``; on the GPU one device-to-device
+        transfer queued on the current stream."""
+        target = self.xp.empty(source.shape, dtype=source.dtype)
+        self.copy_into(target, source)
+        return target
+
     def capture(self, body: Callable[[Callable[[], None]], _T],
                 memory: GraphMemory) -> CapturedGraph[_T]:
         """The device work ``body`` queues, captured as CUDA graphs and not run (GPU backend

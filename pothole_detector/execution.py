@@ -440,11 +440,12 @@ class FrameExecutor:
         with frame.clock.stage("graph"):
             arrays = frame.arrays
             found = arrays.superpixels
+            copy = self.backend.copy
             frame.arrays = FrameArrays(
-                arrays.disparity.copy(), arrays.transformed.copy(), None,
-                superpixels.Superpixels(None, found.count, found.labels.copy(), None, None),
-                arrays.candidate.copy(), arrays.labels.copy(), arrays.observed.copy(),
-                arrays.drops.copy(), arrays.region_px, searched=arrays.searched.copy())
+                copy(arrays.disparity), copy(arrays.transformed), None,
+                superpixels.Superpixels(None, found.count, copy(found.labels), None, None),
+                copy(arrays.candidate), copy(arrays.labels), copy(arrays.observed),
+                copy(arrays.drops), arrays.region_px, searched=copy(arrays.searched))
 
     def _wait(self, frame: _Frame, readback: Readback) -> np.ndarray:
         """A readback's bytes; the wait counts into the frame's host_wait on the GPU."""

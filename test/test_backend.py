@@ -59,6 +59,14 @@ def test_auto_falls_back_to_cpu_without_a_gpu():
     assert backend.is_gpu == gpu_available()
 
 
+def test_copy_is_a_new_contiguous_array_of_the_same_values():
+    source = np.arange(24, dtype=np.float32).reshape(4, 6)[:, ::2]
+    copied = CPU.copy(source)
+    assert copied.flags.c_contiguous and not np.shares_memory(copied, source)
+    np.testing.assert_array_equal(copied, source)
+    assert copied.dtype == source.dtype
+
+
 @pytest.mark.skipif(gpu_available(), reason="a GPU is present")
 def test_gpu_request_without_a_gpu_says_what_to_do():
     with pytest.raises(BackendError, match="--backend cpu"):
@@ -70,6 +78,8 @@ def test_kernel_sources_carry_their_headers_and_the_digest_covers_them(tmp_path,
     for source in ("road.cu", "threshold.cu", "components.cu"):
         text = backend_module._source_text(source)
         assert '#include "' not in text and "block_inclusive_scan(T value" in text
+    for source in ("road.cu", "local_road.cu", "photometric.cu"):
+        assert "void grid_barrier(unsigned* arrivals" in backend_module._source_text(source)
     (tmp_path / "part.cuh").write_text("#define PART 1\n")
     (tmp_path / "main.cu").write_text('// top\n#include "part.cuh"\nint x = PART;\n')
     monkeypatch.setattr(backend_module, "KERNEL_DIR", tmp_path)

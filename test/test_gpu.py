@@ -291,6 +291,17 @@ def test_upload_many_round_trips(gpu):
         np.testing.assert_array_equal(to_host(device), host)
 
 
+def test_copy_is_a_new_device_array_that_later_writes_leave_alone(gpu):
+    source = gpu.upload(np.arange(24, dtype=np.int32).reshape(4, 6))
+    for array in (source, source[:, ::2]):
+        copied = gpu.copy(array)
+        assert copied.flags.c_contiguous and copied.data.ptr != array.data.ptr
+        expected = to_host(array)
+        source.fill(-1)
+        np.testing.assert_array_equal(to_host(copied), expected)
+        source[...] = gpu.upload(np.arange(24, dtype=np.int32).reshape(4, 6))
+
+
 def test_upload_many_keeps_earlier_uploads_intact(gpu):
     strided = (np.arange(128, dtype=np.int32) // 2)[::2]  # a view, not contiguous
     first = gpu.upload_many(np.full((64, 64), 7, np.uint8), strided)
@@ -1230,10 +1241,10 @@ def test_a_raw_drive_gives_the_same_labels_on_both_backends(gpu):
         assert len(got.potholes) == len(expected.potholes)
 
 
-@pytest.mark.parametrize("tables_in_shared", [9, 4, 0])
+@pytest.mark.parametrize("tables_in_shared", [1, 0])
 def test_local_road_matches_the_cpu(gpu, monkeypatch, tables_in_shared):
-    """The local road with all nine summed-area tables in shared memory at once, four at a
-    time, and none (global memory), on a 40 x 54 grid (lines longer than a warp)."""
+    """The local road with each block's summed-area table in shared memory, and in global
+    memory, on a 40 x 54 grid (lines longer than a warp)."""
     import test_local_road as reference
     from pothole_detector.stages import local_road
     calibration, params = reference.flat_road()

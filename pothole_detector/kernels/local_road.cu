@@ -1,9 +1,14 @@
-// The local road reference (stages/local_road.py) in one block: the window of each cell of the
-// SLIC grid from the geometry, then ROUNDS robust rounds of a weighted plane fitted over each
-// cell's window through summed-area tables of the nine weighted moments (in shared memory),
-// then the noise of the road's cells about the surface
-// over each window. Defines: ROUNDS, MIN_PLANE_SUPPORT, MOMENTS (stages/local_road.py), the
-// fit report's layout and the road model's (road_disparity.cuh).
+// The local road reference (stages/local_road.py) in one cooperative launch of one block per
+// moment (at most MOMENTS blocks): the window of each cell of the SLIC grid from the geometry,
+// then ROUNDS robust rounds of a weighted plane fitted over each cell's window through
+// summed-area tables of the nine weighted moments, then the noise of the road's cells about the
+// surface over each window. A block builds the summed-area tables of its moments (blockIdx.x,
+// then every gridDim.x-th) in its shared memory; the cells' own steps (weights, the plane of
+// each window) are shared out over the grid, grid barriers between them. Defines: ROUNDS,
+// MIN_PLANE_SUPPORT, MOMENTS, THREADS (stages/local_road.py), the fit report's layout and the road
+// model's (road_disparity.cuh). What other blocks wrote before a barrier is read through L2
+// (__ldcg).
+#include "grid_barrier.cuh"
 #include "road_disparity.cuh"
 
 
@@ -31,27 +36,24 @@ __device__ __forceinline__ double window_sum(const double* table, int pitch, int
            - table[bottom * pitch + left] + table[top * pitch + left];
 }
 
-// The tables are (rows + 1) x pitch, pitch > cols. sums[m * cells + k] = the sum of moment m
-// (m < moments) of the grid's cells over cell k's window (half sizes half[k] across,
-// half[cells + k] along), the cells' weights and values given: `group` summed-area tables at
-// a time in `tables` (shared memory, or global where one does not fit; their first row and
-// column 0), a thread's running sum along each row, then each column. Synchronizes the block
-// after.
-__device__ void window_moments(double* tables, int group, int moments, const double* weight,
+// This block's moments m < moments (blockIdx.x, then every gridDim.x-th): sums[m * cells + k]
+// = the sum of moment m of the grid's cells over cell k's window (half sizes half[k] across,
+// half[cells + k] along), the cells' weights and values given, through the summed-area table
+// `table` ((rows + 1) x pitch, its first row and column 0), a thread's running sum along each
+// row, then each column. Synchronizes the block after each moment.
+__device__ void window_moments(double* table, int moments, const double* weight,
                                const double* value, const int* half, int rows, int cols,
                                int pitch, double* sums) {
-    const int cells = rows * cols, stride = (rows + 1) * pitch;
-    for (int first = 0; first < moments; first += group) {
-        const int count = min(group, moments - first);
+    const int cells = rows * cols;
+    for (int m = blockIdx.x; m < moments; m += gridDim.x) {
         for (int k = threadIdx.x; k < cells; k += blockDim.x) {
             const int i = k / cols, j = k - i * cols;
-            const double w = weight[k], v = value[k];
-            double* cell = tables + (i + 1) * pitch + j + 1;
-            for (int m = 0; m < count; ++m) cell[m * stride] = moment(first + m, w, j, i, v);
+            const double w = __ldcg(weight + k), v = __ldcg(value + k);
+            table[(i + 1) * pitch + j + 1] = moment(m, w, j, i, v);
         }
         __syncthreads();
-        for (int line = threadIdx.x; line < count * rows; line += blockDim.x) {
-            double* row = tables + (line / rows) * stride + (line % rows + 1) * pitch + 1;
+        for (int line = threadIdx.x; line < rows; line += blockDim.x) {
+            double* row = table + (line + 1) * pitch + 1;
             double running = 0.0;
 #pragma unroll 8
             for (int j = 0; j < cols; ++j) {
@@ -60,8 +62,8 @@ __device__ void window_moments(double* tables, int group, int moments, const dou
             }
         }
         __syncthreads();
-        for (int line = threadIdx.x; line < count * cols; line += blockDim.x) {
-            double* column = tables + (line / cols) * stride + pitch + line % cols + 1;
+        for (int line = threadIdx.x; line < cols; line += blockDim.x) {
+            double* column = table + pitch + line + 1;
             double running = 0.0;
 #pragma unroll 8
             for (int i = 0; i < rows; ++i) {
@@ -72,36 +74,34 @@ __device__ void window_moments(double* tables, int group, int moments, const dou
         __syncthreads();
         for (int k = threadIdx.x; k < cells; k += blockDim.x) {
             const int i = k / cols, j = k - i * cols;
-            const int along = half[cells + k];
+            const int across = __ldcg(half + k), along = __ldcg(half + cells + k);
             const int top = max(i - along, 0), bottom = min(i + along + 1, rows);
-            const int left = max(j - half[k], 0), right = min(j + half[k] + 1, cols);
-            for (int m = 0; m < count; ++m)
-                sums[(first + m) * cells + k] =
-                    window_sum(tables + m * stride, pitch, top, bottom, left, right);
+            const int left = max(j - across, 0), right = min(j + across + 1, cols);
+            sums[m * cells + k] = window_sum(table, pitch, top, bottom, left, right);
         }
         __syncthreads();
     }
 }
 
-// The summed-area tables are (rows + 1) x pitch doubles (pitch > cols, odd: threads running
-// along consecutive rows read different shared-memory banks); group: how many of the MOMENTS
-// tables fit the dynamic shared memory at once; 0: none does, and `table` (global, MOMENTS of
-// them) holds them.
-extern "C" __global__ void local_road_fit(
+// The summed-area table is (rows + 1) x pitch doubles (pitch > cols, odd: threads running
+// along consecutive rows read different shared-memory banks), in the dynamic shared memory, or
+// where it does not fit (local_table 0) at table + blockIdx.x x (rows + 1) x pitch in global
+// memory. arrivals: the grid barrier's counter, 0 at launch.
+extern "C" __global__ void __launch_bounds__(THREADS) local_road_fit(
         const float* means, const bool* usable_in, const double* drops, const double* road,
         const double* fit, int rows, int cols, int step, int width, int height, int downsample,
         double f, double cx, double cy, double baseline, double road_level, double radius_m,
-        int pitch, int group, int* half, double* residual, unsigned char* usable, double* weight,
-        double* sums, double* table, double* reference, double* noise) {
-    extern __shared__ double shared_tables[];
-    double* tables = group > 0 ? shared_tables : table;
-    group = group > 0 ? group : MOMENTS;
+        int pitch, int local_table, int* half, double* residual, unsigned char* usable,
+        double* weight, double* sums, double* table, double* reference, double* noise,
+        unsigned* arrivals) {
+    extern __shared__ double shared_table[];
     const int cells = rows * cols, stride = (rows + 1) * pitch;
-    for (int e = threadIdx.x; e < group * (pitch + rows); e += blockDim.x) {
-        const int at = e % (pitch + rows);
-        tables[(e / (pitch + rows)) * stride + (at < pitch ? at : (at - pitch + 1) * pitch)] = 0.0;
-    }
-    for (int k = threadIdx.x; k < cells; k += blockDim.x) {
+    double* own = local_table ? shared_table : table + (long long)blockIdx.x * stride;
+    unsigned passed = 0;
+    for (int e = threadIdx.x; e < pitch + rows; e += blockDim.x)
+        own[e < pitch ? e : (e - pitch + 1) * pitch] = 0.0;
+    const int first = blockIdx.x * blockDim.x + threadIdx.x, every = gridDim.x * blockDim.x;
+    for (int k = first; k < cells; k += every) {
         const int i = k / cols, j = k % cols;
         const double u = fmin((j + 0.5) * step, width - 0.5) * downsample;
         const double v = fmin((i + 0.5) * step, height - 0.5) * downsample;
@@ -118,26 +118,31 @@ extern "C" __global__ void local_road_fit(
         half[k] = (int)fmin(fmax(across, 1.0), (double)cols);
         half[cells + k] = (int)fmin(fmax(along, 1.0), (double)rows);
         const bool use = usable_in[k] && isfinite(means[k]);
+        const double off = use ? road_level - (double)means[k] : 0.0;
         usable[k] = use;
-        residual[k] = use ? road_level - (double)means[k] : 0.0;
+        residual[k] = off;
         reference[k] = 0.0;
+        weight[k] = use && fabs(off) <= drops[k] ? 1.0 : 0.0;
     }
-    __syncthreads();
+    grid_barrier(arrivals, passed);
+    // each round: the windows' moments, then each cell's plane and its weight for the next
+    // round (after the last, for the noise: the inliers and their squared distances)
     for (int round = 0; round < ROUNDS; ++round) {
-        for (int k = threadIdx.x; k < cells; k += blockDim.x)
-            weight[k] = usable[k] && fabs(residual[k] - reference[k]) <= drops[k] ? 1.0 : 0.0;
-        __syncthreads();
-        window_moments(tables, group, MOMENTS, weight, residual, half, rows, cols, pitch, sums);
-        for (int k = threadIdx.x; k < cells; k += blockDim.x) {
+        window_moments(own, MOMENTS, weight, residual, half, rows, cols, pitch, sums);
+        grid_barrier(arrivals, passed);
+        for (int k = first; k < cells; k += every) {
             const int i = k / cols, j = k % cols;
-            const double n = sums[k], safe = fmax(n, 1e-12);
-            const double sv = sums[cells + k], sx = sums[2 * cells + k], sy = sums[3 * cells + k];
+            double moments[MOMENTS];
+#pragma unroll
+            for (int m = 0; m < MOMENTS; ++m) moments[m] = __ldcg(sums + m * cells + k);
+            const double n = moments[0], safe = fmax(n, 1e-12);
+            const double sv = moments[1], sx = moments[2], sy = moments[3];
             const double mean = sv / safe;
-            const double cxx = sums[4 * cells + k] - sx * sx / safe;
-            const double cyy = sums[5 * cells + k] - sy * sy / safe;
-            const double cxy = sums[6 * cells + k] - sx * sy / safe;
-            const double cxv = sums[7 * cells + k] - sx * sv / safe;
-            const double cyv = sums[8 * cells + k] - sy * sv / safe;
+            const double cxx = moments[4] - sx * sx / safe;
+            const double cyy = moments[5] - sy * sy / safe;
+            const double cxy = moments[6] - sx * sy / safe;
+            const double cxv = moments[7] - sx * sv / safe;
+            const double cyv = moments[8] - sy * sv / safe;
             const double det = cxx * cyy - cxy * cxy;
             const double scale = fmax(cxx * cyy, 1e-12);
             const bool solvable = n >= MIN_PLANE_SUPPORT && det > 1e-6 * scale;
@@ -147,24 +152,19 @@ extern "C" __global__ void local_road_fit(
                 const double slope_y = (cyv * cxx - cxv * cxy) / det;
                 fitted = mean + slope_x * (j - sx / safe) + slope_y * (i - sy / safe);
             }
-            residual[cells + k] = fitted;
+            reference[k] = fitted;
+            const double off = residual[k] - fitted;
+            weight[k] = usable[k] && fabs(off) <= drops[k] ? 1.0 : 0.0;
+            if (round == ROUNDS - 1) residual[cells + k] = off * off;
         }
-        __syncthreads();
-        for (int k = threadIdx.x; k < cells; k += blockDim.x) reference[k] = residual[cells + k];
-        __syncthreads();
+        grid_barrier(arrivals, passed);
     }
+    window_moments(own, 2, weight, residual + cells, half, rows, cols, pitch, sums);
+    grid_barrier(arrivals, passed);
     const double sigma = road[ROAD_CURVED] != 0.0 ? fit[FIT_QUADRATIC_SIGMA]
                                                   : fit[FIT_PLANAR_SIGMA];
-    for (int k = threadIdx.x; k < cells; k += blockDim.x) {
-        const double off = residual[k] - reference[k];
-        weight[k] = usable[k] && fabs(off) <= drops[k] ? 1.0 : 0.0;
-        residual[cells + k] = off * off;
-    }
-    __syncthreads();
-    window_moments(tables, group, 2, weight, residual + cells, half, rows, cols, pitch,
-                   sums);
-    for (int k = threadIdx.x; k < cells; k += blockDim.x) {
-        const double support = sums[k], spread = fmax(sums[cells + k], 0.0);
+    for (int k = first; k < cells; k += every) {
+        const double support = __ldcg(sums + k), spread = fmax(__ldcg(sums + cells + k), 0.0);
         noise[k] = support >= MIN_PLANE_SUPPORT ? sqrt(spread / fmax(support - 3.0, 1.0))
                                                 : sigma;
     }

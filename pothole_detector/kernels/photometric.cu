@@ -3,16 +3,12 @@
 //   square about it in the left image and about its matched pixel (column u - d rounded,
 //   clipped) in the right image, border pixels repeated; the right mean NaN where the
 //   disparity is.
-// photometric_sums: the pixels with a right mean that agree under `state` (all of them while
-//   its limit is negative, else |left - gain_before x right| <= limit), grid-stride; per block
-//   the sums of left, right and |left - gain x right| and their count, into
-//   partials[block][SUM_*]; the last block to arrive (arrivals: 0 at launch, left 0) adds
-//   them up in block order, so the result does not vary between runs, and updates the state:
-//   GAIN (mode 0): gain = sum left / max(sum right, 1), rounded to float; SPREAD (mode 1):
-//   limit = trim x the mean |left - gain x right|, gain_before = gain.
-// photometric_difference: |left - gain x right|, NaN where the right mean is.
-// Defined by the launcher: WINDOW, SUMS (4), BATCH and the state layout (STATE_GAIN,
-// STATE_GAIN_BEFORE, STATE_LIMIT).
+// photometric_rounds: the gain between the views, taken again over the pixels that agree, in
+//   one cooperative launch (each pass's sums added up in a fixed order, so the result does not
+//   vary between runs), then the disagreement of every pixel.
+// Defined by the launcher: WINDOW, SUMS (4), BATCH, THREADS, ROUNDS.
+
+#include "grid_barrier.cuh"
 
 #define SUM_LEFT 0
 #define SUM_RIGHT 1
@@ -52,13 +48,20 @@ __device__ __forceinline__ float difference(float left, float right, float gain)
     return fabsf(__fsub_rn(left, __fmul_rn(gain, right)));
 }
 
-extern "C" __global__ void photometric_sums(const float* left_mean, const float* right_mean,
-                                            long long size, int mode, double trim,
-                                            double* state, double* partials,
-                                            unsigned* arrivals) {
-    const float gain = (float)state[STATE_GAIN];
-    const float gain_before = (float)state[STATE_GAIN_BEFORE];
-    const double limit = state[STATE_LIMIT];
+// The gain and the limit between the passes (every block holds the same).
+struct GainState {
+    float gain, gain_before;
+    double limit;
+};
+
+// One pass's sums over the grid: the pixels with a right mean that agree under `state` (all
+// of them while its limit is negative, else |left - gain_before x right| <= limit),
+// grid-stride; the sums of left, right and |left - gain x right| and their count. Each block's
+// into partials[block][SUM_*], then, after the grid's barrier, added up by every block in the
+// same fixed order (totals: valid in thread 0).
+__device__ void pass_sums(const float* left_mean, const float* right_mean, long long size,
+                          const GainState& state, double* partials, unsigned* arrivals,
+                          unsigned& passed, double (*warp_sums)[SUMS], double (&totals)[SUMS]) {
     double sums[SUMS] = {0.0, 0.0, 0.0, 0.0};
     const long long stride = (long long)gridDim.x * blockDim.x;
     // BATCH strided pixels' loads in flight at once, added in the order of a plain
@@ -76,15 +79,14 @@ extern "C" __global__ void photometric_sums(const float* left_mean, const float*
         for (int k = 0; k < BATCH; ++k) {
             const float r = rights[k], l = lefts[k];
             if (!isfinite(r)) continue;
-            if (limit >= 0.0 && (double)difference(l, r, gain_before) > limit) continue;
+            if (state.limit >= 0.0 && (double)difference(l, r, state.gain_before) > state.limit)
+                continue;
             sums[SUM_LEFT] += l;
             sums[SUM_RIGHT] += r;
-            sums[SUM_DIFFERENCE] += difference(l, r, gain);
+            sums[SUM_DIFFERENCE] += difference(l, r, state.gain);
             sums[SUM_COUNT] += 1.0;
         }
     }
-    __shared__ double warp_sums[32][SUMS];
-    __shared__ bool last;
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
     for (int k = 0; k < SUMS; ++k) {
@@ -97,13 +99,8 @@ extern "C" __global__ void photometric_sums(const float* left_mean, const float*
         double total = 0.0;
         for (int w = 0; w < (int)(blockDim.x >> 5); ++w) total += warp_sums[w][threadIdx.x];
         partials[blockIdx.x * SUMS + threadIdx.x] = total;
-        __threadfence();
     }
-    __syncthreads();
-    if (threadIdx.x == 0) last = atomicAdd(arrivals, 1u) == gridDim.x - 1;
-    __syncthreads();
-    if (!last) return;
-    // the last block to finish adds the partials up in a fixed order and updates the state
+    grid_barrier(arrivals, passed);
 #pragma unroll
     for (int k = 0; k < SUMS; ++k) {
         sums[k] = 0.0;
@@ -114,29 +111,51 @@ extern "C" __global__ void photometric_sums(const float* left_mean, const float*
         if (lane == 0) warp_sums[warp][k] = sums[k];
     }
     __syncthreads();
-    if (threadIdx.x != 0) return;
-    double total[SUMS] = {0.0, 0.0, 0.0, 0.0};
-    for (int w = 0; w < (int)(blockDim.x >> 5); ++w)
+    if (threadIdx.x == 0) {
 #pragma unroll
-        for (int k = 0; k < SUMS; ++k) total[k] += warp_sums[w][k];
-    if (mode == 0) {
-        state[STATE_GAIN] = (double)__double2float_rn(
-            total[SUM_LEFT] / fmax(total[SUM_RIGHT], 1.0));
-    } else {
-        state[STATE_LIMIT] = trim * (total[SUM_DIFFERENCE] / fmax(total[SUM_COUNT], 1.0));
-        state[STATE_GAIN_BEFORE] = state[STATE_GAIN];
+        for (int k = 0; k < SUMS; ++k) totals[k] = 0.0;
+        for (int w = 0; w < (int)(blockDim.x >> 5); ++w)
+#pragma unroll
+            for (int k = 0; k < SUMS; ++k) totals[k] += warp_sums[w][k];
     }
-    *arrivals = 0;
 }
 
-extern "C" __global__ void photometric_difference(const float* left_mean,
-                                                  const float* right_mean, long long size,
-                                                  const double* state, float* out) {
-    const long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x;
-    if (i >= size) return;
-    const float r = right_mean[i];
-    out[i] = isfinite(r) ? difference(left_mean[i], r, (float)state[STATE_GAIN])
-                         : __int_as_float(0x7fc00000);
+// Every round of the gain in one cooperative launch (THREADS threads a block; partials:
+// [2][gridDim.x][SUMS], arrivals: 0 at launch), then out = |left - gain x right|, NaN where the
+// right mean is. The passes: GAIN, then SPREAD and GAIN again ROUNDS times. GAIN: gain = sum
+// left / max(sum right, 1), rounded to float; SPREAD: limit = trim x the mean
+// |left - gain x right|, gain_before = gain. Before the first pass the limit is negative (all
+// pixels agree).
+extern "C" __global__ void __launch_bounds__(THREADS, 4)
+photometric_rounds(const float* left_mean, const float* right_mean, long long size,
+                   double trim, double* partials, unsigned* arrivals, float* out) {
+    __shared__ double warp_sums[32][SUMS];
+    __shared__ GainState shared_state;
+    GainState state{-1.0f, -1.0f, -1.0};
+    unsigned passed = 0;
+    for (int pass = 0; pass <= 2 * ROUNDS; ++pass) {
+        double totals[SUMS];
+        pass_sums(left_mean, right_mean, size, state, partials + (pass & 1) * gridDim.x * SUMS,
+                  arrivals, passed, warp_sums, totals);
+        if (threadIdx.x == 0) {
+            if (pass % 2 == 0) {
+                state.gain = __double2float_rn(totals[SUM_LEFT] / fmax(totals[SUM_RIGHT], 1.0));
+            } else {
+                state.limit = trim * (totals[SUM_DIFFERENCE] / fmax(totals[SUM_COUNT], 1.0));
+                state.gain_before = state.gain;
+            }
+            shared_state = state;
+        }
+        __syncthreads();
+        state = shared_state;
+        __syncthreads();
+    }
+    const long long stride = (long long)gridDim.x * blockDim.x;
+    for (long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x; i < size; i += stride) {
+        const float r = right_mean[i];
+        out[i] = isfinite(r) ? difference(left_mean[i], r, state.gain)
+                             : __int_as_float(0x7fc00000);
+    }
 }
 
 // photometric_inconsistent: one block; the mean of the finite `means` of the road's

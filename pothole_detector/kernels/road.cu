@@ -23,6 +23,7 @@
 // report's layout (FIT_*), the road parameters' (ROAD_*) and PRIOR_*.
 
 #include "block_scan.cuh"
+#include "grid_barrier.cuh"
 #include "road_disparity.cuh"
 
 #define WARPS (THREADS / 32)
@@ -45,22 +46,9 @@ struct GridWork {
     int histograms;
 };
 
-// Barrier over every thread of the grid (all blocks resident: cooperative launch); orders
-// global memory accesses (release before arriving, acquire after the wait).
+// The grid's barrier (grid_barrier.cuh) on the launch's arrival counter.
 __device__ __forceinline__ void grid_sync(GridWork& grid) {
-    __syncthreads();
-    if (threadIdx.x == 0) {
-        grid.barriers += 1;
-        const unsigned target = grid.barriers * gridDim.x;
-        __threadfence();
-        atomicAdd(grid.barrier, 1u);
-        unsigned seen;
-        do {
-            asm volatile("ld.acquire.gpu.global.u32 %0, [%1];" : "=r"(seen) : "l"(grid.barrier)
-                         : "memory");
-        } while (seen < target);
-    }
-    __syncthreads();
+    grid_barrier(grid.barrier, grid.barriers);
 }
 
 // Calls f(i, row, col, local) for this block's elements (local: the element's index among

@@ -27,13 +27,14 @@ from . import road_model, superpixels
 ROUNDS = 4
 # fewest inlier superpixels a window needs for a plane; with fewer, their mean; with none, 0
 MIN_PLANE_SUPPORT = 6
-# kernels/local_road.cu: one block of this many threads; the moments its tables hold; the
-# shared memory its summed-area tables may take (bytes; where one table does not fit, they lie
-# in global memory)
+# kernels/local_road.cu: threads of a block (one block per moment, on at most as many
+# multiprocessors); the moments; the shared memory a block's summed-area table may take
+# (bytes; where it does not fit, the tables lie in global memory)
 _THREADS = 1024
 _MOMENTS = 9
 _SHARED_TABLE_BYTES = 200 * 1024
 _DEFINES = {"ROUNDS": ROUNDS, "MIN_PLANE_SUPPORT": MIN_PLANE_SUPPORT, "MOMENTS": _MOMENTS,
+            "THREADS": _THREADS,
             **road_model.FIT_LAYOUT, **road_model.ROAD_DEFINES}
 
 
@@ -56,8 +57,9 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
     ``road_params``: the global model's kernel parameters; ``road_level``: delta_DT (px). The
     window about superpixel k reaches ``radius_m`` along and across the road: B / d m per
     pixel across at road disparity d, B / (d cos i) along it, i the angle between the pixel's
-    ray and the road's normal. On the GPU one single-block kernel (kernels/local_road.cu)
-    holds every round and the noise, its summed-area tables in shared memory."""
+    ray and the road's normal. On the GPU one cooperative launch (kernels/local_road.cu)
+    holds every round and the noise, a block per moment building its summed-area table in
+    shared memory."""
     xp = backend.xp
     height, width = shape[0] // downsample, shape[1] // downsample
     step = superpixels.grid_step(region_size_px, downsample)
@@ -66,14 +68,15 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
         cells = cells_y * cells_x
         pitch = (cells_x + 1) | 1
         table_bytes = (cells_y + 1) * pitch * 8
-        group = min(_MOMENTS, _SHARED_TABLE_BYTES // table_bytes)
+        local_table = table_bytes <= _SHARED_TABLE_BYTES
+        blocks = min(_MOMENTS, backend.multiprocessors())
         reference = xp.empty(cells, dtype=xp.float64)
         noise = xp.empty(cells, dtype=xp.float64)
-        kernel = backend.kernel("local_road.cu", "local_road_fit", _DEFINES)
-        if group * table_bytes > 48 * 1024:
-            kernel.max_dynamic_shared_size_bytes = group * table_bytes
+        kernel = backend.kernel("local_road.cu", "local_road_fit", _DEFINES, cooperative=True)
+        if local_table and table_bytes > 48 * 1024:
+            kernel.max_dynamic_shared_size_bytes = table_bytes
         kernel(
-            (1,), (_THREADS,),
+            (blocks,), (_THREADS,),
             (xp.ascontiguousarray(means, dtype=xp.float32),
              xp.ascontiguousarray(usable, dtype=xp.bool_),
              xp.ascontiguousarray(drops, dtype=xp.float64), road_params, road_report,
@@ -81,12 +84,13 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
              np.int32(cells_x), np.int32(step), np.int32(width), np.int32(height),
              np.int32(downsample), np.float64(calibration.f), np.float64(calibration.cx),
              np.float64(calibration.cy), np.float64(calibration.baseline),
-             np.float64(road_level), np.float64(radius_m), np.int32(pitch), np.int32(group),
-             xp.empty(2 * cells, dtype=xp.int32), xp.empty(2 * cells, dtype=xp.float64),
-             xp.empty(cells, dtype=xp.uint8), xp.empty(cells, dtype=xp.float64),
-             xp.empty(_MOMENTS * cells, dtype=xp.float64),
-             xp.empty(_MOMENTS * table_bytes // 8 if group == 0 else 1, dtype=xp.float64),
-             reference, noise), shared_mem=group * table_bytes)
+             np.float64(road_level), np.float64(radius_m), np.int32(pitch),
+             np.int32(local_table), xp.empty(2 * cells, dtype=xp.int32),
+             xp.empty(2 * cells, dtype=xp.float64), xp.empty(cells, dtype=xp.uint8),
+             xp.empty(cells, dtype=xp.float64), xp.empty(_MOMENTS * cells, dtype=xp.float64),
+             xp.empty(1 if local_table else blocks * table_bytes // 8, dtype=xp.float64),
+             reference, noise, xp.zeros(1, dtype=xp.uint32)),
+            shared_mem=table_bytes if local_table else 0)
         return reference, noise
     u, v = superpixels.cell_centres(xp, shape, region_size_px, downsample)
     road = road_model.params_at(xp, road_params, u, v)

@@ -27,16 +27,16 @@ BRIGHTNESS_WINDOW_PX = 5
 # bias it
 GAIN_TRIM = 3.0
 GAIN_ROUNDS = 3
-# kernels/photometric.cu: the sums of a pass (left, right, disagreement, count), the blocks
-# and threads of a pass, the pixels whose loads a thread of a pass keeps in flight, and the
-# layout of the device state between the passes
+# kernels/photometric.cu: the sums of a pass (left, right, disagreement, count), the most
+# blocks and the threads of the rounds' launch (at most _SUM_BLOCKS_PER_MULTIPROCESSOR blocks a
+# multiprocessor), and the pixels whose loads a thread keeps in flight
 _SUMS = 4
 _SUM_BLOCKS = 512
+_SUM_BLOCKS_PER_MULTIPROCESSOR = 4
 _THREADS = 256
 _SUM_BATCH = 4
-_STATE = {"STATE_GAIN": 0, "STATE_GAIN_BEFORE": 1, "STATE_LIMIT": 2}
-_DEFINES = {"WINDOW": BRIGHTNESS_WINDOW_PX, "SUMS": _SUMS, "BATCH": _SUM_BATCH, **_STATE}
-_GAIN, _SPREAD = 0, 1
+_DEFINES = {"WINDOW": BRIGHTNESS_WINDOW_PX, "SUMS": _SUMS, "BATCH": _SUM_BATCH,
+            "THREADS": _THREADS, "ROUNDS": GAIN_ROUNDS}
 
 
 def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any:
@@ -45,7 +45,7 @@ def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any
     views (the ratio of their summed brightness over the matched pixels, taken again over
     those that agree, GAIN_ROUNDS): float32 HxW, NaN where the disparity is. ``left``,
     ``right``: uint8 HxW on the backend; ``disparity``: float32 HxW px, NaN invalid. Nothing
-    read back. On the GPU a kernel for the means, two passes a round and one for the result
+    read back. On the GPU a kernel for the means and one for the rounds and the result
     (kernels/photometric.cu); on the CPU the means by stages/box_cpu.py and the rounds by
     Numba passes whose sums are NumPy's (:func:`host_sum`)."""
     if backend.is_gpu:
@@ -70,9 +70,9 @@ def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any
 
 
 def _disagreement_gpu(backend: Backend, left: Any, right: Any, disparity: Any) -> Any:
-    """:func:`disagreement` by kernels/photometric.cu: the means, one kernel a pass (the
-    last of its blocks adds the partial sums up in a fixed order and sets the next pass's
-    gain or limit) and the result."""
+    """:func:`disagreement` by kernels/photometric.cu: a kernel for the means, then one
+    cooperative launch for every pass of the gain (each block adds the passes' partial sums
+    up in the same fixed order) and the result."""
     xp = backend.xp
     height, width = disparity.shape
     left_mean = xp.empty((height, width), dtype=xp.float32)
@@ -84,17 +84,12 @@ def _disagreement_gpu(backend: Backend, left: Any, right: Any, disparity: Any) -
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
          left_mean, right_mean))
     size = np.int64(height * width)
-    state = xp.full(len(_STATE), -1.0, dtype=xp.float64)  # a negative limit: all agree
-    partials = xp.empty((_SUM_BLOCKS, _SUMS), dtype=xp.float64)
-    arrivals = xp.zeros(1, dtype=xp.uint32)
-    for mode in (_GAIN, _SPREAD) * GAIN_ROUNDS + (_GAIN,):
-        kernel(name="photometric_sums")(
-            (_SUM_BLOCKS,), (_THREADS,),
-            (left_mean, right_mean, size, np.int32(mode), np.float64(GAIN_TRIM), state,
-             partials, arrivals))
+    blocks = min(_SUM_BLOCKS, _SUM_BLOCKS_PER_MULTIPROCESSOR * backend.multiprocessors())
     out = xp.empty((height, width), dtype=xp.float32)
-    kernel(name="photometric_difference")((-(-int(size) // _THREADS),), (_THREADS,),
-                                          (left_mean, right_mean, size, state, out))
+    backend.kernel("photometric.cu", "photometric_rounds", _DEFINES, cooperative=True)(
+        (blocks,), (_THREADS,),
+        (left_mean, right_mean, size, np.float64(GAIN_TRIM),
+         xp.empty((2, blocks, _SUMS), dtype=xp.float64), xp.zeros(1, dtype=xp.uint32), out))
     return out
 
 
