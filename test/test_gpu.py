@@ -1242,11 +1242,15 @@ def test_a_raw_drive_gives_the_same_labels_on_both_backends(gpu):
 
 
 @pytest.mark.parametrize("tables_in_shared", [1, 0])
-def test_local_road_matches_the_cpu(gpu, monkeypatch, tables_in_shared):
+@pytest.mark.parametrize("multiprocessors", [None, 4])
+def test_local_road_matches_the_cpu(gpu, monkeypatch, tables_in_shared, multiprocessors):
     """The local road with each block's summed-area table in shared memory, and in global
-    memory, on a 40 x 54 grid (lines longer than a warp)."""
+    memory, on a 40 x 54 grid (lines longer than a warp); on a device of four multiprocessors
+    a block builds the tables of two or three of the nine moments."""
     import test_local_road as reference
     from pothole_detector.stages import local_road
+    if multiprocessors is not None:
+        monkeypatch.setattr(type(gpu), "multiprocessors", lambda self: multiprocessors)
     calibration, params = reference.flat_road()
     region = 6
     count = superpixels.grid_count(reference.SHAPE, region, reference.DOWNSAMPLE)
@@ -1310,8 +1314,13 @@ def test_texture_deficit_matches_the_cpu(gpu):
     assert cpu[0] > 1000 and cpu[width // step] == 1.0 and (cpu > 1).any()
 
 
-def test_photometric_disagreement_matches_the_cpu(gpu):
+@pytest.mark.parametrize("multiprocessors", [None, 3])
+def test_photometric_disagreement_matches_the_cpu(gpu, monkeypatch, multiprocessors):
+    """On the device's own grid, and on the twelve blocks of a device of three
+    multiprocessors."""
     from pothole_detector.stages import photometric
+    if multiprocessors is not None:
+        monkeypatch.setattr(type(gpu), "multiprocessors", lambda self: multiprocessors)
     rng = np.random.default_rng(13)
     left = rng.integers(0, 256, (48, 80), dtype=np.uint8)
     right = rng.integers(0, 256, (48, 80), dtype=np.uint8)
