@@ -5,9 +5,9 @@
 // surface over each window. A block builds the summed-area tables of its moments (blockIdx.x,
 // then every gridDim.x-th) in its shared memory; the cells' own steps (weights, the plane of
 // each window) are shared out over the grid, grid barriers between them. Defines: ROUNDS,
-// MIN_PLANE_SUPPORT, MOMENTS, THREADS (stages/local_road.py), the fit report's layout and the road
-// model's (road_disparity.cuh). What other blocks wrote before a barrier is read through L2
-// (__ldcg).
+// MIN_PLANE_SUPPORT, MOMENTS, THREADS (stages/local_road.py), the fit report's layout and the
+// road model's (road_disparity.cuh). What other blocks wrote before a barrier is read through
+// L2 (__ldcg).
 #include "grid_barrier.cuh"
 #include "road_disparity.cuh"
 
