@@ -11,6 +11,8 @@
 #include "grid_barrier.cuh"
 #include "road_disparity.cuh"
 
+static_assert(ROUNDS >= 1, "the last round writes the squared distances the noise reads");
+
 
 // Moment m of a cell at column x, row y with weight w and value v, in the order the fit reads
 // them: w, w v, w x, w y, w x x, w y y, w x y, w x v, w y v (the noise uses the first two).

@@ -6,7 +6,8 @@
 // photometric_rounds: the gain between the views, taken again over the pixels that agree, in
 //   one cooperative launch (each pass's sums added up in a fixed order, so the result does not
 //   vary between runs), then the disagreement of every pixel.
-// Defined by the launcher: WINDOW, SUMS (4), BATCH, THREADS, ROUNDS.
+// Defined by the launcher: WINDOW, SUMS (4), BATCH, THREADS, BLOCKS_PER_MULTIPROCESSOR (the
+// rounds' launch holds at most this many blocks a multiprocessor), ROUNDS.
 
 #include "grid_barrier.cuh"
 
@@ -126,7 +127,7 @@ __device__ void pass_sums(const float* left_mean, const float* right_mean, long 
 // left / max(sum right, 1), rounded to float; SPREAD: limit = trim x the mean
 // |left - gain x right|, gain_before = gain. Before the first pass the limit is negative (all
 // pixels agree).
-extern "C" __global__ void __launch_bounds__(THREADS, 4)
+extern "C" __global__ void __launch_bounds__(THREADS, BLOCKS_PER_MULTIPROCESSOR)
 photometric_rounds(const float* left_mean, const float* right_mean, long long size,
                    double trim, double* partials, unsigned* arrivals, float* out) {
     __shared__ double warp_sums[32][SUMS];

@@ -10,7 +10,6 @@ its disagreement against the road's own, in the same frame.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Any
 
 import numba
@@ -36,7 +35,8 @@ _SUM_BLOCKS_PER_MULTIPROCESSOR = 4
 _THREADS = 256
 _SUM_BATCH = 4
 _DEFINES = {"WINDOW": BRIGHTNESS_WINDOW_PX, "SUMS": _SUMS, "BATCH": _SUM_BATCH,
-            "THREADS": _THREADS, "ROUNDS": GAIN_ROUNDS}
+            "THREADS": _THREADS, "BLOCKS_PER_MULTIPROCESSOR": _SUM_BLOCKS_PER_MULTIPROCESSOR,
+            "ROUNDS": GAIN_ROUNDS}
 
 
 def disagreement(backend: Backend, left: Any, right: Any, disparity: Any) -> Any:
@@ -77,8 +77,7 @@ def _disagreement_gpu(backend: Backend, left: Any, right: Any, disparity: Any) -
     height, width = disparity.shape
     left_mean = xp.empty((height, width), dtype=xp.float32)
     right_mean = xp.empty((height, width), dtype=xp.float32)
-    kernel = partial(backend.kernel, "photometric.cu", defines=_DEFINES)
-    kernel(name="photometric_means")(
+    backend.kernel("photometric.cu", "photometric_means", _DEFINES)(
         (-(-width // 32), -(-height // 8)), (32, 8),
         (xp.ascontiguousarray(left, dtype=xp.uint8), xp.ascontiguousarray(right, dtype=xp.uint8),
          xp.ascontiguousarray(disparity, dtype=xp.float32), np.int32(height), np.int32(width),
