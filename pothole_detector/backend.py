@@ -435,6 +435,10 @@ def _timing_event() -> Any:
 CPU = Backend("cpu", np, scipy.ndimage)
 
 
+# NVRTC's options for every kernel module (the defines are in the text: _built_text)
+NVRTC_OPTIONS = ("--std=c++17",)
+
+
 @lru_cache(maxsize=None)
 def _source_text(source: str) -> str:
     """kernels/``source`` with each ``#include "name.cuh"`` line replaced by that header from
@@ -450,14 +454,22 @@ def _source_digest(source: str) -> str:
     return hashlib.sha1(_source_text(source).encode()).hexdigest()
 
 
+def _built_text(source: str, defines: tuple[tuple[str, int], ...]) -> str:
+    """The text NVRTC builds for kernels/``source`` with ``defines``: a ``#define`` line each,
+    then the source with its headers (_source_text). The defines go into the text rather than
+    into NVRTC's options, so that every module has the same options (NVRTC_OPTIONS): CuPy
+    compiles an empty program once a process for each distinct set of options (its compile
+    cache's key), about 20 ms on an H200, which a worker's first frame would pay per module."""
+    return "".join(f"#define {key} {value}\n" for key, value in defines) + _source_text(source)
+
+
 @lru_cache(maxsize=64)
 def _module(source: str, digest: str, defines: tuple[tuple[str, int], ...],
             cooperative: bool) -> Any:
     """A compiled RawModule of kernels/``source`` (digest: sha1 of its text, part of the key);
     ``cooperative``: its kernels launch cooperatively."""
     assert _cupy is not None
-    options = ("--std=c++17",) + tuple(f"-D{key}={value}" for key, value in defines)
-    return _cupy.RawModule(code=_source_text(source), options=options,
+    return _cupy.RawModule(code=_built_text(source, defines), options=NVRTC_OPTIONS,
                            enable_cooperative_groups=cooperative)
 
 

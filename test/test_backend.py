@@ -96,3 +96,13 @@ def test_kernel_sources_carry_their_headers_and_the_digest_covers_them(tmp_path,
     finally:
         backend_module._source_text.cache_clear()
         backend_module._source_digest.cache_clear()
+
+
+def test_defines_are_in_the_kernel_text_so_every_module_has_the_same_options():
+    import pothole_detector.backend as backend_module
+    built = backend_module._built_text("threshold.cu", (("BINS", 64), ("RUN", 16)))
+    assert built == "#define BINS 64\n#define RUN 16\n" + backend_module._source_text(
+        "threshold.cu")
+    assert backend_module._built_text("threshold.cu", ()) == backend_module._source_text(
+        "threshold.cu")
+    assert not any(option.startswith("-D") for option in backend_module.NVRTC_OPTIONS)

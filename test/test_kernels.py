@@ -27,15 +27,15 @@ def _nvrtc() -> ctypes.CDLL:
 
 
 def _compile(source: str, defines: dict[str, int]) -> str:
-    """Compile kernels/``source`` (its headers inlined, as the backend does) with ``defines``;
-    the empty string where it builds, else NVRTC's log."""
+    """Compile kernels/``source`` with ``defines`` as the backend builds it (its headers
+    inlined, the defines in the text); the empty string where it builds, else NVRTC's log."""
     nvrtc = _nvrtc()
     program = ctypes.c_void_p()
-    text = backend._source_text(source).encode()
+    text = backend._built_text(source, tuple(sorted(defines.items()))).encode()
     assert nvrtc.nvrtcCreateProgram(ctypes.byref(program), text, source.encode(), 0, None,
                                     None) == 0
-    options = [b"--std=c++17", f"--gpu-architecture={ARCHITECTURE}".encode()] + [
-        f"-D{key}={value}".encode() for key, value in defines.items()]
+    options = [option.encode() for option in backend.NVRTC_OPTIONS] + [
+        f"--gpu-architecture={ARCHITECTURE}".encode()]
     status = nvrtc.nvrtcCompileProgram(program, len(options),
                                        (ctypes.c_char_p * len(options))(*options))
     size = ctypes.c_size_t()
