@@ -4,7 +4,7 @@ a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_survey.py [--sizes 1280x720 2079x1040] [--frames 60]
         [--backend cpu|gpu] [--jobs N [N ...]] [--ray] [--ray-gpus N [N ...]]
-        [--chunk-frames 30]
+        [--chunk-frames 30] [--bags N]
         [--read-threads N [N ...]] [--read-processes N [N ...]] [--form rectified|raw-jpeg]
         [--map-cell-m M [M ...]]
 
@@ -65,19 +65,27 @@ def make_bag(bag: Path, samples: list, forward_m: list[float], frames: int,
     return bag
 
 
+def linked_bag(bag: Path, twin: Path) -> Path:
+    """A second bag at ``twin`` whose files are hard links to those of ``bag``."""
+    twin.mkdir()
+    for path in bag.iterdir():
+        os.link(path, twin / path.name)
+    return twin
+
+
 def raw_sample(scene: object, camera: object) -> object:
     """The scene's render with the raw camera's images in place of the rectified ones."""
     left, right = render_raw(scene, camera)
     return replace(render(scene), left=left, right=right)
 
 
-def bench(bag: Path, config: Config, ray_gpus: int | None, jobs: int, out: Path
+def bench(bags: list[Path], config: Config, ray_gpus: int | None, jobs: int, out: Path
           ) -> tuple[float, float, int, int]:
-    """Survey ``bag`` into ``out``: in ``jobs`` processes, or, where ``ray_gpus`` is not
+    """Survey ``bags`` together into ``out``: in ``jobs`` processes, or, where ``ray_gpus`` is not
     None, as tasks on a local Ray cluster of that many GPUs (-1: the machine's), started
     before the clock. Returns (seconds, of which observing the chunks: until the last chunk's
-    result, frames, potholes); the rest is this process's: planning, assembling (poses,
-    tracking, the road maps, the rows), survey.csv and report.html."""
+    result, frames, potholes of all the bags); the rest is this process's: planning,
+    assembling (poses, tracking, the road maps, the rows), survey.csv and report.html."""
     runner = ray_chunks() if ray_gpus is not None else chunk_runner(jobs)
     observing: list[float] = []
 
@@ -91,12 +99,12 @@ def bench(bag: Path, config: Config, ray_gpus: int | None, jobs: int, out: Path
                  log_to_driver=False, configure_logging=False)
     try:
         start = time.perf_counter()
-        surveys = survey([bag], config, chunks=timed)
+        surveys = survey(bags, config, chunks=timed)
         write_csv(surveys, out / "survey.csv")
         write_report(surveys, out / "report.html", lambda d, p: best_view_picture(
             d.bag, d.topics, p.row["best_stamp_ns"], p.bbox_px, config))
-        return (time.perf_counter() - start, sum(observing), surveys[0].frames,
-                len(surveys[0].potholes))
+        return (time.perf_counter() - start, sum(observing),
+                sum(one.frames for one in surveys), sum(len(one.potholes) for one in surveys))
     finally:
         if ray_gpus is not None:
             ray.shutdown()
@@ -115,6 +123,9 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, nargs="+", default=[1],
                         help="chunks in this many worker processes here (several: a row each)")
     parser.add_argument("--chunk-frames", type=int, default=600)
+    parser.add_argument("--bags", type=int, default=1,
+                        help="the drive as this many bags (links to one bag's files: as many "
+                             "recordings of the road), surveyed together")
     parser.add_argument("--read-threads", type=int, nargs="+", default=[4],
                         help="threads per process that read the bag ahead (several: a row "
                              "each)")
@@ -138,7 +149,8 @@ def main() -> None:
     else:
         from pothole_detector.backend import get_backend
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
-    print(f"survey throughput, {device}, {args.frames} frames a bag ({args.form}), "
+    print(f"survey throughput, {device}, {args.bags} bag(s) of {args.frames} frames "
+          f"({args.form}), "
           f"{datetime.date.today().isoformat()}")
     print("| size | processes | reading ahead (each) | road map cell | frames | potholes | "
           "seconds | of which observing | frames/s |")
@@ -158,10 +170,12 @@ def main() -> None:
                 else:
                     samples = list(pool.map(render, scenes))
             forward = [s.camera_y_m for s in scenes]
-            bag = make_bag(folder / f"drive_{size}", samples, forward, args.frames, form)
+            bags = [make_bag(folder / f"drive_{size}", samples, forward, args.frames, form)]
+            bags += [linked_bag(bags[0], folder / f"drive_{size}_{k}")
+                     for k in range(1, args.bags)]
             warm = folder / f"warm_{size}"
             warm.mkdir()
-            bench(make_bag(warm / "drive", samples, forward, 3, form), config, None, 1,
+            bench([make_bag(warm / "drive", samples, forward, 3, form)], config, None, 1,
                   warm)  # compiles kernels
             runs = [(jobs, threads, readers, cell)
                     for jobs in args.jobs + ([-1] if args.ray else [])
@@ -177,7 +191,7 @@ def main() -> None:
                 out = folder / f"out_{size}_{jobs}_{gpus}_{threads}_{readers}_{cell}"
                 out.mkdir()
                 seconds, observing, frames, potholes = bench(
-                    bag, config.replace(read_threads=threads, read_processes=readers,
+                    bags, config.replace(read_threads=threads, read_processes=readers,
                                         map_cell_m=cell), gpus, max(jobs, 1), out)
                 on = ("all GPUs" if gpus is not None and gpus < 0 else
                       "CPU cores" if gpus == 0 else f"{gpus} GPU{'s' if gpus != 1 else ''}")
