@@ -458,8 +458,8 @@ def _built_text(source: str, defines: tuple[tuple[str, int], ...]) -> str:
     """The text NVRTC builds for kernels/``source`` with ``defines``: a ``#define`` line each,
     then the source with its headers (_source_text). The defines go into the text rather than
     into NVRTC's options, so that every module has the same options (NVRTC_OPTIONS): CuPy
-    compiles an empty program once a process for each distinct set of options (its compile
-    cache's key), about 20 ms on an H200, which a worker's first frame would pay per module."""
+    compiles an empty program once a process for each distinct set of options (part of its
+    compile cache's key), which a fresh process's first frame would pay per module."""
     return "".join(f"#define {key} {value}\n" for key, value in defines) + _source_text(source)
 
 
