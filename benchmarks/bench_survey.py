@@ -150,8 +150,7 @@ def main() -> None:
         from pothole_detector.backend import get_backend
         device = f"{get_backend(args.backend).name} backend, host {os.cpu_count()} cores"
     print(f"survey throughput, {device}, {args.bags} bag(s) of {args.frames} frames "
-          f"({args.form}), "
-          f"{datetime.date.today().isoformat()}")
+          f"({args.form}), {datetime.date.today().isoformat()}")
     print("| size | processes | reading ahead (each) | road map cell | frames | potholes | "
           "seconds | of which observing | frames/s |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
