@@ -1,8 +1,8 @@
 // 2D-histogram threshold on the device. Algorithm and reference: stages/threshold.py
 // (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
 // max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
-// Defined by the launcher (stages/threshold.py, _kernel): TILE, TABLE_THREADS, SEARCH_THREADS,
-// the road fit report's layout (FIT_*) and the road parameters' (ROAD_*).
+// Defined by the launcher (stages/threshold.py, _kernel): TILE_ROWS, RUN, TABLE_THREADS,
+// TABLE_BLOCKS, SEARCH_THREADS, the road fit report's layout (FIT_*) and the road parameters' (ROAD_*).
 
 #include "block_scan.cuh"
 #include "road_disparity.cuh"
@@ -43,13 +43,22 @@ struct BinRun {
     }
 };
 
-#define RUN 16
-static_assert(TILE * TILE / RUN == TABLE_THREADS, "a thread per run of a tile");
+static_assert(TABLE_THREADS % TILE_ROWS == 0, "whole runs in every row of a tile");
+#define TILE_COLUMNS (TABLE_THREADS / TILE_ROWS * RUN)
 
-// One block per TILE x TILE tile, TABLE_THREADS threads, each a run of RUN pixels of one row. g2 =
-// mean of the valid 8-neighbours, added in the order of threshold.neighbour_mean (float32, no
-// FMA), so the bins equal the reference's.
-extern "C" __global__ void __launch_bounds__(TABLE_THREADS)
+// A neighbour's D2 for the 8-neighbour mean: NaN outside the image, so that it is left out
+// like an invalid value.
+__device__ __forceinline__ float neighbour(const float* image, int height, int width, int y,
+                                           int x) {
+    return (y >= 0 && y < height && x >= 0 && x < width) ? image[y * width + x]
+                                                         : __int_as_float(0x7fffffff);
+}
+
+// One block per TILE_ROWS x TILE_COLUMNS tile, TABLE_THREADS threads, each a run of RUN pixels
+// of one row, its 3 x 3 window in registers (three loads a pixel). g2 = mean of the valid
+// 8-neighbours, added in the order of threshold.neighbour_mean (float32, no FMA), so the bins
+// equal the reference's.
+extern "C" __global__ void __launch_bounds__(TABLE_THREADS, TABLE_BLOCKS)
 threshold_tables(const float* image, double* tables, int height, int width, float lo,
                  float bin, int n_bins, int in_shared) {
     extern __shared__ double shared_tables[];
@@ -59,27 +68,37 @@ threshold_tables(const float* image, double* tables, int height, int width, floa
         for (int i = threadIdx.x; i < entries; i += blockDim.x) shared_tables[i] = 0.0;
         __syncthreads();
     }
-    const int v = blockIdx.y * TILE + threadIdx.x / (TILE / RUN);
-    const int u0 = blockIdx.x * TILE + (threadIdx.x % (TILE / RUN)) * RUN;
+    const int v = blockIdx.y * TILE_ROWS + threadIdx.x / (TILE_COLUMNS / RUN);
+    const int u0 = blockIdx.x * TILE_COLUMNS + (threadIdx.x % (TILE_COLUMNS / RUN)) * RUN;
     BinRun by_high, by_low;
+    float left[3], middle[3], right[3];
+    if (v < height && u0 < width) {
+#pragma unroll
+        for (int r = 0; r < 3; ++r) {
+            left[r] = neighbour(image, height, width, v + r - 1, u0 - 1);
+            middle[r] = neighbour(image, height, width, v + r - 1, u0);
+        }
+    }
     for (int k = 0; k < RUN && v < height; ++k) {
         const int u = u0 + k;
         if (u >= width) break;
-        const float g1 = image[v * width + u];
+#pragma unroll
+        for (int r = 0; r < 3; ++r) right[r] = neighbour(image, height, width, v + r - 1, u + 1);
+        const float g1 = middle[1];
+        const float around[8] = {left[0], middle[0], right[0], left[1],
+                                 right[1], left[2], middle[2], right[2]};
         float total = 0.0f, number = 0.0f;
 #pragma unroll
-        for (int dv = -1; dv <= 1; ++dv)
-#pragma unroll
-            for (int du = -1; du <= 1; ++du) {
-                if (dv == 0 && du == 0) continue;
-                const int y = v + dv, x = u + du;
-                if (y < 0 || y >= height || x < 0 || x >= width) continue;
-                const float value = image[y * width + x];
-                if (finite(value)) {
-                    total = __fadd_rn(total, value);
-                    number = __fadd_rn(number, 1.0f);
-                }
+        for (int i = 0; i < 8; ++i)
+            if (finite(around[i])) {
+                total = __fadd_rn(total, around[i]);
+                number = __fadd_rn(number, 1.0f);
             }
+#pragma unroll
+        for (int r = 0; r < 3; ++r) {
+            left[r] = middle[r];
+            middle[r] = right[r];
+        }
         if (number == 0.0f || !finite(g1)) continue;
         const float g2 = __fdiv_rn(total, number);
         const float f1 = floorf(__fdiv_rn(__fsub_rn(g1, lo), bin));

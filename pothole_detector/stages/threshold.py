@@ -17,8 +17,12 @@ HISTOGRAM_BELOW_PX = 128.0
 HISTOGRAM_ABOVE_PX = 64.0
 # Per-block histograms of the GPU kernel stay in shared memory up to this size (bytes).
 MAX_SHARED_TABLE_BYTES = 200 * 1024
-# kernels/threshold.cu: the table kernel's tile side (px) and block size, the search's block size
-_THRESHOLD_KERNEL = {"TILE": 64, "TABLE_THREADS": 256, "SEARCH_THREADS": 1024}
+# kernels/threshold.cu: the table kernel's tile rows, a thread's run of pixels along a row, the
+# block size (a tile is TABLE_THREADS / TILE_ROWS runs wide) and the blocks a multiprocessor
+# holds with the default bins' tables in shared memory (48 KB each), which bounds the kernel's
+# registers; the search's block size
+_THRESHOLD_KERNEL = {"TILE_ROWS": 64, "RUN": 16, "TABLE_THREADS": 256, "TABLE_BLOCKS": 4,
+                     "SEARCH_THREADS": 1024}
 # threshold_reference values select() takes, in the order kernels/threshold.cu numbers them
 REFERENCES = ("split", "road_mean", "road_fit")
 
@@ -171,8 +175,9 @@ def _search_on_device(backend: Backend, transformed: Any, bin_px: float, road_le
     in_shared = shared <= MAX_SHARED_TABLE_BYTES
     if in_shared and shared > 48 * 1024:
         histogram.max_dynamic_shared_size_bytes = shared
-    tile = _THRESHOLD_KERNEL["TILE"]
-    histogram((-(-width // tile), -(-height // tile)), (_THRESHOLD_KERNEL["TABLE_THREADS"],),
+    rows, threads = _THRESHOLD_KERNEL["TILE_ROWS"], _THRESHOLD_KERNEL["TABLE_THREADS"]
+    columns = threads // rows * _THRESHOLD_KERNEL["RUN"]
+    histogram((-(-width // columns), -(-height // rows)), (threads,),
               (transformed, tables, np.int32(height), np.int32(width), np.float32(lo),
                np.float32(bin_px), np.int32(n_bins), np.int32(in_shared)),
               shared_mem=shared if in_shared else 0)
