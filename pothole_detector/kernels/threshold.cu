@@ -2,7 +2,8 @@
 // (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
 // max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
 // Defined by the launcher (stages/threshold.py, _kernel): TILE_ROWS, RUN, TABLE_THREADS,
-// TABLE_BLOCKS, SEARCH_THREADS, the road fit report's layout (FIT_*) and the road parameters' (ROAD_*).
+// TABLE_BLOCKS, SEARCH_THREADS, the road fit report's layout (FIT_*) and the road parameters'
+// (ROAD_*).
 
 #include "block_scan.cuh"
 #include "road_disparity.cuh"
