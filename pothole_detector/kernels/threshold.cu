@@ -1,9 +1,9 @@
 // 2D-histogram threshold on the device. Algorithm and reference: stages/threshold.py
 // (histogram_threshold, _tables, _search). tables: float64 [2][4][n_bins]; table 0 is over
 // max(i1, i2), table 1 over min(i1, i2); rows: count, sum g1, sum g2, sum g1^2 + g2^2.
-// Defined by the launcher (stages/threshold.py, _kernel): TILE_ROWS, RUN, TABLE_THREADS,
-// TABLE_BLOCKS, SEARCH_THREADS, the road fit report's layout (FIT_*) and the road parameters'
-// (ROAD_*).
+// Defined by the launcher (stages/threshold.py, _kernel): TILE_ROWS, TILE_COLUMNS, RUN,
+// TABLE_THREADS, TABLE_BLOCKS, SEARCH_THREADS, the road fit report's layout (FIT_*) and the
+// road parameters' (ROAD_*).
 
 #include "block_scan.cuh"
 #include "road_disparity.cuh"
@@ -44,8 +44,8 @@ struct BinRun {
     }
 };
 
-static_assert(TABLE_THREADS % TILE_ROWS == 0, "whole runs in every row of a tile");
-#define TILE_COLUMNS (TABLE_THREADS / TILE_ROWS * RUN)
+static_assert(TILE_ROWS * (TILE_COLUMNS / RUN) == TABLE_THREADS && TILE_COLUMNS % RUN == 0,
+              "a thread per run of a tile");
 
 // A neighbour's D2 for the 8-neighbour mean: NaN outside the image, so that it is left out
 // like an invalid value.

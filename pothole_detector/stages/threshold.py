@@ -17,11 +17,13 @@ HISTOGRAM_BELOW_PX = 128.0
 HISTOGRAM_ABOVE_PX = 64.0
 # Per-block histograms of the GPU kernel stay in shared memory up to this size (bytes).
 MAX_SHARED_TABLE_BYTES = 200 * 1024
-# kernels/threshold.cu: the table kernel's tile rows, a thread's run of pixels along a row, the
-# block size (a tile is TABLE_THREADS / TILE_ROWS runs wide) and the blocks a multiprocessor
-# holds with the default bins' tables in shared memory (48 KB each), which bounds the kernel's
-# registers; the search's block size
-_THRESHOLD_KERNEL = {"TILE_ROWS": 64, "RUN": 16, "TABLE_THREADS": 256, "TABLE_BLOCKS": 4,
+# kernels/threshold.cu: the table kernel's tile (rows, columns), a thread's run of pixels along
+# a row, the block size (a thread per run of a tile) and the blocks a multiprocessor holds with
+# the default bins' tables in shared memory (48 KB each), which bounds the kernel's registers;
+# the search's block size
+_TILE_ROWS, _RUN, _TABLE_THREADS = 64, 16, 256
+_THRESHOLD_KERNEL = {"TILE_ROWS": _TILE_ROWS, "TILE_COLUMNS": _TABLE_THREADS // _TILE_ROWS * _RUN,
+                     "RUN": _RUN, "TABLE_THREADS": _TABLE_THREADS, "TABLE_BLOCKS": 4,
                      "SEARCH_THREADS": 1024}
 # threshold_reference values select() takes, in the order kernels/threshold.cu numbers them
 REFERENCES = ("split", "road_mean", "road_fit")
@@ -175,9 +177,8 @@ def _search_on_device(backend: Backend, transformed: Any, bin_px: float, road_le
     in_shared = shared <= MAX_SHARED_TABLE_BYTES
     if in_shared and shared > 48 * 1024:
         histogram.max_dynamic_shared_size_bytes = shared
-    rows, threads = _THRESHOLD_KERNEL["TILE_ROWS"], _THRESHOLD_KERNEL["TABLE_THREADS"]
-    columns = threads // rows * _THRESHOLD_KERNEL["RUN"]
-    histogram((-(-width // columns), -(-height // rows)), (threads,),
+    rows, columns = _THRESHOLD_KERNEL["TILE_ROWS"], _THRESHOLD_KERNEL["TILE_COLUMNS"]
+    histogram((-(-width // columns), -(-height // rows)), (_THRESHOLD_KERNEL["TABLE_THREADS"],),
               (transformed, tables, np.int32(height), np.int32(width), np.float32(lo),
                np.float32(bin_px), np.int32(n_bins), np.int32(in_shared)),
               shared_mem=shared if in_shared else 0)
