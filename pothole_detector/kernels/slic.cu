@@ -37,51 +37,56 @@ extern "C" __global__ void slic_assign(const float* filled, const unsigned char*
     labels[r * width + c] = (i + choice / 3 - 1) * cells_x + (j + choice % 3 - 1);
 }
 
+static_assert(UPDATE_THREADS % 32 == 0, "the centre update's block: whole warps");
+
 // One block per centre: sums over the pixels of the 3x3 cells around it that chose it, then
-// the new centre (position: mean of its pixels; value: mean of its valid pixels).
+// the new centre (position: mean of its pixels; value: mean of its valid pixels). Each warp
+// adds its lanes' sums by shuffles, thread 0 the warps' in order.
 extern "C" __global__ void __launch_bounds__(UPDATE_THREADS)
 slic_update(const float* filled, const unsigned char* valid, const int* labels,
             float* centre_v, float* centre_u, float* centre_d, int height, int width, int step,
             int cells_x) {
-    __shared__ double partial[5][UPDATE_THREADS];
+    __shared__ double partial[5][UPDATE_THREADS / 32];
     const int label = blockIdx.x;
     const int ci = label / cells_x, cj = label % cells_x;
     const int r0 = max((ci - 1) * step, 0), r1 = min((ci + 2) * step, height);
     const int c0 = max((cj - 1) * step, 0), c1 = min((cj + 2) * step, width);
     const int span = c1 - c0;
-    double count = 0.0, count_valid = 0.0, sum_v = 0.0, sum_u = 0.0, sum_d = 0.0;
+    double sums[5] = {0.0, 0.0, 0.0, 0.0, 0.0};
     for (int p = threadIdx.x; p < (r1 - r0) * span; p += blockDim.x) {
         const int r = r0 + p / span, c = c0 + p % span;
         const int index = r * width + c;
         if (labels[index] != label) continue;
-        count += 1.0;
-        sum_v += r;
-        sum_u += c;
+        sums[0] += 1.0;
+        sums[2] += r;
+        sums[3] += c;
         if (valid[index]) {
-            count_valid += 1.0;
-            sum_d += (double)filled[index];
+            sums[1] += 1.0;
+            sums[4] += (double)filled[index];
         }
     }
-    partial[0][threadIdx.x] = count;
-    partial[1][threadIdx.x] = count_valid;
-    partial[2][threadIdx.x] = sum_v;
-    partial[3][threadIdx.x] = sum_u;
-    partial[4][threadIdx.x] = sum_d;
-    __syncthreads();
-    for (int stride = blockDim.x / 2; stride > 0; stride >>= 1) {
-        if (threadIdx.x < stride) {
+    const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
-            for (int q = 0; q < 5; ++q)
-                partial[q][threadIdx.x] += partial[q][threadIdx.x + stride];
-        }
-        __syncthreads();
+    for (int q = 0; q < 5; ++q) {
+        double value = sums[q];
+#pragma unroll
+        for (int offset = 16; offset > 0; offset >>= 1)
+            value += __shfl_down_sync(0xffffffffu, value, offset);
+        if (lane == 0) partial[q][warp] = value;
     }
+    __syncthreads();
     if (threadIdx.x == 0) {
-        if (partial[0][0] > 0.0) {
-            centre_v[label] = (float)(partial[2][0] / partial[0][0]);
-            centre_u[label] = (float)(partial[3][0] / partial[0][0]);
+        double total[5];
+#pragma unroll
+        for (int q = 0; q < 5; ++q) {
+            total[q] = partial[q][0];
+            for (int w = 1; w < UPDATE_THREADS / 32; ++w) total[q] += partial[q][w];
         }
-        if (partial[1][0] > 0.0) centre_d[label] = (float)(partial[4][0] / partial[1][0]);
+        if (total[0] > 0.0) {
+            centre_v[label] = (float)(total[2] / total[0]);
+            centre_u[label] = (float)(total[3] / total[0]);
+        }
+        if (total[1] > 0.0) centre_d[label] = (float)(total[4] / total[1]);
     }
 }
 

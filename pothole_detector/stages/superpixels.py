@@ -21,7 +21,7 @@ from . import slic_cpu
 
 
 # block size of the SLIC centre update (kernels/slic.cu, slic_update)
-UPDATE_THREADS = 256
+UPDATE_THREADS = 128
 # slic_region_size_px 0: superpixels across the image width, and the smallest grid step (px)
 REGIONS_ACROSS = 64
 MIN_REGION_PX = 8
