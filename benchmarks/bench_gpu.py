@@ -6,6 +6,11 @@ shifts, and the paper's row shifts) and with the full range the frame needs with
 Prints a Markdown table for docs/benchmarks.md.
 
     python benchmarks/bench_gpu.py [--frames 100] [--data DIR] [--long 10000] [--sgm-kernels]
+        [--sgm-lanes 16 32]
+
+``--sgm-lanes``: with ``--sgm-kernels``, the matcher's kernels also with each of these lane
+counts per path line in place of the one the matcher picks (the same disparities; where a lane
+count leaves no whole number of levels a lane, it is skipped).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import sys
 import time
 from datetime import date
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -85,18 +91,35 @@ def measure(config: Config, calibration: StereoCalibration, left: np.ndarray,
     return medians
 
 
+class FixedLanes(census_sgm.GpuMatcher):
+    """The GPU matcher with ``lanes`` threads per path line whatever the image."""
+
+    def __init__(self, backend: Any, lanes: int) -> None:
+        super().__init__(backend)
+        self.fixed_lanes = lanes
+
+    def lanes(self, height: int, width: int, levels: int) -> int:
+        held = census_sgm.path_levels(levels)
+        if held % self.fixed_lanes:
+            raise ValueError(f"{held} levels held do not split into {self.fixed_lanes} lanes")
+        return self.fixed_lanes
+
+
 def sgm_kernel_times(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
-                     count: int, shift: str) -> tuple[int, int, dict[str, float]]:
+                     count: int, shift: str, lanes: int | None = None
+                     ) -> tuple[int, int, dict[str, float]]:
     """The census matcher kernel by kernel on the GPT band of a frame (``shift``: the
     gpt_shift mode): its level count, lanes and median ms of census (with the GPT's gather of
-    the right census words), paths (two launches), select and finish over ``count`` calls."""
+    the right census words), paths (two launches), select and finish over ``count`` calls;
+    with ``lanes``, that many threads per path line (FixedLanes) instead of the matcher's
+    choice."""
     backend = get_backend("gpu")
     config = Config({"gpt_shift": shift})
     pipeline = Pipeline(config, calibration, backend)
     pipeline.run(left, right)
     shifts, levels = pipeline.band(left.shape)
     left_dev, right_dev, shifts_dev = backend.upload_many(left, right, shifts)
-    matcher = census_sgm.GpuMatcher(backend)
+    matcher = census_sgm.GpuMatcher(backend) if lanes is None else FixedLanes(backend, lanes)
     runs = []
     for index in range(count + 5):
         clock = StageClock(backend)
@@ -110,9 +133,12 @@ def sgm_kernel_times(left: np.ndarray, right: np.ndarray, calibration: StereoCal
 
 
 def sgm_kernels(left: np.ndarray, right: np.ndarray, calibration: StereoCalibration,
-                count: int, shift: str) -> str:
+                count: int, shift: str, lanes: int | None = None) -> str:
     """:func:`sgm_kernel_times` as a line of text."""
-    levels, lanes, parts = sgm_kernel_times(left, right, calibration, count, shift)
+    try:
+        levels, lanes, parts = sgm_kernel_times(left, right, calibration, count, shift, lanes)
+    except ValueError as exc:
+        return f"{shift} shifts, {lanes} lanes: skipped ({exc})"
     return (f"{shift} shifts, {levels} levels, {lanes} lanes: "
             + ", ".join(f"{key} {value:.3f} ms" for key, value in parts.items())
             + f", sum {sum(parts.values()):.3f} ms")
@@ -165,6 +191,8 @@ def main() -> None:
     parser.add_argument("--long", type=int, default=0, help="frames of the memory-growth run")
     parser.add_argument("--sgm-kernels", action="store_true",
                         help="also time the census matcher kernel by kernel on each frame")
+    parser.add_argument("--sgm-lanes", type=int, nargs="*", default=[],
+                        help="with --sgm-kernels, also time these lanes per path line")
     args = parser.parse_args()
     import cupy  # the benchmark's own device query; the package imports CuPy in backend.py
     device = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
@@ -213,6 +241,9 @@ def main() -> None:
             kernel_lines += [
                 f"- {name}: {sgm_kernels(left, right, calibration, args.frames, shift)}"
                 for shift in ("pixel", "row")]
+            kernel_lines += [
+                f"- {name}: {sgm_kernels(left, right, calibration, args.frames, 'pixel', lanes)}"
+                for lanes in args.sgm_lanes]
     if kernel_lines:
         print("\nCensus matcher kernel by kernel (CUDA events, median):\n"
               + "\n".join(kernel_lines))

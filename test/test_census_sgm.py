@@ -252,7 +252,9 @@ def test_gpt_bands_get_small_path_blocks_and_wide_winner_search_blocks():
 def test_lanes_double_while_the_lines_leave_the_device_underfilled():
     resident = 132 * 2048
     lines_720p = census_sgm.path_lines(720, 1280)
-    assert census_sgm.lanes_for(64, lines_720p, resident) == 32
+    assert census_sgm.lanes_for(64, census_sgm.path_lines(240, 320), resident) == 32
+    assert census_sgm.lanes_for(64, census_sgm.path_lines(480, 640), resident) == 16
+    assert census_sgm.lanes_for(64, lines_720p, resident) == 16
     assert census_sgm.lanes_for(64, census_sgm.path_lines(1080, 1920), resident) == 16
     assert census_sgm.lanes_for(96, 10, resident) == 16      # 3 levels a lane would be odd
     assert census_sgm.lanes_for(16, 10, resident) == 8       # 2 levels a lane, not 1

@@ -155,7 +155,7 @@ def check_settings(shape: tuple[int, ...], levels: int, p1: int, p2: int) -> Non
 
 # Lines of a path pass times lanes below this share of the device's resident threads leave
 # it underfilled: the lanes are doubled (see lanes_for).
-FILL_SHARE = 0.4
+FILL_SHARE = 0.15
 
 
 def lanes_for(levels: int, lines: int = 0, resident_threads: int = 0) -> int:
