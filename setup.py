@@ -26,6 +26,7 @@ setup(
         "opencv-python-headless>=4.8",
         "Pillow>=10",
         "mcap>=1.1",
+        "lz4>=4",
         "backports.zstd>=1.0; python_version < '3.14'",
         "scipy>=1.10",
         "PyYAML>=6.0",

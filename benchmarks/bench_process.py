@@ -7,6 +7,11 @@ table for docs/benchmarks.md.
 
     python benchmarks/bench_process.py [--size 640x480] [--frames 20] [--threads 2]
         [--backend cpu|gpu] [--distinct N] [--storage mcap|sqlite3]
+        [--compression zstd_fast [zstd lz4 none]] [--rounds 1]
+
+With several ``--compression`` values (the mcap chunks' compression, recordings/bagwriter.py)
+the drive is processed once with each, in turn, ``--rounds`` times; a row per run, with the
+output bag's size.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pothole_detector.recordings.bagwriter import MCAP_COMPRESSIONS  # noqa: E402
 from pothole_detector.recordings.writing import write_drive_bag  # noqa: E402
 from pothole_detector.ros.bagtools import process  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
@@ -49,6 +55,9 @@ def main() -> None:
                         help="process's output bag: mcap (zstd chunks) or sqlite3 (plain)")
     parser.add_argument("--distinct", type=int, default=0,
                         help="render this many frames of the drive and cycle them (0: all)")
+    parser.add_argument("--compression", nargs="+", choices=tuple(MCAP_COMPRESSIONS),
+                        default=["zstd_fast"], help="the mcap output's chunk compression(s)")
+    parser.add_argument("--rounds", type=int, default=1)
     args = parser.parse_args()
     width, height = (int(n) for n in args.size.split("x"))
     set_host_threads(args.threads)
@@ -65,9 +74,16 @@ def main() -> None:
                         [samples[i] for i in cycle], "odom", ground_truth=False)
         config = Config({"backend": args.backend})
         process(bag, Path(folder) / "warm", config, args.storage)  # compiled, caches warm
-        started = time.perf_counter()
-        summary = process(bag, Path(folder) / "out", config, args.storage)
-        process_ms = (time.perf_counter() - started) * 1e3 / max(summary.frames, 1)
+        runs = []
+        for round_index in range(args.rounds):
+            for compression in args.compression:
+                out = Path(folder) / f"out_{compression}_{round_index}"
+                started = time.perf_counter()
+                summary = process(bag, out, config, args.storage, compression=compression)
+                seconds = time.perf_counter() - started
+                frames = max(summary.frames, 1)
+                size = sum(path.stat().st_size for path in out.iterdir())
+                runs.append((compression, summary, seconds * 1e3 / frames, size / frames / 1e6))
     sgbm_config = Config({"lr_max_diff_px": -1, "speckle_window_px": 0,
                           "median_filter": False})
     pairs = [(to_gray8(s.left), to_gray8(s.right)) for s in samples]
@@ -81,12 +97,14 @@ def main() -> None:
           f"{platform.processor() or platform.machine()} with {os.cpu_count()} cores, "
           f"{args.threads} threads; {args.frames} frames of the survey drive at {args.size}"
           f"{f' ({len(samples)} distinct)' if args.distinct else ''}, output {args.storage}\n")
-    print("| size | frames | processed | process ms/frame (all) | ms a frame, median "
-          "| OpenCV SGBM ms/frame | process / SGBM |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
-    print(f"| {args.size} | {args.frames} | {summary.frames} | {process_ms:.1f} | "
-          f"{float(np.median(summary.milliseconds)):.1f} | {sgbm:.1f} | "
-          f"{process_ms / sgbm:.2f}x |")
+    print("| size | frames | output | processed | process ms/frame (all) | ms a frame, median "
+          "| output MB a frame | OpenCV SGBM ms/frame | process / SGBM |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for compression, summary, process_ms, megabytes in runs:
+        output = args.storage if args.storage == "sqlite3" else f"mcap, {compression}"
+        print(f"| {args.size} | {args.frames} | {output} | {summary.frames} | "
+              f"{process_ms:.1f} | {float(np.median(summary.milliseconds)):.1f} | "
+              f"{megabytes:.2f} | {sgbm:.1f} | {process_ms / sgbm:.2f}x |")
 
 
 if __name__ == "__main__":

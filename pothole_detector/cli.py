@@ -22,6 +22,7 @@ from .imageio import overlay, read_image, write_labels, write_rgb
 from .params import Config, load_yaml
 from .method import PipelineResult
 from .pipeline import Pipeline
+from .recordings.bagwriter import MCAP_COMPRESSIONS
 from .recordings.camera import RECTIFY_CHOICES, pipeline_inputs
 from .ros.bagtools import play, process, record
 from .evaluation.rig_matrix import RIG_CLASS_NAMES
@@ -86,6 +87,7 @@ def _parser() -> argparse.ArgumentParser:
     process_cmd.add_argument("bag", help="ROS 2 bag directory (mcap or sqlite3) or ROS 1 .bag")
     process_cmd.add_argument("--out", required=True, help="output bag directory (new)")
     process_cmd.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    _compression(process_cmd, "zstd_fast")
     process_cmd.add_argument("--no-inputs", action="store_true",
                              help="write only the output topics")
     process_cmd.add_argument("--pictures", help="also write overlay PNGs into this folder")
@@ -129,6 +131,7 @@ def _parser() -> argparse.ArgumentParser:
     record_cmd.add_argument("out", help="output bag directory (new)")
     record_cmd.add_argument("--topics", nargs="+", required=True, help="topics to record")
     record_cmd.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    _compression(record_cmd, "zstd")
     record_cmd.add_argument("--duration", type=float, help="stop after this many seconds")
     record_cmd.add_argument("--qos", choices=("reliable", "best_effort"), default="reliable",
                             help="subscription reliability")
@@ -139,6 +142,13 @@ def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="parameter YAML (config/pothole_detector.yaml format)")
     parser.add_argument("--backend", choices=BACKEND_CHOICES,
                         help="override the config's backend (auto, cpu, gpu)")
+
+
+def _compression(parser: argparse.ArgumentParser, default: str) -> None:
+    parser.add_argument("--compression", choices=tuple(MCAP_COMPRESSIONS), default=default,
+                        help="mcap chunk compression: zstd (level 3, the smallest bag), "
+                             "zstd_fast (level 1), lz4 or none (the fastest to write); "
+                             f"sqlite3 bags are uncompressed (default: {default})")
 
 
 def _calibration_overrides(parser: argparse.ArgumentParser, use: str) -> None:
@@ -268,7 +278,7 @@ def run_process(args: argparse.Namespace) -> int:
         keep_inputs=not args.no_inputs, left=args.left_topic, right=args.right_topic,
         left_info=args.left_info_topic, right_info=args.right_info_topic,
         progress=lambda index, total: draw_progress(index, total, start, "process"),
-        pictures=args.pictures)
+        pictures=args.pictures, compression=args.compression)
     for line in summary.failures.lines():
         print(f"  {line}")
     if summary.counts.corrupt:
@@ -358,7 +368,7 @@ def run_survey(args: argparse.Namespace) -> int:
 
 def run_record(args: argparse.Namespace) -> int:
     counts = record(args.out, args.topics, storage=args.storage, duration=args.duration,
-                    reliability=args.qos)
+                    reliability=args.qos, compression=args.compression)
     summary = ", ".join(f"{topic}: {count}" for topic, count in counts.items())
     print(f"{summary}; wrote {args.out}")
     return 0

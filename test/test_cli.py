@@ -7,6 +7,7 @@ import sys
 import cv2
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from conftest import REPO
 from pothole_detector.calibration import camera_info_yaml
@@ -189,9 +190,13 @@ def test_a_run_that_processes_nothing_exits_non_zero_and_says_why(tmp_path,
     page = (survey_out / "report.html").read_text()
     assert "Frames that failed" in page and "Tx = P[0,3] = 0" in page and "not read" in page
     done = run_cli("process", str(bag), "--out", str(tmp_path / "p2"), "--backend", "cpu",
-                   "--baseline", str(baseline))
+                   "--baseline", str(baseline), "--compression", "lz4")
     assert done.returncode == 0, done.stderr
     assert "using baseline" in done.stdout and "3 frames" in done.stdout
+    (written,) = (tmp_path / "p2").glob("*.mcap")
+    with written.open("rb") as stream:
+        assert {chunk.compression for chunk
+                in make_reader(stream).get_summary().chunk_indexes} == {"lz4"}
     assert "stereo topics: /stereo/left/image_rect and /stereo/right/image_rect" in done.stdout
     done = run_cli("survey", str(bag), "--out", str(tmp_path / "s2"), "--backend", "cpu",
                    "--baseline", str(baseline))

@@ -107,14 +107,17 @@ def play(bag: str | Path, rate: float = 1.0, loop: bool = False,
 def record(out: str | Path, topics: Sequence[str], storage: str = "mcap",
            duration: float | None = None, discovery_timeout: float = 10.0,
            reliability: str = "reliable",
-           should_stop: Callable[[], bool] = lambda: False) -> dict[str, int]:
+           should_stop: Callable[[], bool] = lambda: False,
+           compression: str = "zstd") -> dict[str, int]:
     """Record live ``topics`` (raw CDR, receive time) into a new bag until Ctrl-C, ``duration``
-    s or ``should_stop()``. Topic types are discovered from the graph. Returns counts."""
+    s or ``should_stop()``; an mcap bag's chunks compressed by ``compression`` (BagWriter).
+    Topic types are discovered from the graph. Returns counts."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    writer = BagWriter(out, storage)  # the output path checked before the graph is joined
+    # the output path checked before the graph is joined
+    writer = BagWriter(out, storage, compression)
     store = typestore()
     own_context = not rclpy.ok()
     if own_context:
@@ -167,13 +170,15 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
             keep_inputs: bool = True, left: str | None = None, right: str | None = None,
             left_info: str | None = None, right_info: str | None = None,
             progress: Callable[[int, int], None] | None = None,
-            pictures: str | Path | None = None) -> ProcessSummary:
+            pictures: str | Path | None = None,
+            compression: str = "zstd_fast") -> ProcessSummary:
     """Run the pipeline on every synchronized stereo set of ``bag`` and write a new bag at
     ``out`` with the inputs (``keep_inputs``) and every output topic of the node, stamped with
     the input stamps, under the input's namespace (raw inputs: the outputs are in the
-    rectified frame). ``pictures``: also write overlay PNGs. The topics used are logged in one
-    line. A bag damaged part way keeps the frames before the damage; the InputError that
-    says where is raised once they are written."""
+    rectified frame); an mcap bag's chunks compressed by ``compression`` (BagWriter: zstd,
+    zstd_fast, lz4 or none). ``pictures``: also write overlay PNGs. The topics used are
+    logged in one line. A bag damaged part way keeps the frames before the damage; the
+    InputError that says where is raised once they are written."""
     reader = open_bag(bag)
     summary = ProcessSummary()
     try:
@@ -181,7 +186,7 @@ def process(bag: str | Path, out: str | Path, config: Config, storage: str = "mc
         stereo = find_stereo_topics(bag_topics, left, right, left_info, right_info)
         _log.info(stereo.describe())
         namespace = stereo.namespace
-        writer = BagWriter(out, storage)
+        writer = BagWriter(out, storage, compression)
         store = typestore()
         try:
             output = {name: writer.add_connection(f"{namespace}/{name}", msgtype,
