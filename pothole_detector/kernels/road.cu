@@ -25,6 +25,7 @@
 #include "block_scan.cuh"
 #include "grid_barrier.cuh"
 #include "road_disparity.cuh"
+#include "warp_sum.cuh"
 
 #define WARPS (THREADS / 32)
 #define PER_THREAD_BINS (BINS / THREADS)
@@ -100,10 +101,7 @@ __device__ void grid_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS],
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
     for (int k = 0; k < COUNT; ++k) {
-        double value = values[k];
-#pragma unroll
-        for (int offset = 16; offset > 0; offset >>= 1)
-            value += __shfl_down_sync(0xffffffffu, value, offset);
+        const double value = warp_sum(values[k]);
         if (lane == 0) partial[warp][k] = value;
     }
     __syncthreads();

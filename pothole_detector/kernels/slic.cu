@@ -3,6 +3,8 @@
 // rounded intrinsics (no fused multiply-add), so labels agree with the CPU.
 // Defined by the launcher (stages/superpixels.py, _kernel): UPDATE_THREADS.
 
+#include "warp_sum.cuh"
+
 #define FAR_CENTRE 1e9f
 
 // One thread per pixel: the nearest of the centres of its own and the eight surrounding cells.
@@ -68,10 +70,7 @@ slic_update(const float* filled, const unsigned char* valid, const int* labels,
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
     for (int q = 0; q < 5; ++q) {
-        double value = sums[q];
-#pragma unroll
-        for (int offset = 16; offset > 0; offset >>= 1)
-            value += __shfl_down_sync(0xffffffffu, value, offset);
+        const double value = warp_sum(sums[q]);
         if (lane == 0) partial[q][warp] = value;
     }
     __syncthreads();
