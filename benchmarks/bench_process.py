@@ -52,7 +52,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--backend", choices=("cpu", "gpu"), default="cpu")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
-                        help="process's output bag: mcap (zstd chunks) or sqlite3 (plain)")
+                        help="process's output bag: mcap (compressed chunks) or sqlite3 (plain)")
     parser.add_argument("--distinct", type=int, default=0,
                         help="render this many frames of the drive and cycle them (0: all)")
     parser.add_argument("--compression", nargs="+", choices=tuple(MCAP_COMPRESSIONS),
