@@ -16,7 +16,7 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from ..errors import InputError
 
-try:  # the zstd that rosbags writes mcap chunks with
+try:  # the zstd that rosbags reads and writes mcap chunks with (repair.py's too)
     from compression import zstd  # type: ignore[import-not-found]
 except ImportError:
     from backports import zstd

@@ -19,13 +19,8 @@ from mcap.exceptions import McapError
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-try:  # the zstd that rosbags reads mcap chunks with
-    from compression import zstd  # type: ignore[import-not-found]
-except ImportError:
-    from backports import zstd
-
 from ..errors import InputError
-from .bagwriter import BagWriter
+from .bagwriter import BagWriter, zstd
 from .messages import typestore
 
 _log = logging.getLogger(__name__)
