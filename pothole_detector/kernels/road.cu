@@ -31,6 +31,9 @@
 #define PER_THREAD_BINS (BINS / THREADS)
 static_assert(PER_THREAD_BINS == 8, "locate reads two 4-bin vectors per thread");
 #define NOT_MASKED 0xffffffffu
+// doubles that fit the shared histograms, which grid_sums stages the blocks' totals in
+#define STAGED_TOTALS (2 * BINS * sizeof(unsigned) / sizeof(double))
+static_assert(STAGED_TOTALS >= MAX_SUMS, "a block's totals fit the staging");
 
 __device__ __forceinline__ bool finite(float x) {
     return (__float_as_uint(x) & 0x7f800000u) != 0x7f800000u;
@@ -94,10 +97,12 @@ __device__ __forceinline__ double params_at(const double* p, double u, double v,
 }
 
 // Sum of COUNT per-thread values over the grid in a fixed order (warps, then blocks); result
-// in state.sums of every block.
+// in state.sums of every block. The blocks' totals are read into `staging` (shared, room for
+// STAGED_TOTALS doubles; free during the call) by the whole block at once, then added in block
+// order from there.
 template <int COUNT>
 __device__ void grid_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS],
-                          RoadState& state, GridWork& grid) {
+                          RoadState& state, GridWork& grid, double* staging) {
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
     for (int k = 0; k < COUNT; ++k) {
@@ -113,12 +118,18 @@ __device__ void grid_sums(double (&values)[COUNT], double (*partial)[MAX_SUMS],
         totals[blockIdx.x * MAX_SUMS + threadIdx.x] = total;
     }
     grid_sync(grid);
-    if (threadIdx.x < COUNT) {
-        double total = 0.0;
-        for (unsigned b = 0; b < gridDim.x; ++b)
-            total += __ldcg(&totals[b * MAX_SUMS + threadIdx.x]);
-        state.sums[threadIdx.x] = total;
+    constexpr int PER_STAGE = STAGED_TOTALS / COUNT;  // blocks' totals staged at a time
+    double total = 0.0;
+    for (int first = 0; first < (int)gridDim.x; first += PER_STAGE) {
+        const int staged = min(PER_STAGE, (int)gridDim.x - first) * COUNT;
+        for (int i = threadIdx.x; i < staged; i += THREADS)
+            staging[i] = __ldcg(&totals[(first + i / COUNT) * MAX_SUMS + i % COUNT]);
+        __syncthreads();
+        if (threadIdx.x < COUNT)
+            for (int i = threadIdx.x; i < staged; i += COUNT) total += staging[i];
+        __syncthreads();
     }
+    if (threadIdx.x < COUNT) state.sums[threadIdx.x] = total;
     __syncthreads();
 }
 
@@ -403,6 +414,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
     __shared__ double partial[WARPS][MAX_SUMS];
     __shared__ unsigned warp_totals[32];
     __shared__ RoadState state;
+    double* staging = reinterpret_cast<double*>(&hist[0][0]);
     GridWork grid{barrier, partials, hists, 0u, 0, 0};
     const double* column_u = tables;
     const double* row_v = tables + width;
@@ -441,7 +453,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                 counts[0] += 1.0;
                 if (fabs(r) <= prior_tolerance) counts[1] += 1.0;
             });
-            grid_sums<2>(counts, partial, state, grid);
+            grid_sums<2>(counts, partial, state, grid, staging);
             if (threadIdx.x == 0) {
                 state.use_mask = state.sums[1] >= prior[PRIOR_MIN_SHARE] * state.sums[0];
                 prior_active = state.use_mask;
@@ -473,7 +485,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
                     values[7] += u * d;
                     values[8] += v * d;
                 });
-                grid_sums<9>(values, partial, state, grid);
+                grid_sums<9>(values, partial, state, grid, staging);
                 if (threadIdx.x == 0) solve_roll(state);
             } else {
                 double values[27];
@@ -498,7 +510,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
 #pragma unroll
                     for (int a = 0; a < 6; ++a) values[21 + a] += design[a] * target;
                 });
-                grid_sums<27>(values, partial, state, grid);
+                grid_sums<27>(values, partial, state, grid, staging);
                 if (threadIdx.x == 0) solve_curvature(state);
             }
             __syncthreads();
@@ -551,7 +563,7 @@ road_fit(const float* __restrict__ sub, const double* __restrict__ tables, int h
             if (fabs(residual[i]) <= threshold && !outside(sub[i], row, col)) inliers[0] += 1.0;
             if (phase == 0 && quadratic) planar[i] = planar_at(state, column_u[col], row_v[row]);
         });
-        grid_sums<1>(inliers, partial, state, grid);
+        grid_sums<1>(inliers, partial, state, grid, staging);
         if (threadIdx.x == 0 && leader) {
             if (phase == 0) {
                 out[FIT_A0] = state.a0;
