@@ -114,8 +114,8 @@ def offsets(backend: Backend, means: Any, usable: Any, drops: Any, shape: tuple[
         inlier = usable & (xp.abs(residual - reference) <= band)
         reference = window.plane(inlier.astype(xp.float64), residual)
     inlier = (usable & (xp.abs(residual - reference) <= band)).astype(xp.float64)
-    support = window.total(inlier)
-    spread = xp.maximum(window.total(inlier * (residual - reference) ** 2), 0.0)
+    support, spread = window.totals(inlier, inlier * (residual - reference) ** 2)
+    spread = xp.maximum(spread, 0.0)
     noise = xp.where(support >= MIN_PLANE_SUPPORT,
                      xp.sqrt(spread / xp.maximum(support - 3.0, 1.0)),
                      road_model.fit_sigma(xp, road_report, road_params))
@@ -206,13 +206,14 @@ class _Windows:
         self.x = xp.broadcast_to(j.astype(xp.float64), (rows, cols))
         self.shape = (rows, cols)
 
-    def total(self, values: Any) -> Any:
-        """The sum of ``values`` (rows x cols) over each cell's window."""
+    def totals(self, *values: Any) -> Any:
+        """The sums of each of ``values`` (rows x cols each) over each cell's window:
+        float64 (len(values), rows, cols), one summed-area table per value."""
         xp = self.xp
-        table = xp.zeros((self.shape[0] + 1, self.shape[1] + 1), dtype=xp.float64)
-        table[1:, 1:] = xp.cumsum(xp.cumsum(values, axis=0), axis=1)
-        return (table[self.bottom, self.right] - table[self.top, self.right]
-                - table[self.bottom, self.left] + table[self.top, self.left])
+        table = xp.zeros((len(values), self.shape[0] + 1, self.shape[1] + 1), dtype=xp.float64)
+        table[:, 1:, 1:] = xp.cumsum(xp.cumsum(xp.stack(values), axis=1), axis=2)
+        return (table[:, self.bottom, self.right] - table[:, self.top, self.right]
+                - table[:, self.bottom, self.left] + table[:, self.top, self.left])
 
     def plane(self, weight: Any, value: Any) -> Any:
         """At each cell, the value at that cell of the plane fitted by weighted least squares
@@ -220,12 +221,9 @@ class _Windows:
         MIN_PLANE_SUPPORT weighted cells or they lie on a line; 0 where it holds none)."""
         xp = self.xp
         x, y = self.x, self.y
-        n = self.total(weight)
-        sx, sy = self.total(weight * x), self.total(weight * y)
-        sxx, syy = self.total(weight * x * x), self.total(weight * y * y)
-        sxy = self.total(weight * x * y)
-        s = self.total(weight * value)
-        sxv, syv = self.total(weight * x * value), self.total(weight * y * value)
+        n, sx, sy, sxx, syy, sxy, s, sxv, syv = self.totals(
+            weight, weight * x, weight * y, weight * x * x, weight * y * y, weight * x * y,
+            weight * value, weight * x * value, weight * y * value)
         safe = xp.maximum(n, 1e-12)
         mean = s / safe
         # moments about the window's weighted centroid
