@@ -10,6 +10,7 @@
 // rounds' launch holds at most this many blocks a multiprocessor), ROUNDS.
 
 #include "grid_barrier.cuh"
+#include "warp_sum.cuh"
 
 #define SUM_LEFT 0
 #define SUM_RIGHT 1
@@ -91,8 +92,7 @@ __device__ void pass_sums(const float* left_mean, const float* right_mean, long 
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
 #pragma unroll
     for (int k = 0; k < SUMS; ++k) {
-        for (int offset = 16; offset > 0; offset >>= 1)
-            sums[k] += __shfl_down_sync(0xffffffffu, sums[k], offset);
+        sums[k] = warp_sum(sums[k]);
         if (lane == 0) warp_sums[warp][k] = sums[k];
     }
     __syncthreads();
@@ -107,8 +107,7 @@ __device__ void pass_sums(const float* left_mean, const float* right_mean, long 
         sums[k] = 0.0;
         for (int b = threadIdx.x; b < (int)gridDim.x; b += blockDim.x)
             sums[k] += __ldcg(partials + b * SUMS + k);
-        for (int offset = 16; offset > 0; offset >>= 1)
-            sums[k] += __shfl_down_sync(0xffffffffu, sums[k], offset);
+        sums[k] = warp_sum(sums[k]);
         if (lane == 0) warp_sums[warp][k] = sums[k];
     }
     __syncthreads();
@@ -172,10 +171,8 @@ extern "C" __global__ void photometric_inconsistent(const float* means, const bo
     }
     __shared__ double warp_total[32], warp_weight[32];
     const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
-    for (int offset = 16; offset > 0; offset >>= 1) {
-        total += __shfl_down_sync(0xffffffffu, total, offset);
-        weight += __shfl_down_sync(0xffffffffu, weight, offset);
-    }
+    total = warp_sum(total);
+    weight = warp_sum(weight);
     if (lane == 0) {
         warp_total[warp] = total;
         warp_weight[warp] = weight;
