@@ -110,6 +110,17 @@ class Backend:
         if self.is_gpu:
             self.xp.get_default_memory_pool().free_all_blocks()
 
+    def record_event(self) -> Any:
+        """A device event recorded on the current stream, reached once everything queued there
+        so far has run (None on the CPU backend): the ``after`` of :func:`to_host` and
+        :func:`gather`."""
+        if not self.is_gpu:
+            return None
+        assert _cupy is not None
+        event = _cupy.cuda.Event(disable_timing=True)
+        event.record()
+        return event
+
     def copy_into(self, target: Any, source: Any) -> None:
         """Copy the backend array ``source`` into the contiguous backend array ``target`` of
         the same shape and dtype; on the GPU one transfer queued on the current stream."""
@@ -496,7 +507,8 @@ def _multiprocessors(device: int) -> int:
 @lru_cache(maxsize=None)
 def _stream(device: int, role: str) -> Any:
     """The device's one extra stream for ``role`` ("side": Backend.side_stream, "copy":
-    UploadBuffer.send_ahead, "capture": Backend.capture)."""
+    UploadBuffer.send_ahead, "capture": Backend.capture, "reading": to_host and gather after
+    an event). Non-blocking: it never waits for the legacy default stream's work."""
     assert _cupy is not None
     return _cupy.cuda.Stream(non_blocking=True)
 
@@ -538,20 +550,44 @@ def get_backend(name: str = "auto") -> Backend:
     return CPU
 
 
-def to_host(array: Any) -> np.ndarray:
-    """NumPy view or copy of a NumPy or CuPy array."""
-    if _cupy is not None and isinstance(array, _cupy.ndarray):
+def to_host(array: Any, after: Any = None) -> np.ndarray:
+    """NumPy view or copy of a NumPy or CuPy array. ``after``: an event of
+    :meth:`Backend.record_event` after which ``array`` holds its values; the copy then waits for
+    that event alone, on a stream of its own, not for what the current stream queued after it
+    (a stream's next frame)."""
+    if _cupy is None or not isinstance(array, _cupy.ndarray):
+        return np.asarray(array)
+    if after is None:
         return _cupy.asnumpy(array)
-    return np.asarray(array)
+    stream = _reading_stream(after)
+    with stream:
+        return _cupy.ascontiguousarray(array).get(stream=stream)
 
 
-def gather(array: Any, flat_index: np.ndarray, through: Any = None) -> np.ndarray:
+def gather(array: Any, flat_index: np.ndarray, through: Any = None,
+           after: Any = None) -> np.ndarray:
     """``array.ravel()[flat_index]`` as a NumPy array, ``array`` NumPy or CuPy; with
     ``through`` (an int array of the same kind), ``array[through.ravel()[flat_index]]``: a
     lookup through a label image. On the GPU the index goes up once and only the gathered
-    values come back."""
-    on_gpu = _cupy is not None and isinstance(array, _cupy.ndarray)
-    index = _cupy.asarray(flat_index) if on_gpu else np.asarray(flat_index)
-    if through is not None:
-        index = through.ravel()[index]
-    return to_host(array.ravel()[index])
+    values come back; ``after`` as in :func:`to_host`."""
+    if _cupy is None or not isinstance(array, _cupy.ndarray):
+        index = np.asarray(flat_index)
+        if through is not None:
+            index = through.ravel()[index]
+        return np.asarray(array.ravel()[index])
+    stream = _reading_stream(after) if after is not None else _cupy.cuda.get_current_stream()
+    flat_index = np.ascontiguousarray(flat_index)
+    with stream:
+        index = _cupy.empty(flat_index.shape, dtype=flat_index.dtype)
+        index.set(flat_index, stream=stream)
+        if through is not None:
+            index = _cupy.take(through.ravel(), index)
+        return _cupy.take(array.ravel(), index).get(stream=stream)
+
+
+def _reading_stream(event: Any) -> Any:
+    """The device's reading stream, queued to wait for ``event`` first."""
+    assert _cupy is not None
+    stream = _stream(_cupy.cuda.Device().id, "reading")
+    stream.wait_event(event)
+    return stream

@@ -141,6 +141,7 @@ class _Frame:
     wait_ms: float = 0.0
     replayed: bool = False
     lent_ms: float = 0.0
+    ready: Any = None
 
 
 class _Checkpoint:
@@ -363,6 +364,8 @@ class FrameExecutor:
             frame.readbacks[1].send(frame.report.buffer)
         if frame.replayed:
             self._unpublished = frame
+        else:
+            frame.ready = backend.record_event()
         return frame
 
     def _frame(self, pair: tuple[Any, Any, Any, Any], levels: int, clock: StageClock,
@@ -446,6 +449,7 @@ class FrameExecutor:
                 superpixels.Superpixels(None, found.count, copy(found.labels), None, None),
                 copy(arrays.candidate), copy(arrays.labels), copy(arrays.observed),
                 copy(arrays.drops), arrays.region_px, searched=copy(arrays.searched))
+            frame.ready = self.backend.record_event()
 
     def _wait(self, frame: _Frame, readback: Readback) -> np.ndarray:
         """A readback's bytes; the wait counts into the frame's host_wait on the GPU."""
@@ -475,6 +479,7 @@ class FrameExecutor:
             arrays = replace(frame.arrays, valid=xp.isfinite(frame.arrays.disparity))
             frame.arrays = replace(frame.arrays, labels=self.method.label_and_measure(
                 arrays, frame.road, exact, StageClock(self.backend, timed=False)))
+            frame.ready = self.backend.record_event()
             remeasured = exact.parse(to_host(exact.buffer))
             frame.host = replace(frame.host, components_kept=remeasured.components_kept,
                                  overflow=False, sums=remeasured.sums,
@@ -508,7 +513,7 @@ class FrameExecutor:
             band=(lowest, int(frame.levels)),
             disparity_range=(float(lowest), float(highest + frame.levels - 1)),
             potholes=potholes, backend=self.backend.name, seeded=frame.seeded,
-            timings_ms=timings)
+            timings_ms=timings, ready=frame.ready)
 
 
 def _send(staged: UploadBuffer, shifts: np.ndarray, prior: np.ndarray

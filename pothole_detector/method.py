@@ -59,6 +59,10 @@ class PipelineResult:
     the stages from SGM on), ``total`` (their sum), ``host`` (wall time of the call; in a
     stream, from the frame's start to its result less the time spent queueing the next frame)
     and ``host_wait`` (of it, the waits for the GPU frame's readbacks; 0 on the CPU).
+    ``ready``: on the GPU, the device event after which the arrays hold their values (None: the
+    current stream's order); :meth:`host` and :meth:`at` read after it on a stream of their
+    own, so the next frame's work, queued before a stream hands this result out, does not hold
+    them up.
     """
 
     disparity: Any
@@ -76,15 +80,19 @@ class PipelineResult:
     backend: str
     seeded: bool
     timings_ms: dict[str, float] = field(default_factory=dict)
+    ready: Any = None
 
-    def host(self, name: str) -> np.ndarray:
-        """Array ``name`` (one of ARRAY_FIELDS) as a NumPy array: a device-to-host copy on the
-        GPU, the array itself on the CPU."""
+    def host(self, name: str, window: tuple[slice, slice] | None = None) -> np.ndarray:
+        """Array ``name`` (one of ARRAY_FIELDS) as a NumPy array, or its (rows, columns)
+        ``window`` alone: a device-to-host copy of that on the GPU, the array itself (or a view)
+        on the CPU."""
         if name not in ARRAY_FIELDS:
             raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
         if name in SUPERPIXEL_FIELDS:
-            return to_host(getattr(self, name))[to_host(self.superpixels)]
-        return to_host(getattr(self, name))
+            superpixels = self.superpixels if window is None else self.superpixels[window]
+            return to_host(getattr(self, name), self.ready)[to_host(superpixels, self.ready)]
+        array = getattr(self, name)
+        return to_host(array if window is None else array[window], self.ready)
 
     def at(self, name: str, pixels: np.ndarray) -> np.ndarray:
         """Array ``name`` (one of ARRAY_FIELDS) at pixels ``pixels`` (int (K,), flat indices
@@ -93,8 +101,9 @@ class PipelineResult:
         if name not in ARRAY_FIELDS:
             raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
         if name in SUPERPIXEL_FIELDS:
-            return gather(getattr(self, name), pixels, through=self.superpixels)
-        return gather(getattr(self, name), pixels)
+            return gather(getattr(self, name), pixels, through=self.superpixels,
+                          after=self.ready)
+        return gather(getattr(self, name), pixels, after=self.ready)
 
 
 @dataclass

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pothole_detector.backend import (CPU, StageClock, UploadBuffer, get_backend, gpu_available,
-                                      to_host)
+from pothole_detector.backend import (CPU, StageClock, UploadBuffer, gather, get_backend,
+                                      gpu_available, to_host)
 from pothole_detector.errors import BackendError
 
 
@@ -13,6 +13,18 @@ def test_cpu_backend_is_numpy():
     assert backend is CPU and backend.xp is np and not backend.is_gpu
     array = np.arange(4)
     assert backend.upload(array) is not None and to_host(array) is array
+
+
+def test_reads_on_the_cpu_take_the_arrays_as_they_are():
+    """On the CPU there is no device event to wait for: to_host hands the array itself, and
+    gather picks flat indices, directly or through a label image."""
+    values = np.arange(12.0).reshape(3, 4)
+    labels = np.array([[0, 1, 1, 2]] * 3)
+    assert CPU.record_event() is None
+    assert to_host(values, after=CPU.record_event()) is values
+    np.testing.assert_array_equal(gather(values, np.array([5, 0, 11])), [5.0, 0.0, 11.0])
+    np.testing.assert_array_equal(gather(np.array([10, 20, 30]), np.array([3, 1]),
+                                         through=labels), [30, 20])
 
 
 def test_side_stream_on_the_cpu_runs_the_block_and_joins_as_a_no_op():

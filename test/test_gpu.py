@@ -355,6 +355,38 @@ def test_readback_copies_asynchronously_and_keeps_each_sends_bytes(gpu):
         readback.send(gpu.xp.zeros(source.nbytes + 1, dtype=gpu.xp.uint8))
 
 
+SPIN = r"""extern "C" __global__ void spin(long long cycles) {
+    const long long start = clock64();
+    while (clock64() - start < cycles) {}
+}"""
+
+
+def test_a_streamed_result_is_read_without_waiting_for_the_next_frame(gpu, demo_sample):
+    """run_stream hands a frame's result out once the next frame is queued: its reads (host,
+    at, a window) wait for its own work alone, not for a thread spinning for about 0.2 s on the
+    current stream after it, and give what the stream's order gives. (A kernel's first load
+    waits for the whole device: each read runs once before the spin.)"""
+    spin = gpu.xp.RawKernel(SPIN, "spin")
+    pipeline = Pipeline(Config(), demo_sample.calibration, gpu)
+    pairs = [(demo_sample.left, demo_sample.right)] * 4
+    pixels = np.arange(0, demo_sample.left.size, 7)
+    for result in pipeline.run_stream(iter(pairs)):
+        assert result.ready is not None
+        result.host("labels"), result.at("searched", pixels)  # the kernels loaded
+        spin((1,), (1,), (np.int64(400_000_000),))
+        labels, searched = result.host("labels"), result.at("searched", pixels)
+        assert not gpu.xp.cuda.get_current_stream().done
+        gpu.synchronize()
+        np.testing.assert_array_equal(labels, to_host(result.labels))
+        np.testing.assert_array_equal(
+            searched, to_host(result.searched)[to_host(result.superpixels).ravel()[pixels]])
+        window = (slice(50, 200), slice(13, 301))
+        np.testing.assert_array_equal(result.host("labels", window), labels[window])
+        np.testing.assert_array_equal(result.host("observed", window),
+                                      result.host("observed")[window])
+    assert labels.max() > 0
+
+
 def test_run_stream_on_the_gpu_gives_what_run_gives(demo_sample):
     gpu = get_backend("gpu")
     left, right = demo_sample.left, demo_sample.right

@@ -38,6 +38,9 @@ def test_finds_every_pothole_where_the_generator_put_it(demo_sample):
         assert result.timings_ms[name] >= 0
     assert result.timings_ms["host"] > 0 and result.timings_ms["host_wait"] == 0.0
     assert result.seeded
+    window = (slice(100, 230), slice(37, 301))
+    for name in ("labels", "disparity", "observed", "searched"):
+        np.testing.assert_array_equal(result.host(name, window), result.host(name)[window])
 
 
 def test_flat_road_has_no_potholes(flat_sample):

@@ -146,6 +146,25 @@ def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():
     np.testing.assert_allclose(outlines[0].min(axis=0), found[0][[0, 2]])
 
 
+def test_a_footprint_read_in_a_window_of_the_labels_is_the_whole_image_s():
+    """footprints of a window of the label image, given the window's origin, are those of the
+    whole image."""
+    calibration = StereoCalibration(f=500.0, baseline=0.1, cx=320.0, cy=240.0)
+    plane = RoadFrame(np.array([0.0, 1.0, 0.0]),
+                      np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+    labels = np.zeros((480, 640), np.int32)
+    labels[290:340, 300:340] = 1
+    labels[300:305, 330:420] = 1
+    labels[180:260, 500:520] = 2
+    whole = footprints(labels, ndimage.find_objects(labels), plane, calibration)
+    window = labels[170:350, 290:530]
+    part = footprints(window, ndimage.find_objects(window), plane, calibration, (170, 290))
+    np.testing.assert_array_equal(part[0], whole[0])
+    for got, expected in zip(part[1], whole[1]):
+        np.testing.assert_array_equal(got, expected)
+    assert len(whole[1][0]) >= 3
+
+
 def test_footprint_extents_are_those_of_every_pixel_projected(demo_sample):
     """The convex hull's corners give the extremes every labelled pixel's ray gives."""
     from pothole_detector.survey.tracking import on_road

@@ -72,10 +72,11 @@ def on_road(cols: np.ndarray, rows: np.ndarray, plane: RoadFrame,
 
 
 def footprints(labels: np.ndarray, boxes: Sequence[tuple[slice, slice] | None],
-               plane: RoadFrame, calibration: StereoCalibration
-               ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Per pothole label 1..count of the int HxW ``labels``, read within its box (``boxes``:
-    count (rows, columns) slices that hold every pixel of labels 1, 2, ..., as
+               plane: RoadFrame, calibration: StereoCalibration,
+               origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per pothole label 1..count of the int ``labels`` (the image's, or a window of it whose
+    first pixel is the image's (row, column) ``origin``), read within its box (``boxes``:
+    count (rows, columns) slices of ``labels`` that hold every pixel of labels 1, 2, ..., as
     ndimage.find_objects gives them or Pothole.window; None: no pixel), its footprint on the
     road plane of ``plane`` (each pixel's ray meeting the plane: the opening the pothole makes in
     the road, free of the disparity noise):
@@ -95,7 +96,7 @@ def footprints(labels: np.ndarray, boxes: Sequence[tuple[slice, slice] | None],
         if mask is None or not mask.any():
             outlines.append(np.empty((0, 2)))
             continue
-        offset = (box[1].start, box[0].start)
+        offset = (box[1].start + origin[1], box[0].start + origin[0])
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE,
                                        offset=offset)
         corners = cv2.convexHull(np.concatenate(contours)).reshape(-1, 2).astype(np.float64)
@@ -120,14 +121,21 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
     ``plane`` of a ``width`` x ``height`` image (a centroid that is not finite gives a NaN
     position, which matches no track); with the result's ``calibration``, their footprints'
     extents and outlines (:func:`footprints`, from the labels read back, each within its
-    pothole's box)."""
+    pothole's box; only the window that holds them all is read back)."""
     near, far = result.observed_range_m
     extents = outlines = None
     if calibration is not None and result.potholes:
-        labels = result.host("labels")
-        windows = {p.label: p.window(labels.shape) for p in result.potholes}
-        extents, outlines = footprints(labels, [windows.get(label) for label in range(
-            1, len(result.potholes) + 1)], plane, calibration)
+        windows = {p.label: p.window((height, width)) for p in result.potholes}
+        top = min(rows.start for rows, _ in windows.values())
+        left = min(columns.start for _, columns in windows.values())
+        labels = result.host("labels", (
+            slice(top, max(rows.stop for rows, _ in windows.values())),
+            slice(left, max(columns.stop for _, columns in windows.values()))))
+        boxes = [None if box is None else (slice(box[0].start - top, box[0].stop - top),
+                                           slice(box[1].start - left, box[1].stop - left))
+                 for box in (windows.get(label) for label in range(
+                     1, len(result.potholes) + 1))]
+        extents, outlines = footprints(labels, boxes, plane, calibration, (top, left))
     made = []
     for pothole in result.potholes:
         centre = np.asarray(pothole.centroid_cam_m, dtype=np.float64)
