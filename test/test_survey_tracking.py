@@ -12,6 +12,11 @@ from pothole_detector.survey.tracking import (MAX_ID, PotholeTracker, Sighting, 
                                               footprints, merge_overlapping, pieces, radius_of,
                                               sightings_of)
 
+# a camera 1 m above a level road, looking ahead (forward = z, left = -x, up = -y), f 500 px
+LEVEL_ROAD = RoadFrame(np.array([0.0, 1.0, 0.0]),
+                       np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+LEVEL_CAMERA = StereoCalibration(f=500.0, baseline=0.1, cx=320.0, cy=240.0)
+
 
 def _sighting(forward: float, left: float, area: float = 0.03, depth: float = 0.05,
               stamp: int = 0, box: tuple[int, int, int, int] = (10, 10, 20, 20)) -> Sighting:
@@ -61,9 +66,7 @@ def test_sightings_are_on_the_road_frame_and_a_nan_centroid_matches_nothing():
         potholes = [pothole, lost]
         observed_range_m = (0.5, 3.0)
 
-    # camera 1 m above a level road, looking ahead: forward = z, left = -x, up = -y
-    plane = RoadFrame(np.array([0.0, 1.0, 0.0]),
-                      np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+    plane = LEVEL_ROAD
     seen = sightings_of(7, Result(), plane, 40, 30)
     assert seen[0].road_xy == (2.0, -0.2) and seen[0].observed and not seen[0].whole
     tracker = PotholeTracker(0.25, 30)
@@ -130,9 +133,7 @@ def test_a_track_s_radius_is_that_of_its_median_area_however_its_sightings_came(
 def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():
     """A level camera 1 m above a flat road (f 500 px): pixel (u, v) below the horizon meets the
     road f / (v - cy) m ahead and -(u - cx) / (v - cy) m to the left."""
-    calibration = StereoCalibration(f=500.0, baseline=0.1, cx=320.0, cy=240.0)
-    plane = RoadFrame(np.array([0.0, 1.0, 0.0]),
-                      np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+    calibration, plane = LEVEL_CAMERA, LEVEL_ROAD
     labels = np.zeros((480, 640), np.int32)
     labels[290:340, 300:340] = 1
     labels[200:230, 10:20] = 2  # above the horizon: never meets the road
@@ -149,9 +150,7 @@ def test_a_footprint_reaches_where_its_pixels_rays_meet_the_road():
 def test_a_footprint_read_in_a_window_of_the_labels_is_the_whole_image_s():
     """footprints of a window of the label image, given the window's origin, are those of the
     whole image."""
-    calibration = StereoCalibration(f=500.0, baseline=0.1, cx=320.0, cy=240.0)
-    plane = RoadFrame(np.array([0.0, 1.0, 0.0]),
-                      np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
+    calibration, plane = LEVEL_CAMERA, LEVEL_ROAD
     labels = np.zeros((480, 640), np.int32)
     labels[290:340, 300:340] = 1
     labels[300:305, 330:420] = 1
