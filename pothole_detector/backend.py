@@ -557,8 +557,6 @@ def to_host(array: Any, after: Any = None) -> np.ndarray:
     (a stream's next frame)."""
     if _cupy is None or not isinstance(array, _cupy.ndarray):
         return np.asarray(array)
-    if after is None:
-        return _cupy.asnumpy(array)
     stream = _reading_stream(after)
     with stream:
         return _cupy.ascontiguousarray(array).get(stream=stream)
@@ -575,7 +573,7 @@ def gather(array: Any, flat_index: np.ndarray, through: Any = None,
         if through is not None:
             index = through.ravel()[index]
         return np.asarray(array.ravel()[index])
-    stream = _reading_stream(after) if after is not None else _cupy.cuda.get_current_stream()
+    stream = _reading_stream(after)
     flat_index = np.ascontiguousarray(flat_index)
     with stream:
         index = _cupy.empty(flat_index.shape, dtype=flat_index.dtype)
@@ -585,9 +583,24 @@ def gather(array: Any, flat_index: np.ndarray, through: Any = None,
         return _cupy.take(array.ravel(), index).get(stream=stream)
 
 
+def lookup(table: Any, labels: Any, after: Any = None) -> np.ndarray:
+    """``table[labels]`` as a NumPy array of ``labels``' shape: ``table`` (N,) and the int
+    ``labels`` (any shape, a view will do) both NumPy or both CuPy. On the GPU the lookup runs
+    on the device and only its result comes back (a bool label image: a quarter of the bytes
+    of the int32 labels); ``after`` as in :func:`to_host`."""
+    if _cupy is None or not isinstance(labels, _cupy.ndarray):
+        return np.take(np.asarray(table), labels)
+    stream = _reading_stream(after)
+    with stream:
+        return _cupy.take(table, labels).get(stream=stream)
+
+
 def _reading_stream(event: Any) -> Any:
-    """The device's reading stream, queued to wait for ``event`` first."""
+    """The stream a read queues on: the device's reading stream, queued to wait for ``event``
+    first; the current stream where ``event`` is None."""
     assert _cupy is not None
+    if event is None:
+        return _cupy.cuda.get_current_stream()
     stream = _stream(_cupy.cuda.Device().id, "reading")
     stream.wait_event(event)
     return stream

@@ -42,6 +42,13 @@ def _shade_table(shade: float) -> np.ndarray:
     return (np.arange(256, dtype=np.uint8) * shade).astype(np.uint8)
 
 
+def _tint_table(colour: np.ndarray) -> np.ndarray:
+    """uint8 (256, 1, 3): each value blended with the RGB ``colour``, 0.55 of the value and
+    0.45 of the colour, truncated (a table for cv2.LUT of an RGB image)."""
+    values = np.arange(256, dtype=np.uint8)[:, None]
+    return (0.55 * values + 0.45 * colour).astype(np.uint8).reshape(256, 1, 3)
+
+
 def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
             observed: np.ndarray | None = None,
             searched: np.ndarray | None = None) -> np.ndarray:
@@ -51,8 +58,6 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
     is searched but the bool HxW ``observed`` is false (a pothole would show in a
     superpixel's mean, not in one pixel) to UNOBSERVED_SHADE; without ``searched``, the road
     not observed to UNSEARCHED_SHADE."""
-    if image.ndim == 2:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
     if image.dtype != np.uint8:
         image = cv2.convertScaleAbs(image, alpha=255.0 / max(float(image.max()), 1.0))
     canvas = image.copy()
@@ -61,15 +66,17 @@ def overlay(image: np.ndarray, labels: np.ndarray, potholes: list[Pothole],
         for shaded, shade in ((~looked, UNSEARCHED_SHADE),
                               (looked & ~observed, UNOBSERVED_SHADE)):
             cv2.copyTo(cv2.LUT(canvas, _shade_table(shade)), shaded.view(np.uint8), canvas)
+    if canvas.ndim == 2:
+        canvas = cv2.cvtColor(canvas, cv2.COLOR_GRAY2RGB)
     scale = max(0.5, min(image.shape[:2]) / 700.0)
     thickness = max(1, int(round(2 * scale)))
     for pothole in potholes:
         colour = PALETTE[(pothole.label - 1) % len(PALETTE)]
         rows, cols = pothole.window(labels.shape)
-        mask = labels[rows, cols] == pothole.label
+        mask = (labels[rows, cols] == pothole.label).view(np.uint8)
         window = canvas[rows, cols]
-        window[mask] = (0.55 * window[mask] + 0.45 * colour).astype(np.uint8)
-        contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL,
+        cv2.copyTo(cv2.LUT(window, _tint_table(colour)), mask, window)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL,
                                        cv2.CHAIN_APPROX_SIMPLE,
                                        offset=(cols.start, rows.start))
         cv2.drawContours(canvas, contours, -1, tuple(int(c) for c in colour), thickness)

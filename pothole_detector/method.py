@@ -18,7 +18,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from .backend import CPU, Backend, StageClock, gather, to_host
+from .backend import CPU, Backend, StageClock, gather, lookup, to_host
 from .calibration import StereoCalibration
 from .errors import InputError, NoRoadError, NoTextureError, PotholeError
 from .params import Config
@@ -84,13 +84,14 @@ class PipelineResult:
 
     def host(self, name: str, window: tuple[slice, slice] | None = None) -> np.ndarray:
         """Array ``name`` (one of ARRAY_FIELDS) as a NumPy array, or its (rows, columns)
-        ``window`` alone: a device-to-host copy of that on the GPU, the array itself (or a view)
+        ``window`` alone: a device-to-host copy of that on the GPU (a per-superpixel field
+        looked up through the superpixels on the device first), the array itself (or a view)
         on the CPU."""
         if name not in ARRAY_FIELDS:
             raise KeyError(f"{name!r} is not one of {', '.join(ARRAY_FIELDS)}")
         if name in SUPERPIXEL_FIELDS:
             superpixels = self.superpixels if window is None else self.superpixels[window]
-            return to_host(getattr(self, name), self.ready)[to_host(superpixels, self.ready)]
+            return lookup(getattr(self, name), superpixels, self.ready)
         array = getattr(self, name)
         return to_host(array if window is None else array[window], self.ready)
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import (CPU, StageClock, UploadBuffer, gather, get_backend,
-                                      gpu_available, to_host)
+                                      gpu_available, lookup, to_host)
 from pothole_detector.errors import BackendError
 
 
@@ -25,6 +25,17 @@ def test_reads_on_the_cpu_take_the_arrays_as_they_are():
     np.testing.assert_array_equal(gather(values, np.array([5, 0, 11])), [5.0, 0.0, 11.0])
     np.testing.assert_array_equal(gather(np.array([10, 20, 30]), np.array([3, 1]),
                                          through=labels), [30, 20])
+
+
+def test_lookup_gives_each_label_its_table_entry_in_the_labels_shape():
+    table = np.array([True, False, True])
+    labels = np.array([[0, 1, 1, 2], [2, 2, 0, 1], [1, 0, 0, 0]], dtype=np.int32)
+    np.testing.assert_array_equal(lookup(table, labels),
+                                  [[True, False, False, True], [True, True, True, False],
+                                   [False, True, True, True]])
+    window = lookup(table, labels[1:, ::2])
+    assert window.dtype == np.bool_ and window.shape == (2, 2)
+    np.testing.assert_array_equal(window, [[True, True], [False, True]])
 
 
 def test_side_stream_on_the_cpu_runs_the_block_and_joins_as_a_no_op():

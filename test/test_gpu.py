@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pothole_detector.backend import (CPU, Readback, StageClock, UploadBuffer, get_backend,
-                                      gpu_available, to_host)
+                                      gpu_available, lookup, to_host)
 from pothole_detector.errors import BackendError, InputError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
@@ -302,6 +302,18 @@ def test_copy_is_a_new_device_array_that_later_writes_leave_alone(gpu):
         source[...] = gpu.upload(np.arange(24, dtype=np.int32).reshape(4, 6))
 
 
+def test_lookup_on_the_device_gives_the_host_lookup(gpu):
+    rng = np.random.default_rng(3)
+    labels = rng.integers(0, 50, (40, 60)).astype(np.int32)
+    table = rng.random(50) < 0.5
+    device_labels, device_table = gpu.upload(labels), gpu.upload(table)
+    for window in ((slice(None), slice(None)), (slice(5, 30), slice(7, 51, 2))):
+        for after in (None, gpu.record_event()):
+            found = lookup(device_table, device_labels[window], after)
+            assert isinstance(found, np.ndarray) and found.dtype == np.bool_
+            np.testing.assert_array_equal(found, table[labels[window]])
+
+
 def test_upload_many_keeps_earlier_uploads_intact(gpu):
     strided = (np.arange(128, dtype=np.int32) // 2)[::2]  # a view, not contiguous
     first = gpu.upload_many(np.full((64, 64), 7, np.uint8), strided)
@@ -372,14 +384,17 @@ def test_a_streamed_result_is_read_without_waiting_for_the_next_frame(gpu, demo_
     pixels = np.arange(0, demo_sample.left.size, 7)
     for result in pipeline.run_stream(iter(pairs)):
         assert result.ready is not None
-        result.host("labels"), result.at("searched", pixels)  # the kernels loaded
+        result.host("labels"), result.at("searched", pixels), result.host("searched")
         spin((1,), (1,), (np.int64(400_000_000),))
         labels, searched = result.host("labels"), result.at("searched", pixels)
+        searched_image = result.host("searched")
         assert not gpu.xp.cuda.get_current_stream().done
         gpu.synchronize()
         np.testing.assert_array_equal(labels, to_host(result.labels))
         np.testing.assert_array_equal(
             searched, to_host(result.searched)[to_host(result.superpixels).ravel()[pixels]])
+        np.testing.assert_array_equal(searched_image,
+                                      to_host(result.searched)[to_host(result.superpixels)])
         window = (slice(50, 200), slice(13, 301))
         np.testing.assert_array_equal(result.host("labels", window), labels[window])
         np.testing.assert_array_equal(result.host("observed", window),

@@ -1,6 +1,7 @@
 """The overlay: potholes tinted, the road shaded by where potholes were looked for."""
 
 import numpy as np
+import pytest
 
 from pothole_detector.imageio import UNOBSERVED_SHADE, UNSEARCHED_SHADE, overlay
 
@@ -31,11 +32,13 @@ def _overlay_whole_image(image, labels, potholes, observed, searched):
     import cv2
 
     from pothole_detector.imageio import PALETTE, write_label
-    canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image.copy()
+    if canvas.dtype != np.uint8:
+        canvas = cv2.convertScaleAbs(canvas, alpha=255.0 / max(float(canvas.max()), 1.0))
     beyond = searched & ~observed
     canvas[~searched] = (canvas[~searched] * UNSEARCHED_SHADE).astype(np.uint8)
     canvas[beyond] = (canvas[beyond] * UNOBSERVED_SHADE).astype(np.uint8)
-    scale = max(0.5, min(image.shape) / 700.0)
+    scale = max(0.5, min(image.shape[:2]) / 700.0)
     thickness = max(1, int(round(2 * scale)))
     for pothole in potholes:
         colour = PALETTE[(pothole.label - 1) % len(PALETTE)]
@@ -48,15 +51,21 @@ def _overlay_whole_image(image, labels, potholes, observed, searched):
     return canvas
 
 
-def test_each_pothole_is_drawn_in_its_box_as_over_the_whole_image():
-    """Tint and outline worked within each pothole's bounding box give the whole-image
-    form's pixels, for potholes of two pieces, with holes, at the image's edges and corners,
-    ragged ones, over a shaded road."""
+@pytest.mark.parametrize("form", ["grey", "rgb", "grey16"])
+def test_each_pothole_is_drawn_in_its_box_as_over_the_whole_image(form):
+    """Tint and outline worked within each pothole's bounding box, on a grey image shaded
+    before it becomes RGB, give the whole-image form's pixels, for potholes of two pieces,
+    with holes, at the image's edges and corners, ragged ones, over a shaded road; from a
+    grey, an RGB and a 16-bit grey image."""
     from pothole_detector.stages.measure import Pothole
 
     rng = np.random.default_rng(4)
     height, width = 180, 400
     image = rng.integers(0, 256, (height, width), dtype=np.uint8)
+    if form == "rgb":
+        image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    elif form == "grey16":
+        image = rng.integers(0, 4096, (height, width), dtype=np.uint16)
     labels = np.zeros((height, width), np.int32)
     labels[0:12, 0:20] = 1                      # a corner
     labels[60:100, 40:70] = 2

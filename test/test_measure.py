@@ -5,10 +5,10 @@ import pytest
 
 from pothole_detector.backend import CPU
 from pothole_detector.stages.components import far_corners
-from pothole_detector.stages.measure import (MEASURE_SUMS, Extreme, Sum, depth_below_road,
-                                             keep_large, measure, measure_potholes,
-                                             potholes_from_sums, reportable, road_normal,
-                                             under_opening)
+from pothole_detector.stages.measure import (MEASURE_SUMS, Extreme, Pothole, Sum,
+                                             depth_below_road, keep_large, measure,
+                                             measure_potholes, potholes_from_sums, reportable,
+                                             road_normal, under_opening, window_of)
 from pothole_detector.stages.road_model import fit_road
 
 
@@ -327,3 +327,15 @@ def test_the_extremes_are_each_label_s_box_and_deepest_point_as_ndimage_finds_th
                                      (Extreme.V_MAX, ndimage.maximum, rows)):
         np.testing.assert_array_equal(extremes[1:, column], function(values, labels, index))
     assert (extremes[2, :] == 0).all() and (extremes[1, Extreme.LARGEST_DEPTH] > 0)
+
+
+def test_the_window_of_potholes_holds_each_ones_window_and_is_empty_without_any():
+    def pothole(label: int, bbox: tuple[int, int, int, int]) -> Pothole:
+        return Pothole(label, 10, 0.01, 0.02, 0.01, 0.0001, (0.0, 0.0, 3.0), bbox)
+
+    shape = (40, 60)
+    first, second = pothole(1, (10, 5, 20, 8)), pothole(2, (0, 30, 4, 39))
+    assert window_of([first], shape) == first.window(shape) == (slice(4, 10), slice(9, 22))
+    assert window_of([first, second], shape) == (slice(4, 40), slice(0, 22))
+    empty = np.zeros(shape)[window_of([], shape)]
+    assert empty.size == 0

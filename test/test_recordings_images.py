@@ -51,6 +51,18 @@ def test_direct_encodings_with_padded_step(encoding):
     np.testing.assert_array_equal(out, expected)
 
 
+def test_a_message_holds_its_own_copy_of_the_pixels():
+    """array_to_image copies the pixels' bytes into the message: later writes to the array
+    leave it alone, and it decodes to the pixels (a float image from a strided view too)."""
+    for source in (RNG.random((6, 10)).astype(np.float32),
+                   RNG.random((6, 20)).astype(np.float32)[:, ::2]):
+        kept = source.copy()
+        msg = images.array_to_image(source, "32FC1", HEADER)
+        source[...] = -1.0
+        assert (msg.height, msg.width, msg.step) == (6, 10, 40)
+        np.testing.assert_array_equal(images.decode_raw(msg, allowed=("32FC1",)), kept)
+
+
 def test_big_endian_mono16():
     pixels = np.array([[1, 258], [65535, 4096]], dtype=np.uint16)
     out = images.decode_raw(_image(pixels[..., None], "mono16", big_endian=True))

@@ -16,6 +16,7 @@ from pothole_detector.ros import conversions  # noqa: E402
 from pothole_detector.calibration import StereoCalibration  # noqa: E402
 from pothole_detector.params import Config  # noqa: E402
 from pothole_detector.pipeline import Pipeline  # noqa: E402
+from pothole_detector.stages.measure import window_of  # noqa: E402
 
 HEADER = Header(frame_id="cam")
 RNG = np.random.default_rng(3)
@@ -41,6 +42,10 @@ def test_points_markers_and_potholes_of_a_real_detection(demo_sample):
                                         demo_sample.calibration)
     cloud = conversions.pointcloud_to_array(conversions.pointcloud_message(points, HEADER))
     np.testing.assert_array_equal(cloud, points)
+    window = window_of(result.potholes, result.labels.shape)
+    assert result.labels[window].size < result.labels.size / 2
+    np.testing.assert_array_equal(conversions.pothole_points(
+        result.labels, result.disparity, result.road, demo_sample.calibration, window), points)
     assert set(np.unique(cloud["label"])) == {p.label for p in result.potholes}
     for pothole in result.potholes:
         own = cloud[cloud["label"] == pothole.label]

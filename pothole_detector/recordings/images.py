@@ -235,13 +235,18 @@ def compressed_format_string(pixels: np.ndarray, codec: str = "jpeg") -> str:
     return f"rgb8; {codec} compressed bgr8"
 
 
-def byte_field(values: np.ndarray) -> array.array | np.ndarray:
-    """The bytes of ``values`` as a uint8[] field takes them (rclpy: array.array)."""
+def with_bytes(message_type: Any, values: np.ndarray, **fields: Any) -> Any:
+    """A message of ``message_type`` with ``fields`` and, as its uint8[] ``data``, the bytes of
+    ``values``, copied once (rclpy's messages: into an array.array that the message, its
+    fields checked as they are set, keeps as it is)."""
+    flat = np.ascontiguousarray(values).view(np.uint8).reshape(-1)
     if not ROS:
-        return np.ascontiguousarray(values).view(np.uint8).reshape(-1).copy()
+        return message_type(data=flat.copy(), **fields)
     data = array.array("B")
-    data.frombytes(np.ascontiguousarray(values).tobytes())
-    return data
+    data.frombytes(flat)
+    made = message_type(check_fields=True, **fields)
+    made.data = data
+    return made
 
 
 def array_to_image(pixels: np.ndarray, encoding: str, header: Any) -> Any:
@@ -252,14 +257,13 @@ def array_to_image(pixels: np.ndarray, encoding: str, header: Any) -> Any:
     if pixels.ndim != (2 if channels == 1 else 3):
         raise InputError(f"{encoding} needs {'HxW' if channels == 1 else 'HxWxC'} pixels")
     height, width = pixels.shape[:2]
-    return message(IMAGE_TYPE)(header=header, height=height, width=width, encoding=encoding,
-                               is_bigendian=0, step=width * channels * dtype.itemsize,
-                               data=byte_field(pixels))
+    return with_bytes(message(IMAGE_TYPE), pixels, header=header, height=height, width=width,
+                      encoding=encoding, is_bigendian=0, step=width * channels * dtype.itemsize)
 
 
 def compressed_image(pixels: np.ndarray, codec: str, header: Any) -> Any:
     """A sensor_msgs/CompressedImage of HxW grey or HxWx3 RGB ``pixels`` compressed with
     ``codec`` (jpeg or png) as image_transport's compressed transport writes it."""
     compressed = np.frombuffer(encode_compressed(pixels, codec), np.uint8)
-    return message(COMPRESSED_TYPE)(header=header, format=compressed_format_string(pixels, codec),
-                                    data=byte_field(compressed))
+    return with_bytes(message(COMPRESSED_TYPE), compressed, header=header,
+                      format=compressed_format_string(pixels, codec))

@@ -12,7 +12,7 @@ import numpy as np
 from ..calibration import StereoCalibration
 from ..errors import InputError
 from ..recordings import messages
-from ..recordings.images import array_to_image, byte_field, decode_raw
+from ..recordings.images import array_to_image, decode_raw, with_bytes
 from ..recordings.messages import message
 from ..stages.measure import Pothole, depth_below_road
 from ..stages.road_model import RoadModel
@@ -46,7 +46,7 @@ def disparity_message(disparity: np.ndarray, calibration: StereoCalibration,
     ``min_disparity - 1`` (outside the valid range), valid_window bounds the valid pixels."""
     low, high = disparity_range
     valid = np.isfinite(disparity)
-    image = np.where(valid, disparity, np.float32(low - 1.0)).astype(np.float32)
+    image = np.where(valid, disparity, np.float32(low - 1.0)).astype(np.float32, copy=False)
     window = RegionOfInterest()
     rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
     if rows.size:
@@ -67,10 +67,15 @@ def disparity_from_message(msg: DisparityImage) -> np.ndarray:
 
 
 def pothole_points(labels: np.ndarray, disparity: np.ndarray, road: RoadModel,
-                   calibration: StereoCalibration) -> np.ndarray:
+                   calibration: StereoCalibration,
+                   window: tuple[slice, slice] | None = None) -> np.ndarray:
     """Structured array (N,) of POINT_DTYPE: x, y, z (m, left optical frame), depth below the
-    road (m) and label of every pothole pixel with a valid disparity."""
-    v, u = np.nonzero(labels > 0)
+    road (m) and label of every pothole pixel with a valid disparity (looked for within the
+    (rows, columns) ``window`` of the images where given: one that holds every pothole
+    pixel, measure.window_of)."""
+    rows, columns = window if window is not None else (slice(0, None), slice(0, None))
+    v, u = np.nonzero(labels[rows, columns] > 0)
+    v, u = v + rows.start, u + columns.start
     d = disparity[v, u]
     keep = np.isfinite(d) & (d > 0)
     u, v, d = u[keep], v[keep], d[keep].astype(np.float64)
@@ -97,22 +102,21 @@ def road_cloud(left: np.ndarray, disparity: np.ndarray, labels: np.ndarray, road
     stereo_image_proc packs it; grey images give r = g = b), depth below the road (m, NaN where
     not measured) and the pothole label (0 = road)."""
     height, width = disparity.shape
-    v, u = np.mgrid[0:height, 0:width]
-    d = disparity.astype(np.float64)
-    valid = np.isfinite(d) & (d > 0)
+    v = np.arange(height)[:, None]
+    u = np.arange(width)[None, :]
+    measured = np.where(np.isfinite(disparity) & (disparity > 0), disparity,
+                        np.float32(np.nan)).astype(np.float32, copy=False)
     cloud = np.empty((height, width), dtype=CLOUD_DTYPE)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x, y, z = calibration.back_project(u, v, np.where(valid, d, np.nan))
-        depth = depth_below_road(np, u, v, np.where(valid, d, np.nan).astype(np.float32), road,
-                                 calibration)[0]
-    cloud["x"], cloud["y"], cloud["z"] = x, y, z
-    colour = left if left.ndim == 3 else np.repeat(left[..., None], 3, axis=2)
-    colour = colour[..., :3].astype(np.uint32)
+        cloud["x"], cloud["y"], cloud["z"] = calibration.back_project(
+            u, v, measured.astype(np.float64))
+        cloud["depth_below_road"] = depth_below_road(np, u, v, measured, road, calibration)[0]
+    colour = left.astype(np.uint32)
     if left.dtype == np.uint16:
         colour >>= 8
-    packed = (colour[..., 0] << 16) | (colour[..., 1] << 8) | colour[..., 2]
-    cloud["rgb"] = packed.astype("<u4").view("<f4")
-    cloud["depth_below_road"] = depth
+    packed = (colour * 0x010101 if colour.ndim == 2
+              else (colour[..., 0] << 16) | (colour[..., 1] << 8) | colour[..., 2])
+    cloud["rgb"] = packed.astype("<u4", copy=False).view("<f4")
     cloud["label"] = labels
     return cloud
 
@@ -123,11 +127,9 @@ def organized_cloud_message(cloud: np.ndarray, header: Header) -> PointCloud2:
     fields = [PointField(name=name, offset=CLOUD_DTYPE.fields[name][1], datatype=kind, count=1)
               for name, kind in CLOUD_FIELDS]
     height, width = cloud.shape
-    return PointCloud2(header=header, height=height, width=width, fields=fields,
-                       is_bigendian=False, point_step=CLOUD_DTYPE.itemsize,
-                       row_step=CLOUD_DTYPE.itemsize * width,
-                       data=byte_field(np.ascontiguousarray(cloud).view(np.uint8).reshape(-1)),
-                       is_dense=False)
+    return with_bytes(PointCloud2, cloud, header=header, height=height, width=width,
+                      fields=fields, is_bigendian=False, point_step=CLOUD_DTYPE.itemsize,
+                      row_step=CLOUD_DTYPE.itemsize * width, is_dense=False)
 
 
 def organized_cloud_to_array(msg: PointCloud2) -> np.ndarray:
@@ -143,10 +145,9 @@ def pointcloud_message(points: np.ndarray, header: Header) -> PointCloud2:
     """sensor_msgs/PointCloud2 (unorganized, little endian) of a POINT_DTYPE array."""
     fields = [PointField(name=name, offset=POINT_DTYPE.fields[name][1], datatype=kind, count=1)
               for name, kind in POINT_FIELDS]
-    return PointCloud2(header=header, height=1, width=int(points.size), fields=fields,
-                       is_bigendian=False, point_step=POINT_DTYPE.itemsize,
-                       row_step=POINT_DTYPE.itemsize * int(points.size),
-                       data=byte_field(points.view(np.uint8)), is_dense=True)
+    return with_bytes(PointCloud2, points, header=header, height=1, width=int(points.size),
+                      fields=fields, is_bigendian=False, point_step=POINT_DTYPE.itemsize,
+                      row_step=POINT_DTYPE.itemsize * int(points.size), is_dense=True)
 
 
 def pointcloud_to_array(msg: PointCloud2) -> np.ndarray:
@@ -265,10 +266,9 @@ def map_cloud_message(view: Any, header: Header) -> PointCloud2:
     cloud["pothole_id"] = view.label[rows, cols]
     fields = [PointField(name=name, offset=MAP_DTYPE.fields[name][1], datatype=kind, count=1)
               for name, kind in MAP_FIELDS]
-    return PointCloud2(header=header, height=1, width=len(cloud), fields=fields,
-                       is_bigendian=False, point_step=MAP_DTYPE.itemsize,
-                       row_step=MAP_DTYPE.itemsize * len(cloud),
-                       data=byte_field(cloud.view(np.uint8)), is_dense=False)
+    return with_bytes(PointCloud2, cloud, header=header, height=1, width=len(cloud),
+                      fields=fields, is_bigendian=False, point_step=MAP_DTYPE.itemsize,
+                      row_step=MAP_DTYPE.itemsize * len(cloud), is_dense=False)
 
 
 def occupancy_grid_message(view: Any, header: Header) -> OccupancyGrid:

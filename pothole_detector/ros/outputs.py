@@ -12,6 +12,7 @@ from ..calibration import StereoCalibration
 from ..imageio import overlay
 from ..method import PipelineResult
 from ..recordings.images import array_to_image
+from ..stages.measure import window_of
 from . import conversions
 
 # output topic (relative) -> ROS message type
@@ -78,7 +79,8 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
             array("labels").astype(np.uint16), "mono16", header)
     if "pothole_points" in wanted:
         points = conversions.pothole_points(array("labels"), array("disparity"), result.road,
-                                            calibration)
+                                            calibration,
+                                            window_of(result.potholes, result.labels.shape))
         messages["pothole_points"] = conversions.pointcloud_message(points, header)
     if "points2" in wanted:
         messages["points2"] = conversions.organized_cloud_message(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -85,6 +85,17 @@ class Pothole:
         u0, v0, u1, v1 = self.bbox_px
         return (slice(max(v0 - 1, 0), min(v1 + 2, shape[0])),
                 slice(max(u0 - 1, 0), min(u1 + 2, shape[1])))
+
+
+def window_of(potholes: Sequence[Pothole], shape: tuple[int, ...]) -> tuple[slice, slice]:
+    """Rows and columns of an image of ``shape`` (H, W, ...) that hold all of ``potholes``:
+    the box around their windows (Pothole.window); empty where there are none."""
+    if not potholes:
+        return slice(0, 0), slice(0, 0)
+    windows = [pothole.window(shape) for pothole in potholes]
+    return (slice(min(rows.start for rows, _ in windows), max(rows.stop for rows, _ in windows)),
+            slice(min(columns.start for _, columns in windows),
+                  max(columns.stop for _, columns in windows)))
 
 
 def road_normal(model: RoadModel, calibration: StereoCalibration) -> np.ndarray:

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from ..calibration import StereoCalibration
+from ..stages.measure import window_of
 from .motion import Pose2, RoadFrame
 
 # the largest id the node publishes: the label image (pothole_labels) is mono16
@@ -126,11 +127,9 @@ def sightings_of(stamp_ns: int, result: Any, plane: RoadFrame, width: int, heigh
     extents = outlines = None
     if calibration is not None and result.potholes:
         windows = {p.label: p.window((height, width)) for p in result.potholes}
-        top = min(rows.start for rows, _ in windows.values())
-        left = min(columns.start for _, columns in windows.values())
-        labels = result.host("labels", (
-            slice(top, max(rows.stop for rows, _ in windows.values())),
-            slice(left, max(columns.stop for _, columns in windows.values()))))
+        around = window_of(result.potholes, (height, width))
+        top, left = around[0].start, around[1].start
+        labels = result.host("labels", around)
         boxes = [None if box is None else (slice(box[0].start - top, box[0].stop - top),
                                            slice(box[1].start - left, box[1].stop - left))
                  for box in (windows.get(label) for label in range(
