@@ -550,6 +550,11 @@ def get_backend(name: str = "auto") -> Backend:
     return CPU
 
 
+def array_module(array: Any) -> Any:
+    """The module of ``array``: CuPy for a CuPy array, else NumPy."""
+    return _cupy if _cupy is not None and isinstance(array, _cupy.ndarray) else np
+
+
 def to_host(array: Any, after: Any = None) -> np.ndarray:
     """NumPy view or copy of a NumPy or CuPy array. ``after``: an event of
     :meth:`Backend.record_event` after which ``array`` holds its values; the copy then waits for

@@ -16,6 +16,7 @@ from pothole_detector.backend import (CPU, Readback, StageClock, UploadBuffer, g
 from pothole_detector.errors import BackendError, InputError, PotholeError
 from pothole_detector.params import Config
 from pothole_detector.pipeline import Pipeline
+from pothole_detector.ros import conversions
 from pothole_detector.stages import (census_sgm, components, matching, measure, perspective,
                                      seed, superpixels, threshold)
 from pothole_detector.stages.matching import to_gray8
@@ -312,6 +313,23 @@ def test_lookup_on_the_device_gives_the_host_lookup(gpu):
             found = lookup(device_table, device_labels[window], after)
             assert isinstance(found, np.ndarray) and found.dtype == np.bool_
             np.testing.assert_array_equal(found, table[labels[window]])
+
+
+def test_the_road_cloud_worked_out_on_the_device_is_the_one_from_the_host(gpu, demo_sample):
+    """points2's cloud from the device's disparity equals the one from its host copy (the
+    same float64 arithmetic on both, to float32 rounding; NaN where the other has NaN)."""
+    result = Pipeline(Config(), demo_sample.calibration, gpu).run(demo_sample.left,
+                                                                  demo_sample.right)
+    labels = result.host("labels")
+    on_device, on_host = (
+        conversions.road_cloud(demo_sample.left, disparity, labels, result.road,
+                               demo_sample.calibration)
+        for disparity in (result.disparity, result.host("disparity")))
+    for name in ("x", "y", "z", "depth_below_road"):
+        np.testing.assert_allclose(on_device[name], on_host[name], rtol=1e-6, atol=0)
+    for name in ("rgb", "label"):
+        np.testing.assert_array_equal(on_device[name].view("<u4"), on_host[name].view("<u4"))
+    assert np.isfinite(on_host["depth_below_road"]).mean() > 0.5 and labels.max() > 0
 
 
 def test_upload_many_keeps_earlier_uploads_intact(gpu):

@@ -9,6 +9,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from ..backend import array_module, to_host
 from ..calibration import StereoCalibration
 from ..errors import InputError
 from ..recordings import messages
@@ -93,24 +94,31 @@ CLOUD_FIELDS = (("x", PointField.FLOAT32), ("y", PointField.FLOAT32), ("z", Poin
                 ("label", PointField.UINT32))
 CLOUD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<f4"),
                         ("depth_below_road", "<f4"), ("label", "<u4")])
+CLOUD_INDEX = {name: index for index, (name, _) in enumerate(CLOUD_FIELDS)}
 
 
-def road_cloud(left: np.ndarray, disparity: np.ndarray, labels: np.ndarray, road: RoadModel,
+def road_cloud(left: np.ndarray, disparity: Any, labels: np.ndarray, road: RoadModel,
                calibration: StereoCalibration) -> np.ndarray:
     """The organized cloud of the left view (structured HxW CLOUD_DTYPE): x, y, z (m, left
     optical frame; NaN where the disparity is invalid), rgb (0x00RRGGBB as float32, as
     stereo_image_proc packs it; grey images give r = g = b), depth below the road (m, NaN where
-    not measured) and the pothole label (0 = road)."""
+    not measured) and the pothole label (0 = road). ``disparity`` (float32 HxW, px) NumPy or
+    CuPy: on the GPU the points and depths are worked out on the device and read back once
+    (after the work already queued on the current stream); ``left`` and ``labels`` are host
+    arrays."""
+    xp = array_module(disparity)
     height, width = disparity.shape
-    v = np.arange(height)[:, None]
-    u = np.arange(width)[None, :]
-    measured = np.where(np.isfinite(disparity) & (disparity > 0), disparity,
-                        np.float32(np.nan)).astype(np.float32, copy=False)
-    cloud = np.empty((height, width), dtype=CLOUD_DTYPE)
+    v = xp.arange(height)[:, None]
+    u = xp.arange(width)[None, :]
+    measured = xp.where(xp.isfinite(disparity) & (disparity > 0), disparity,
+                        xp.float32(np.nan)).astype(xp.float32, copy=False)
+    fields = xp.empty((height, width, len(CLOUD_FIELDS)), xp.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        cloud["x"], cloud["y"], cloud["z"] = calibration.back_project(
-            u, v, measured.astype(np.float64))
-        cloud["depth_below_road"] = depth_below_road(np, u, v, measured, road, calibration)[0]
+        fields[..., 0], fields[..., 1], fields[..., 2] = calibration.back_project(
+            u, v, measured.astype(xp.float64))
+        fields[..., CLOUD_INDEX["depth_below_road"]] = depth_below_road(
+            xp, u, v, measured, road, calibration)[0]
+    cloud = to_host(fields).view(CLOUD_DTYPE)[..., 0]
     colour = left.astype(np.uint32)
     if left.dtype == np.uint16:
         colour >>= 8

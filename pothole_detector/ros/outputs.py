@@ -84,7 +84,7 @@ def output_messages(result: PipelineResult, left: np.ndarray, calibration: Stere
         messages["pothole_points"] = conversions.pointcloud_message(points, header)
     if "points2" in wanted:
         messages["points2"] = conversions.organized_cloud_message(
-            conversions.road_cloud(left, array("disparity"), array("labels"), result.road,
+            conversions.road_cloud(left, result.disparity, array("labels"), result.road,
                                    calibration), header)
     if "pothole_markers" in wanted:
         messages["pothole_markers"] = conversions.markers_message(
