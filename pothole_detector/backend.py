@@ -560,7 +560,7 @@ def to_host(array: Any, after: Any = None) -> np.ndarray:
     :meth:`Backend.record_event` after which ``array`` holds its values; the copy then waits for
     that event alone, on a stream of its own, not for what the current stream queued after it
     (a stream's next frame)."""
-    if _cupy is None or not isinstance(array, _cupy.ndarray):
+    if array_module(array) is np:
         return np.asarray(array)
     stream = _reading_stream(after)
     with stream:
@@ -573,7 +573,7 @@ def gather(array: Any, flat_index: np.ndarray, through: Any = None,
     ``through`` (an int array of the same kind), ``array[through.ravel()[flat_index]]``: a
     lookup through a label image. On the GPU the index goes up once and only the gathered
     values come back; ``after`` as in :func:`to_host`."""
-    if _cupy is None or not isinstance(array, _cupy.ndarray):
+    if array_module(array) is np:
         index = np.asarray(flat_index)
         if through is not None:
             index = through.ravel()[index]
@@ -593,7 +593,7 @@ def lookup(table: Any, labels: Any, after: Any = None) -> np.ndarray:
     ``labels`` (any shape, a view will do) both NumPy or both CuPy. On the GPU the lookup runs
     on the device and only its result comes back (a bool label image: a quarter of the bytes
     of the int32 labels); ``after`` as in :func:`to_host`."""
-    if _cupy is None or not isinstance(labels, _cupy.ndarray):
+    if array_module(labels) is np:
         return np.take(np.asarray(table), labels)
     stream = _reading_stream(after)
     with stream:
