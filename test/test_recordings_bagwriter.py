@@ -7,7 +7,8 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2
 from rosbags.rosbag2 import WriterError
 
 from pothole_detector.errors import InputError
-from pothole_detector.recordings.bagwriter import BagWriter
+from pothole_detector.recordings.bagwriter import (ZSTD_JOB_BYTES, ZSTD_MOST_WORKERS, BagWriter,
+                                                    chunk_compressor, compression_workers, zstd)
 from pothole_detector.recordings.messages import header_at, message, serialize, typestore
 
 STRING = "std_msgs/msg/String"
@@ -39,14 +40,16 @@ def test_messages_arrive_in_the_order_written(tmp_path, storage):
     assert read[-1][2].frame_id == "here"
 
 
-@pytest.mark.parametrize("compression, recorded", [("zstd", "zstd"), ("zstd_fast", "zstd"),
-                                                   ("lz4", "lz4"), ("none", "")])
-def test_mcap_chunks_are_compressed_as_asked(tmp_path, compression, recorded):
-    """Each chunk records its compression; rosbags reads every one back to the same messages,
-    and the repetitive text shrinks wherever it is compressed."""
-    writer = BagWriter(tmp_path / "bag", "mcap", compression)
+@pytest.mark.parametrize("compression, recorded, workers", [
+    ("zstd", "zstd", 0), ("zstd", "zstd", 2), ("zstd_fast", "zstd", 0),
+    ("zstd_fast", "zstd", 3), ("lz4", "lz4", 2), ("none", "", 2)])
+def test_mcap_chunks_are_compressed_as_asked(tmp_path, compression, recorded, workers):
+    """Each chunk records its compression; rosbags and the mcap library read every one back
+    to the same messages, made by zstd's threads or not, and the repetitive text shrinks
+    wherever it is compressed."""
+    writer = BagWriter(tmp_path / "bag", "mcap", compression, workers=workers)
     texts = writer.add_connection("/texts", STRING, typestore=typestore())
-    written = [f"road {index % 7} " * 2000 for index in range(300)]
+    written = [f"road {index % 7} " * 2000 for index in range(300)] + ["pothole " * 300_000]
     for index, text in enumerate(written):
         writer.write(texts, 1_000 + index, _string(text))
     writer.close()
@@ -60,6 +63,21 @@ def test_mcap_chunks_are_compressed_as_asked(tmp_path, compression, recorded):
     with AnyReader([tmp_path / "bag"], default_typestore=typestore()) as reader:
         assert [reader.deserialize(data, c.msgtype).data
                 for c, _, data in reader.messages()] == written
+    with path.open("rb") as stream:
+        assert [bytes(message.data) for _, _, message in make_reader(stream).iter_messages()] \
+            == [_string(text) for text in written]
+
+
+def test_zstd_threads_make_the_same_frame_as_one_another_and_their_share_follows_the_cores():
+    """A chunk of several of zstd's jobs comes out the same by two threads as by five, and
+    decompresses to itself; the writer takes half the cores for them, none below four."""
+    chunk = bytes(range(256)) * 12_000 + bytes(3 * ZSTD_JOB_BYTES)
+    two, five = (chunk_compressor("zstd_fast", workers)(chunk) for workers in (2, 5))
+    assert two == five and len(two) < len(chunk) / 10
+    assert zstd.decompress(two) == zstd.decompress(chunk_compressor("zstd", 0)(chunk)) == chunk
+    assert [compression_workers(cores) for cores in (1, 2, 3, 4, 6, 16, 128)] == \
+        [0, 0, 0, 2, 3, 8, ZSTD_MOST_WORKERS]
+    assert 0 <= compression_workers() <= ZSTD_MOST_WORKERS
 
 
 def test_the_backlog_bounds_the_bytes_waiting(tmp_path):

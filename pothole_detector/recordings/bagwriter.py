@@ -3,6 +3,7 @@ writing it run beside the work that makes the messages."""
 
 from __future__ import annotations
 
+import os
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
@@ -23,16 +24,49 @@ except ImportError:
 
 # Serialized messages a BagWriter lets wait for its thread before ``write`` waits (bytes).
 WRITE_BACKLOG_BYTES = 256 << 20
-# zstd's level for the zstd_fast chunks
+# zstd's level for the zstd chunks (zstd's own default, the level rosbags writes) and for the
+# zstd_fast ones
+ZSTD_LEVEL = 3
 ZSTD_FAST_LEVEL = 1
-# An mcap bag's chunk compression by name: the compression its chunks record ("": none) and the
-# function that compresses one (None: rosbags' own, zstd at its default level 3).
-MCAP_COMPRESSIONS: dict[str, tuple[str, Callable[[bytes], bytes] | None]] = {
-    "zstd": ("zstd", None),
-    "zstd_fast": ("zstd", partial(zstd.compress, level=ZSTD_FAST_LEVEL)),
-    "lz4": ("lz4", lz4.frame.compress),
+# zstd's threads for one chunk: at most this many, and the part of the chunk each compresses
+# (bytes; zstd's least)
+ZSTD_MOST_WORKERS = 8
+ZSTD_JOB_BYTES = 512 << 10
+# An mcap bag's chunk compression by name: the compression its chunks record ("": none) and
+# zstd's level (None: lz4 or none).
+MCAP_COMPRESSIONS: dict[str, tuple[str, int | None]] = {
+    "zstd": ("zstd", ZSTD_LEVEL),
+    "zstd_fast": ("zstd", ZSTD_FAST_LEVEL),
+    "lz4": ("lz4", None),
     "none": ("", None),
 }
+
+
+def compression_workers(cores: int | None = None) -> int:
+    """zstd's threads for each chunk on a host of ``cores`` (default: those this process may
+    run on): half of them, at most ZSTD_MOST_WORKERS; 0 (the writer's thread compresses alone)
+    below four cores, which the pipeline's own threads need."""
+    if cores is None:
+        cores = len(os.sched_getaffinity(0))
+    return 0 if cores < 4 else min(cores // 2, ZSTD_MOST_WORKERS)
+
+
+def chunk_compressor(compression: str, workers: int) -> Callable[[bytes], bytes] | None:
+    """The function that compresses one mcap chunk's bytes as ``compression`` asks (None where
+    nothing is compressed): a zstd frame made by ``workers`` threads of zstd's own, each
+    ZSTD_JOB_BYTES of the chunk (0: in the calling thread; a chunk of one large image then
+    takes a fraction of the time), or an lz4 frame."""
+    name, level = MCAP_COMPRESSIONS[compression]
+    if name == "lz4":
+        return lz4.frame.compress
+    if level is None:
+        return None
+    options = {zstd.CompressionParameter.compression_level: level}
+    if workers:
+        options |= {zstd.CompressionParameter.nb_workers: workers,
+                    zstd.CompressionParameter.job_size: ZSTD_JOB_BYTES}
+    compressor = zstd.ZstdCompressor(options=options)
+    return partial(compressor.compress, mode=zstd.ZstdCompressor.FLUSH_FRAME)
 
 
 class BagWriter:
@@ -45,12 +79,14 @@ class BagWriter:
     whatever happened (a second ``close`` does nothing).
 
     ``compression`` (mcap; a sqlite3 bag is written uncompressed): each chunk of about 1 MB of
-    messages by zstd at level 3 (the default: the smallest bag), zstd_fast (zstd at level
-    ZSTD_FAST_LEVEL: less than half the time, about a fifth more bytes), lz4 (faster and
-    larger still) or none."""
+    messages (or one larger message) by zstd at level ZSTD_LEVEL (the default: the smallest
+    bag), zstd_fast (zstd at level ZSTD_FAST_LEVEL: less than half the time, about a fifth
+    more bytes), lz4 (faster and larger still) or none; zstd by ``workers`` threads of its
+    own (default: compression_workers)."""
 
     def __init__(self, path: str | Path, storage: str, compression: str = "zstd",
-                 backlog_bytes: int = WRITE_BACKLOG_BYTES) -> None:
+                 backlog_bytes: int = WRITE_BACKLOG_BYTES, workers: int | None = None
+                 ) -> None:
         plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}.get(storage)
         if plugin is None:
             raise InputError(f"storage must be mcap or sqlite3, got {storage!r}")
@@ -60,8 +96,9 @@ class BagWriter:
         if Path(path).exists():
             raise InputError(f"{path} exists already; choose a new output path")
         self._bag = Writer(Path(path), version=9, storage_plugin=plugin)
-        name, compressor = MCAP_COMPRESSIONS[compression] if plugin == StoragePlugin.MCAP \
-            else ("", None)
+        name = MCAP_COMPRESSIONS[compression][0] if plugin == StoragePlugin.MCAP else ""
+        compressor = chunk_compressor(compression, compression_workers()
+                                      if workers is None else workers) if name else None
         if name:
             self._bag.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._backlog_bytes = backlog_bytes
