@@ -47,7 +47,8 @@ def compression_workers(cores: int | None = None) -> int:
     run on): half of them, at most ZSTD_MOST_WORKERS; 0 (the writer's thread compresses alone)
     below four cores, which the pipeline's own threads need."""
     if cores is None:
-        cores = len(os.sched_getaffinity(0))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+            else os.cpu_count() or 1
     return 0 if cores < 4 else min(cores // 2, ZSTD_MOST_WORKERS)
 
 
