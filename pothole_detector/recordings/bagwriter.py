@@ -54,9 +54,9 @@ def compression_workers(cores: int | None = None) -> int:
 
 def chunk_compressor(compression: str, workers: int) -> Callable[[bytes], bytes] | None:
     """The function that compresses one mcap chunk's bytes as ``compression`` asks (None where
-    nothing is compressed): a zstd frame made by ``workers`` threads of zstd's own, each
-    ZSTD_JOB_BYTES of the chunk (0: in the calling thread; a chunk of one large image then
-    takes a fraction of the time), or an lz4 frame."""
+    nothing is compressed): one zstd frame, made by ``workers`` threads of zstd's own that
+    take ZSTD_JOB_BYTES of the chunk at a time (0: by the calling thread alone), or one lz4
+    frame."""
     name, level = MCAP_COMPRESSIONS[compression]
     if name == "lz4":
         return lz4.frame.compress
