@@ -7,7 +7,8 @@ from rosbags.interfaces import Connection, ConnectionExtRosbag2
 from rosbags.rosbag2 import WriterError
 
 from pothole_detector.errors import InputError
-from pothole_detector.recordings.bagwriter import (ZSTD_JOB_BYTES, ZSTD_MOST_WORKERS, BagWriter,
+from pothole_detector.recordings.bagwriter import (ZSTD_FAST_LEVEL, ZSTD_JOB_BYTES,
+                                                    ZSTD_MOST_WORKERS, BagWriter,
                                                     chunk_compressor, compression_workers, zstd)
 from pothole_detector.recordings.messages import header_at, message, serialize, typestore
 
@@ -78,6 +79,35 @@ def test_zstd_threads_make_the_same_frame_as_one_another_and_their_share_follows
     assert [compression_workers(cores) for cores in (1, 2, 3, 4, 6, 16, 128)] == \
         [0, 0, 0, 2, 3, 8, ZSTD_MOST_WORKERS]
     assert 0 <= compression_workers() <= ZSTD_MOST_WORKERS
+
+
+def test_a_zstd_built_without_threads_compresses_alone(monkeypatch):
+    """Where the zstd library has no threads (nb_workers bounded to 0), the chunks are
+    compressed by the writer's thread, not refused."""
+    class Unthreaded:
+        @staticmethod
+        def bounds() -> tuple[int, int]:
+            return (0, 0)
+
+    parameters = zstd.CompressionParameter
+    made = []
+
+    real = zstd.ZstdCompressor
+
+    class Recording:
+        FLUSH_FRAME = real.FLUSH_FRAME
+
+        def __new__(cls, options):
+            made.append(options)
+            return real(options=options)
+
+    monkeypatch.setattr(zstd, "ZstdCompressor", Recording)
+    monkeypatch.setattr(zstd, "CompressionParameter", type(
+        "Parameters", (), {"nb_workers": Unthreaded, "job_size": parameters.job_size,
+                           "compression_level": parameters.compression_level}))
+    chunk = bytes(range(256)) * 8_000
+    assert zstd.decompress(chunk_compressor("zstd_fast", 8)(chunk)) == chunk
+    assert made == [{parameters.compression_level: ZSTD_FAST_LEVEL}]
 
 
 def test_the_backlog_bounds_the_bytes_waiting(tmp_path):

@@ -55,13 +55,14 @@ def compression_workers(cores: int | None = None) -> int:
 def chunk_compressor(compression: str, workers: int) -> Callable[[bytes], bytes] | None:
     """The function that compresses one mcap chunk's bytes as ``compression`` asks (None where
     nothing is compressed): one zstd frame, made by ``workers`` threads of zstd's own that
-    take ZSTD_JOB_BYTES of the chunk at a time (0: by the calling thread alone), or one lz4
-    frame."""
+    take ZSTD_JOB_BYTES of the chunk at a time (0: by the calling thread alone; as many as
+    the zstd library can run, none where it was built without threads), or one lz4 frame."""
     name, level = MCAP_COMPRESSIONS[compression]
     if name == "lz4":
         return lz4.frame.compress
     if level is None:
         return None
+    workers = min(workers, zstd.CompressionParameter.nb_workers.bounds()[1])
     options = {zstd.CompressionParameter.compression_level: level}
     if workers:
         options |= {zstd.CompressionParameter.nb_workers: workers,
